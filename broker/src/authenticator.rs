@@ -1,0 +1,195 @@
+//! Login: the first step of the packet path, run once per connection at CONNECT.
+//!
+//! The order is chosen so that the expensive step comes last and is bounded:
+//! 1. throttle: an address that failed too often recently is refused at once, no hashing;
+//! 2. anonymous: a CONNECT without a username is let in only where the listener allows it;
+//! 3. cache: a device that already proved this exact password against this exact
+//!    password-file entry is let in without argon2 (the cache keeps keyed MACs, not passwords);
+//! 4. argon2id (or a Mosquitto legacy hash), on the blocking pool, at most
+//!    `verify_concurrency` at once, so a reconnect storm queues instead of starving the
+//!    connections already serving traffic.
+//!
+//! An unknown user costs one dummy argon2 verification, exactly like a wrong password, so
+//! response time does not reveal which user names exist.
+
+use std::net::IpAddr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use security::{CredentialCache, LoginThrottle, PasswordFile, StoredHash, Verification};
+use tokio::sync::Semaphore;
+
+use crate::config::AuthSection;
+use crate::metrics::Metrics;
+use crate::watched_file::WatchedFile;
+
+/// The result of a login attempt.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    Accepted,
+    /// Wrong password or unknown user (deliberately indistinguishable).
+    BadCredentials,
+    /// No username, on a listener that requires one.
+    MissingCredentials,
+    /// Too many recent failures from this address; retry after this long.
+    Throttled(Duration),
+}
+
+pub struct Authenticator {
+    passwords: Option<Arc<WatchedFile<PasswordFile>>>,
+    cache: CredentialCache,
+    throttle: LoginThrottle,
+    verify_slots: Semaphore,
+    rehash_legacy: bool,
+    /// Serialises rewrites of the password file by the broker itself.
+    rewrite: Mutex<()>,
+    metrics: Arc<Metrics>,
+}
+
+impl Authenticator {
+    pub fn new(
+        auth: &AuthSection,
+        passwords: Option<Arc<WatchedFile<PasswordFile>>>,
+        metrics: Arc<Metrics>,
+    ) -> Authenticator {
+        let throttle = security::ThrottleConfig {
+            free_failures: auth.throttle.free_failures,
+            base_delay: Duration::from_millis(auth.throttle.base_delay_ms),
+            max_delay: Duration::from_millis(auth.throttle.max_delay_ms),
+            ..security::ThrottleConfig::default()
+        };
+        Authenticator {
+            passwords,
+            cache: CredentialCache::new(auth.cache_capacity),
+            throttle: LoginThrottle::new(throttle),
+            verify_slots: Semaphore::new(auth.verify_concurrency),
+            rehash_legacy: auth.rehash_legacy,
+            rewrite: Mutex::new(()),
+            metrics,
+        }
+    }
+
+    /// Checks a CONNECT's credentials. `login` is (username, password) when the packet had a
+    /// username. The password is dropped when this returns; it is never logged or stored.
+    pub async fn authenticate(
+        self: &Arc<Self>,
+        peer: IpAddr,
+        login: Option<(String, String)>,
+        anonymous_allowed: bool,
+    ) -> Outcome {
+        if let Err(retry_after) = self.throttle.check(peer, Instant::now()) {
+            self.metrics.logins_throttled.inc();
+            return Outcome::Throttled(retry_after);
+        }
+        let Some((user, password)) = login else {
+            return if anonymous_allowed {
+                Outcome::Accepted
+            } else {
+                self.metrics
+                    .auth_failures
+                    .with_label_values(&["missing_credentials"])
+                    .inc();
+                Outcome::MissingCredentials
+            };
+        };
+        let Some(passwords) = &self.passwords else {
+            // No password file: only loopback listeners exist (config validation), and
+            // like Mosquitto without a password file, credentials are not checked.
+            return if anonymous_allowed {
+                Outcome::Accepted
+            } else {
+                Outcome::BadCredentials
+            };
+        };
+
+        let file = passwords.get();
+        if let Some(stored) = file.get(&user) {
+            if self.cache.hit(&user, password.as_bytes(), stored) {
+                self.metrics.auth_cache_hits.inc();
+                self.throttle.record_success(peer);
+                return Outcome::Accepted;
+            }
+        }
+
+        let started = Instant::now();
+        let verdict = {
+            let _slot = self
+                .verify_slots
+                .acquire()
+                .await
+                .expect("the semaphore is never closed");
+            let this = Arc::clone(self);
+            let file = Arc::clone(&file);
+            tokio::task::spawn_blocking(move || {
+                let verdict = file.verify(&user, password.as_bytes());
+                if let Verification::Accepted { legacy } = verdict {
+                    if let Some(stored) = file.get(&user) {
+                        this.cache.insert(&user, password.as_bytes(), stored);
+                        if legacy && this.rehash_legacy {
+                            this.rehash(&user, stored, password.as_bytes());
+                        }
+                    }
+                }
+                verdict
+            })
+            .await
+            .unwrap_or(Verification::Rejected)
+        };
+        self.metrics
+            .auth_verify_seconds
+            .observe(started.elapsed().as_secs_f64());
+
+        match verdict {
+            Verification::Accepted { .. } => {
+                self.throttle.record_success(peer);
+                Outcome::Accepted
+            }
+            Verification::Rejected => {
+                self.metrics
+                    .auth_failures
+                    .with_label_values(&["bad_credentials"])
+                    .inc();
+                if let Some(blocked) = self.throttle.record_failure(peer, Instant::now()) {
+                    tracing::warn!(%peer, blocked_for = ?blocked, "too many failed logins; address throttled");
+                }
+                Outcome::BadCredentials
+            }
+        }
+    }
+
+    /// Rewrites one Mosquitto-format entry as argon2id, after that password was just proven.
+    /// The file is re-read first, so an edit made since the last reload is not lost, and the
+    /// entry is only replaced if it is still the legacy hash that was verified.
+    fn rehash(&self, user: &str, verified: &StoredHash, password: &[u8]) {
+        let Some(watched) = &self.passwords else {
+            return;
+        };
+        let result = (|| -> Result<bool, String> {
+            let _guard = self.rewrite.lock().map_err(|_| "lock poisoned".to_string())?;
+            let mut file = PasswordFile::load(watched.path()).map_err(|e| e.to_string())?;
+            if file.get(user).map(|h| h.phc()) != Some(verified.phc()) {
+                return Ok(false);
+            }
+            let phc = security::hash_password(password, &security::Argon2Params::default())
+                .map_err(|e| e.to_string())?;
+            let stored = StoredHash::parse(&phc).map_err(|e| e.to_string())?;
+            file.set(user, stored).map_err(|e| e.to_string())?;
+            file.save(watched.path()).map_err(|e| e.to_string())?;
+            watched.replace(file);
+            Ok(true)
+        })();
+        match result {
+            Ok(true) => {
+                self.metrics.passwords_rehashed.inc();
+                tracing::info!(user, file = %watched.path().display(), "legacy password hash rewritten as argon2id");
+            }
+            Ok(false) => {}
+            Err(e) => tracing::warn!(user, error = %e, "could not rewrite legacy password hash"),
+        }
+    }
+
+    /// Drops every cached verification (used when the password file is reloaded).
+    pub fn forget_cached(&self) {
+        self.cache.clear();
+    }
+}

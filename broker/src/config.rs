@@ -1,0 +1,481 @@
+//! The broker's configuration: one TOML file, validated completely before anything binds.
+//!
+//! Every option is documented in `deploy/fbbus.example.toml`. The embedded default
+//! ([`DEFAULT_CONFIG`]) is what `fbbus serve` runs with no `--config`: a loopback-only line
+//! broker with anonymous access, so the first command of the README works on a fresh machine.
+//!
+//! Validation refuses a file with the file name, the key and what is wrong. The security
+//! rules live here because they are configuration facts: a listener that is reachable from
+//! the network must require a password, and anonymous access is a loopback-only privilege.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+
+/// The configuration `fbbus serve` uses when no `--config` is given.
+pub const DEFAULT_CONFIG: &str = r#"
+[broker]
+line = "line-1"
+
+[[listener]]
+name = "mqtt-loopback"
+bind = "127.0.0.1:1883"
+allow_anonymous = true
+
+[admin]
+bind = "127.0.0.1:9883"
+"#;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("config file {file}: key `{key}`: {message}")]
+    Invalid {
+        file: String,
+        key: String,
+        message: String,
+    },
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub broker: BrokerSection,
+    #[serde(default)]
+    pub auth: AuthSection,
+    #[serde(default, rename = "listener")]
+    pub listeners: Vec<ListenerSection>,
+    #[serde(default)]
+    pub admin: AdminSection,
+    #[serde(default)]
+    pub log: LogSection,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BrokerSection {
+    /// Name of the production line this broker serves.
+    pub line: String,
+    /// Connections accepted at once, over all listeners.
+    pub max_connections: usize,
+    /// Largest MQTT packet accepted, in bytes (fixed header included).
+    pub max_packet_bytes: usize,
+    /// Packets read from one connection before they are handed to the router as a batch;
+    /// also the MQTT 5 receive maximum the broker announces.
+    pub max_inflight: u16,
+    /// Time a new TCP connection has to send CONNECT.
+    pub connect_timeout_ms: u64,
+    /// Router commit-log segment size per subscribed filter.
+    pub router_segment_bytes: usize,
+    /// Segments kept per filter: memory per filter is at most size x count.
+    pub router_segment_count: usize,
+    /// Messages queued towards one connection before the router pauses delivery to it.
+    pub router_max_outgoing_packets: u64,
+}
+
+impl Default for BrokerSection {
+    fn default() -> Self {
+        BrokerSection {
+            line: "line-1".into(),
+            max_connections: 4096,
+            max_packet_bytes: 256 * 1024,
+            max_inflight: 100,
+            connect_timeout_ms: 5_000,
+            router_segment_bytes: 1024 * 1024,
+            router_segment_count: 2,
+            router_max_outgoing_packets: 1_000,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthSection {
+    /// `user:PHC` lines (argon2id), or a Mosquitto password file.
+    pub password_file: Option<PathBuf>,
+    /// Access rules; without one every authenticated client may do everything.
+    pub acl_file: Option<PathBuf>,
+    /// Rewrite a Mosquitto `$7$`/`$6$` entry as argon2id after its next successful login.
+    pub rehash_legacy: bool,
+    /// Password verifications run at once (argon2 is CPU-bound: more than the cores only queues).
+    pub verify_concurrency: usize,
+    /// Verified credentials remembered (as keyed MACs, never passwords) to skip argon2 on reconnect.
+    pub cache_capacity: usize,
+    /// How often the password and ACL files are checked for changes (SIGHUP reloads at once).
+    pub reload_poll_ms: u64,
+    pub throttle: ThrottleSection,
+}
+
+impl Default for AuthSection {
+    fn default() -> Self {
+        AuthSection {
+            password_file: None,
+            acl_file: None,
+            rehash_legacy: true,
+            verify_concurrency: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(2),
+            cache_capacity: 100_000,
+            reload_poll_ms: 1_000,
+            throttle: ThrottleSection::default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ThrottleSection {
+    /// Failed logins from one address before backoff starts.
+    pub free_failures: u32,
+    pub base_delay_ms: u64,
+    pub max_delay_ms: u64,
+}
+
+impl Default for ThrottleSection {
+    fn default() -> Self {
+        ThrottleSection {
+            free_failures: 5,
+            base_delay_ms: 1_000,
+            max_delay_ms: 60_000,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ListenerSection {
+    pub name: String,
+    pub bind: SocketAddr,
+    /// Clients without a username may connect. Only allowed on a loopback address.
+    /// Defaults to true when there is no password file.
+    pub allow_anonymous: Option<bool>,
+    pub tls: Option<TlsSection>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsSection {
+    /// PEM certificate chain, server certificate first.
+    pub cert: PathBuf,
+    /// PEM private key (PKCS#8, PKCS#1 or SEC1).
+    pub key: PathBuf,
+    /// PEM CA bundle: when set, clients must present a certificate signed by it.
+    pub client_ca: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AdminSection {
+    /// HTTP admin endpoint: /metrics, /healthz, /readyz.
+    pub bind: SocketAddr,
+}
+
+impl Default for AdminSection {
+    fn default() -> Self {
+        AdminSection {
+            bind: SocketAddr::from(([127, 0, 0, 1], 9883)),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogSection {
+    /// A tracing filter: `info`, `debug`, `warn,broker=debug`. RUST_LOG overrides it.
+    /// The default keeps rumqttd's router (per-subscription chatter) at warn.
+    pub level: String,
+    pub format: LogFormat,
+}
+
+impl Default for LogSection {
+    fn default() -> Self {
+        LogSection {
+            level: "info,rumqttd=warn".into(),
+            format: LogFormat::Text,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+impl ListenerSection {
+    /// Whether clients without credentials are let in on this listener.
+    pub fn anonymous(&self, auth: &AuthSection) -> bool {
+        self.allow_anonymous
+            .unwrap_or(auth.password_file.is_none())
+    }
+}
+
+impl Config {
+    /// The embedded default configuration.
+    pub fn embedded_default() -> Config {
+        Config::parse(DEFAULT_CONFIG, "<embedded default>")
+            .expect("the embedded default configuration is valid")
+    }
+
+    /// Reads and validates a configuration file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let mut config = Config::parse(&text, &path.display().to_string())?;
+        config.resolve_paths(path.parent().unwrap_or(Path::new(".")));
+        config.validate_files(&path.display().to_string())?;
+        Ok(config)
+    }
+
+    /// Parses and validates configuration text; `file` names it in errors.
+    pub fn parse(text: &str, file: &str) -> Result<Config, ConfigError> {
+        let deserializer = toml::Deserializer::new(text);
+        let config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
+            let key = e.path().to_string();
+            // toml's own message carries the line and column; keep only its first line
+            // plus the pointer lines so the error stays readable in a journal.
+            let message = e.into_inner().to_string().trim().replace('\n', " ");
+            invalid(file, &key, message)
+        })?;
+        config.validate(file)?;
+        Ok(config)
+    }
+
+    /// Relative paths in a config file are relative to the file's directory.
+    fn resolve_paths(&mut self, base: &Path) {
+        let fix = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        if let Some(p) = self.auth.password_file.as_mut() {
+            fix(p)
+        }
+        if let Some(p) = self.auth.acl_file.as_mut() {
+            fix(p)
+        }
+        for l in &mut self.listeners {
+            if let Some(tls) = l.tls.as_mut() {
+                fix(&mut tls.cert);
+                fix(&mut tls.key);
+                if let Some(ca) = tls.client_ca.as_mut() {
+                    fix(ca)
+                }
+            }
+        }
+    }
+
+    fn validate(&self, file: &str) -> Result<(), ConfigError> {
+        let b = &self.broker;
+        if b.line.trim().is_empty() || b.line.contains(['/', '+', '#']) {
+            return Err(invalid(
+                file,
+                "broker.line",
+                "must be a non-empty name without `/`, `+` or `#`",
+            ));
+        }
+        if b.max_connections == 0 {
+            return Err(invalid(file, "broker.max_connections", "must be at least 1"));
+        }
+        if !(64..=268_435_455).contains(&b.max_packet_bytes) {
+            return Err(invalid(
+                file,
+                "broker.max_packet_bytes",
+                "must be between 64 and 268435455 (the MQTT maximum)",
+            ));
+        }
+        if b.max_inflight == 0 {
+            return Err(invalid(file, "broker.max_inflight", "must be at least 1"));
+        }
+        if b.connect_timeout_ms == 0 {
+            return Err(invalid(file, "broker.connect_timeout_ms", "must be at least 1"));
+        }
+        if b.router_segment_bytes < b.max_packet_bytes {
+            return Err(invalid(
+                file,
+                "broker.router_segment_bytes",
+                "must be at least broker.max_packet_bytes, or the largest message could not be stored",
+            ));
+        }
+        if b.router_segment_count < 1 {
+            return Err(invalid(file, "broker.router_segment_count", "must be at least 1"));
+        }
+        if b.router_max_outgoing_packets == 0 {
+            return Err(invalid(
+                file,
+                "broker.router_max_outgoing_packets",
+                "must be at least 1",
+            ));
+        }
+        if self.auth.verify_concurrency == 0 {
+            return Err(invalid(file, "auth.verify_concurrency", "must be at least 1"));
+        }
+        if self.auth.reload_poll_ms < 100 {
+            return Err(invalid(file, "auth.reload_poll_ms", "must be at least 100"));
+        }
+        let t = &self.auth.throttle;
+        if t.base_delay_ms == 0 || t.max_delay_ms < t.base_delay_ms {
+            return Err(invalid(
+                file,
+                "auth.throttle",
+                "base_delay_ms must be at least 1 and max_delay_ms at least base_delay_ms",
+            ));
+        }
+        if self.listeners.is_empty() {
+            return Err(invalid(
+                file,
+                "listener",
+                "at least one [[listener]] is needed, e.g. bind = \"127.0.0.1:1883\"",
+            ));
+        }
+        for (i, l) in self.listeners.iter().enumerate() {
+            let key = |k: &str| format!("listener[{i}].{k}");
+            if l.name.trim().is_empty() {
+                return Err(invalid(file, &key("name"), "must not be empty"));
+            }
+            if self.listeners[..i].iter().any(|o| o.name == l.name) {
+                return Err(invalid(file, &key("name"), "is used by another listener"));
+            }
+            let loopback = l.bind.ip().is_loopback();
+            let anonymous = l.anonymous(&self.auth);
+            if !loopback && self.auth.password_file.is_none() {
+                return Err(invalid(
+                    file,
+                    &key("bind"),
+                    &format!(
+                        "{} is not a loopback address, so this listener must require authentication: \
+                         set [auth] password_file (create one with `fbbus passwd FILE add USER`), \
+                         or bind to 127.0.0.1",
+                        l.bind
+                    ),
+                ));
+            }
+            if !loopback && anonymous {
+                return Err(invalid(
+                    file,
+                    &key("allow_anonymous"),
+                    "anonymous access is only allowed on loopback listeners",
+                ));
+            }
+            if !anonymous && self.auth.password_file.is_none() {
+                return Err(invalid(
+                    file,
+                    &key("allow_anonymous"),
+                    "is false but there is no [auth] password_file: nobody could connect",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that the files the config names exist, so a typo fails at start, not at first use.
+    fn validate_files(&self, file: &str) -> Result<(), ConfigError> {
+        let check = |key: String, p: &Path| -> Result<(), ConfigError> {
+            if p.is_file() {
+                Ok(())
+            } else {
+                Err(invalid(
+                    file,
+                    &key,
+                    &format!("{} does not exist or is not a file", p.display()),
+                ))
+            }
+        };
+        if let Some(p) = &self.auth.password_file {
+            check("auth.password_file".into(), p)?;
+        }
+        if let Some(p) = &self.auth.acl_file {
+            check("auth.acl_file".into(), p)?;
+        }
+        for (i, l) in self.listeners.iter().enumerate() {
+            if let Some(tls) = &l.tls {
+                check(format!("listener[{i}].tls.cert"), &tls.cert)?;
+                check(format!("listener[{i}].tls.key"), &tls.key)?;
+                if let Some(ca) = &tls.client_ca {
+                    check(format!("listener[{i}].tls.client_ca"), ca)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn connect_timeout(&self) -> Duration {
+        Duration::from_millis(self.broker.connect_timeout_ms)
+    }
+}
+
+fn invalid(file: &str, key: &str, message: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        file: file.to_owned(),
+        key: key.to_owned(),
+        message: message.into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_default_is_loopback_and_anonymous() {
+        let c = Config::embedded_default();
+        assert_eq!(c.listeners.len(), 1);
+        assert!(c.listeners[0].bind.ip().is_loopback());
+        assert!(c.listeners[0].anonymous(&c.auth));
+        assert!(c.admin.bind.ip().is_loopback());
+    }
+
+    #[test]
+    fn non_loopback_without_password_file_is_refused() {
+        let err = Config::parse(
+            "[[listener]]\nname = \"a\"\nbind = \"0.0.0.0:1883\"\n",
+            "line.toml",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("line.toml"), "{err}");
+        assert!(err.contains("listener[0].bind"), "{err}");
+        assert!(err.contains("password_file"), "{err}");
+    }
+
+    #[test]
+    fn anonymous_on_non_loopback_is_refused() {
+        let err = Config::parse(
+            "[auth]\npassword_file = \"p\"\n[[listener]]\nname = \"a\"\nbind = \"0.0.0.0:1883\"\nallow_anonymous = true\n",
+            "f",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("listener[0].allow_anonymous"), "{err}");
+    }
+
+    #[test]
+    fn unknown_key_names_the_key() {
+        let err = Config::parse("[broker]\nmax_conections = 3\n", "f")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("max_conections"), "{err}");
+        assert!(err.contains("broker"), "{err}");
+    }
+
+    #[test]
+    fn wrong_type_names_the_key() {
+        let err = Config::parse(
+            "[broker]\nmax_connections = \"many\"\n[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n",
+            "f",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("broker.max_connections"), "{err}");
+    }
+}

@@ -1,0 +1,978 @@
+//! One MQTT connection, from CONNECT to close. This file is the packet path.
+//!
+//! Every packet a client sends goes through [`Session::inbound`], in this order:
+//!
+//! 1. **authenticated** — once, at CONNECT ([`Session::open`] via the `Authenticator`);
+//!    a session only exists for a client that passed, so every later step knows who it is;
+//! 2. **authorized** — PUBLISH topics and SUBSCRIBE filters against the ACL
+//!    ([`Session::on_publish`], [`Session::on_subscribe`]); the will topic at CONNECT;
+//! 3. **checked** — the place typed FB topic checks plug in (next issue), between the
+//!    ACL and the router, so an ill-typed message is never routed;
+//! 4. **routed** — handed to rumqttd's router through the connection's `LinkTx`, one
+//!    batch per network read;
+//! 5. **metered** — counted in `Metrics` as it is accepted or refused.
+//!
+//! Packets the router sends back (deliveries, acknowledgements) go through
+//! [`Session::outbound`], which only meters them and completes SUBACKs for filters the
+//! ACL refused. The end of a connection is one [`End`] value: it decides the MQTT 5
+//! DISCONNECT reason, whether the will fires, and the disconnect metric label.
+//!
+//! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
+//! needs what that loop hides: the peer address (login throttling), keep-alive 0
+//! (refused by rumqttd 0.20), wills on takeover and keep-alive expiry, one port for
+//! MQTT 3.1.1 and 5, and refusals with the right reason codes.
+
+use std::collections::{HashMap, HashSet};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::BytesMut;
+use rumqttd::local::{LinkError, LinkRx, LinkTx};
+use rumqttd::protocol::{
+    v4::V4, v5::V5, ConnAck, ConnAckProperties, ConnectReturnCode, Disconnect,
+    DisconnectReasonCode, Packet, PingResp, Protocol, PubAck, PubAckReason, PubComp,
+    PubCompReason, PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe,
+    SubscribeProperties, SubscribeReasonCode,
+};
+use rumqttd::Notification;
+use security::{AclRules, Identity};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::sync::watch;
+use tokio::time::{timeout, Instant};
+
+use crate::authenticator::{Authenticator, Outcome};
+use crate::frame::{self, FrameError};
+use crate::metrics::{DisconnectReason, Metrics};
+use crate::router::RouterHandle;
+use crate::watched_file::WatchedFile;
+use crate::wills::{Will, Wills, INTERNAL_CLIENT_ID};
+
+/// A byte stream a client connected over: TCP or TLS over TCP.
+pub trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}
+impl<T: AsyncRead + AsyncWrite + Send + Unpin> Stream for T {}
+
+/// Everything connections share, built once by `server`.
+pub struct Context {
+    pub router: RouterHandle,
+    pub authenticator: Arc<Authenticator>,
+    /// None: no ACL file, every authenticated client may publish and subscribe anywhere.
+    pub acl: Option<Arc<WatchedFile<AclRules>>>,
+    pub wills: Arc<Wills>,
+    pub metrics: Arc<Metrics>,
+    pub max_packet: usize,
+    pub max_inflight: u16,
+    pub connect_timeout: Duration,
+    /// Becomes true when the broker shuts down.
+    pub shutdown: watch::Receiver<bool>,
+}
+
+/// What a listener decides for the connections it accepts.
+#[derive(Debug)]
+pub struct ListenerPolicy {
+    pub name: String,
+    pub anonymous: bool,
+}
+
+/// Serves one accepted connection until it ends.
+pub async fn serve(
+    stream: Box<dyn Stream>,
+    peer: SocketAddr,
+    listener: Arc<ListenerPolicy>,
+    ctx: Arc<Context>,
+) {
+    let mut io = Io::new(stream, ctx.max_packet);
+    let connect = match timeout(ctx.connect_timeout, io.read_connect()).await {
+        Ok(Ok(packet)) => packet,
+        Ok(Err(refusal)) => {
+            refusal.report(&ctx.metrics, peer);
+            if let Some(code) = refusal.connack {
+                let _ = io.send(connack(code, None)).await;
+            }
+            return;
+        }
+        Err(_) => {
+            ctx.metrics.refused("connect_timeout");
+            tracing::debug!(%peer, "no CONNECT in time; closed");
+            return;
+        }
+    };
+    let Some(mut session) = Session::open(io, connect, peer, &listener, &ctx).await else {
+        return;
+    };
+    let end = session.run().await;
+    session.close(end).await;
+}
+
+/// Why a session ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum End {
+    Client { with_will: bool },
+    Abrupt,
+    KeepAlive,
+    Takeover,
+    Malformed,
+    Oversized,
+    ProtocolError(DisconnectReasonCode),
+    Router,
+    Shutdown,
+}
+
+impl End {
+    /// MQTT 3.1.1 3.1.2.5 / MQTT 5 3.1.2.5: the will is published unless the client
+    /// disconnected normally. A broker shutdown is not the device failing: no will.
+    fn fires_will(self) -> bool {
+        !matches!(
+            self,
+            End::Client { with_will: false } | End::Shutdown
+        )
+    }
+
+    fn reason(self) -> DisconnectReason {
+        match self {
+            End::Client { with_will: false } => DisconnectReason::Client,
+            End::Client { with_will: true } => DisconnectReason::ClientWithWill,
+            End::Abrupt => DisconnectReason::Abrupt,
+            End::KeepAlive => DisconnectReason::KeepAlive,
+            End::Takeover => DisconnectReason::Takeover,
+            End::Malformed => DisconnectReason::Malformed,
+            End::Oversized => DisconnectReason::Oversized,
+            End::ProtocolError(_) => DisconnectReason::ProtocolError,
+            End::Router => DisconnectReason::Router,
+            End::Shutdown => DisconnectReason::Shutdown,
+        }
+    }
+
+    /// The DISCONNECT an MQTT 5 client is sent, when the server ends the connection.
+    fn v5_disconnect(self) -> Option<DisconnectReasonCode> {
+        match self {
+            End::KeepAlive => Some(DisconnectReasonCode::KeepAliveTimeout),
+            End::Takeover => Some(DisconnectReasonCode::SessionTakenOver),
+            End::Malformed => Some(DisconnectReasonCode::MalformedPacket),
+            End::Oversized => Some(DisconnectReasonCode::PacketTooLarge),
+            End::ProtocolError(code) => Some(code),
+            End::Shutdown => Some(DisconnectReasonCode::ServerShuttingDown),
+            End::Client { .. } | End::Abrupt | End::Router => None,
+        }
+    }
+
+    /// Whether the router still holds this connection and must be told it ended.
+    fn router_link_alive(self) -> bool {
+        !matches!(self, End::Takeover | End::Router)
+    }
+}
+
+/// MQTT version of a connection, chosen from CONNECT's protocol level.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Version {
+    V311,
+    V5,
+}
+
+/// rumqttd's codecs, behind one type. The 3.1.1 codec panics on packets with MQTT 5
+/// properties, so they are stripped here: a v5 publisher's properties do not exist for a
+/// v3.1.1 subscriber.
+struct Codec(Version);
+
+impl Codec {
+    fn read(&self, buf: &mut BytesMut, max: usize) -> Result<Packet, rumqttd::protocol::Error> {
+        match self.0 {
+            Version::V311 => V4.read_mut(buf, max),
+            Version::V5 => V5.read_mut(buf, max),
+        }
+    }
+
+    fn write(&self, packet: Packet, buf: &mut BytesMut) -> Result<usize, rumqttd::protocol::Error> {
+        match self.0 {
+            Version::V5 => V5.write(packet, buf),
+            Version::V311 => V4.write(strip_properties(packet), buf),
+        }
+    }
+}
+
+fn strip_properties(packet: Packet) -> Packet {
+    match packet {
+        Packet::ConnAck(ack, _) => Packet::ConnAck(v311_connack(ack), None),
+        Packet::Publish(p, _) => Packet::Publish(p, None),
+        Packet::PubAck(p, _) => Packet::PubAck(p, None),
+        Packet::PubRec(p, _) => Packet::PubRec(p, None),
+        Packet::PubRel(p, _) => Packet::PubRel(p, None),
+        Packet::PubComp(p, _) => Packet::PubComp(p, None),
+        Packet::SubAck(p, _) => Packet::SubAck(p, None),
+        Packet::UnsubAck(p, _) => Packet::UnsubAck(p, None),
+        Packet::Disconnect(p, _) => Packet::Disconnect(p, None),
+        other => other,
+    }
+}
+
+/// MQTT 3.1.1 has six CONNACK codes; rumqttd's 3.1.1 writer panics on the others.
+fn v311_connack(mut ack: ConnAck) -> ConnAck {
+    use ConnectReturnCode::*;
+    ack.code = match ack.code {
+        Success | RefusedProtocolVersion | ClientIdentifierNotValid | ServiceUnavailable
+        | BadUserNamePassword | NotAuthorized => ack.code,
+        UnsupportedProtocolVersion => RefusedProtocolVersion,
+        ConnectionRateExceeded | ServerBusy | ServerUnavailable => ServiceUnavailable,
+        _ => NotAuthorized,
+    };
+    ack
+}
+
+fn connack(code: ConnectReturnCode, properties: Option<ConnAckProperties>) -> Packet {
+    Packet::ConnAck(
+        ConnAck {
+            session_present: false,
+            code,
+        },
+        properties,
+    )
+}
+
+/// A CONNECT that could not be read, with the CONNACK to answer it (if any).
+struct Refusal {
+    reason: &'static str,
+    detail: String,
+    connack: Option<ConnectReturnCode>,
+}
+
+impl Refusal {
+    fn report(&self, metrics: &Metrics, peer: SocketAddr) {
+        metrics.refused(self.reason);
+        match self.reason {
+            "malformed" => metrics.malformed_packets.inc(),
+            "oversized" => metrics.oversized_packets.inc(),
+            _ => {}
+        }
+        tracing::info!(%peer, reason = self.reason, detail = %self.detail, "CONNECT refused");
+    }
+}
+
+/// The socket with its read and write buffers.
+struct Io {
+    stream: Box<dyn Stream>,
+    read: BytesMut,
+    write: BytesMut,
+    codec: Codec,
+    max_packet: usize,
+}
+
+/// Something wrong with the bytes a client sent.
+#[derive(Debug)]
+enum ReadError {
+    Closed,
+    Malformed(String),
+    Oversized { size: usize, max: usize },
+}
+
+impl std::fmt::Display for ReadError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ReadError::Closed => f.write_str("connection closed"),
+            ReadError::Malformed(why) => write!(f, "malformed packet: {why}"),
+            ReadError::Oversized { size, max } => write!(f, "packet of {size} bytes, limit {max}"),
+        }
+    }
+}
+
+impl Io {
+    fn new(stream: Box<dyn Stream>, max_packet: usize) -> Io {
+        Io {
+            stream,
+            read: BytesMut::with_capacity(4 * 1024),
+            write: BytesMut::with_capacity(4 * 1024),
+            codec: Codec(Version::V311),
+            max_packet,
+        }
+    }
+
+    /// Reads more bytes from the socket. Cancel-safe: bytes read stay in the buffer.
+    async fn fill(&mut self) -> Result<usize, ReadError> {
+        if self.read.capacity() - self.read.len() < 1024 {
+            self.read.reserve(16 * 1024);
+        }
+        match self.stream.read_buf(&mut self.read).await {
+            Ok(0) | Err(_) => Err(ReadError::Closed),
+            Ok(n) => Ok(n),
+        }
+    }
+
+    /// The header of the next buffered packet, if it is complete.
+    fn next_frame(&self) -> Result<Option<frame::FixedHeader>, ReadError> {
+        match frame::check(&self.read, self.max_packet) {
+            Ok(header) => Ok(Some(header)),
+            Err(FrameError::Incomplete(_)) => Ok(None),
+            Err(FrameError::MalformedLength) => {
+                Err(ReadError::Malformed("remaining length longer than 4 bytes".into()))
+            }
+            Err(FrameError::TooLarge { size, max }) => Err(ReadError::Oversized { size, max }),
+        }
+    }
+
+    /// Decodes the buffered packet whose header was just checked.
+    fn decode(&mut self) -> Result<Packet, ReadError> {
+        self.codec
+            .read(&mut self.read, self.max_packet)
+            .map_err(|e| ReadError::Malformed(e.to_string()))
+    }
+
+    /// Reads the first packet, which must be CONNECT, and picks the codec from it.
+    async fn read_connect(&mut self) -> Result<Packet, Refusal> {
+        let refusal = |reason, detail: String, connack| Refusal {
+            reason,
+            detail,
+            connack,
+        };
+        let header = loop {
+            match self.next_frame() {
+                Ok(Some(header)) => break header,
+                Ok(None) => {
+                    self.fill()
+                        .await
+                        .map_err(|_| refusal("closed_before_connect", String::new(), None))?;
+                }
+                Err(ReadError::Oversized { size, max }) => {
+                    return Err(refusal(
+                        "oversized",
+                        format!("CONNECT of {size} bytes, limit {max}"),
+                        None,
+                    ))
+                }
+                Err(e) => return Err(refusal("malformed", e.to_string(), None)),
+            }
+        };
+        match frame::connect_protocol_level(&self.read, &header) {
+            Some(4) => self.codec = Codec(Version::V311),
+            Some(5) => self.codec = Codec(Version::V5),
+            Some(level) => {
+                return Err(refusal(
+                    "unsupported_protocol",
+                    format!("protocol level {level}; fbbus speaks MQTT 3.1.1 (4) and 5"),
+                    Some(ConnectReturnCode::RefusedProtocolVersion),
+                ))
+            }
+            None => {
+                return Err(refusal(
+                    "malformed",
+                    "first packet is not an MQTT CONNECT".into(),
+                    None,
+                ))
+            }
+        }
+        match self.decode() {
+            Ok(packet @ Packet::Connect(..)) => Ok(packet),
+            Ok(_) => unreachable!("the frame was checked to be a CONNECT"),
+            Err(e) => Err(refusal("malformed", e.to_string(), None)),
+        }
+    }
+
+    /// Encodes a packet into the write buffer.
+    fn queue(&mut self, packet: Packet) {
+        if let Err(e) = self.codec.write(packet, &mut self.write) {
+            tracing::error!(error = %e, "could not encode a packet for a client; dropped");
+        }
+    }
+
+    /// Writes the write buffer out; returns the bytes written.
+    async fn flush(&mut self) -> std::io::Result<usize> {
+        if self.write.is_empty() {
+            return Ok(0);
+        }
+        self.stream.write_all(&self.write).await?;
+        let n = self.write.len();
+        self.write.clear();
+        Ok(n)
+    }
+
+    async fn send(&mut self, packet: Packet) -> std::io::Result<usize> {
+        self.queue(packet);
+        self.flush().await
+    }
+}
+
+/// An authenticated client's connection, registered with the router.
+struct Session {
+    io: Io,
+    peer: SocketAddr,
+    client_id: String,
+    username: Option<String>,
+    version: Version,
+    keep_alive: Option<Duration>,
+    will: Option<Will>,
+    link_tx: LinkTx,
+    link_rx: LinkRx,
+    ctx: Arc<Context>,
+    /// Packets accepted from the current network read, handed to the router as one batch.
+    to_router: Vec<Packet>,
+    /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
+    partial_subscribes: HashMap<u16, Vec<Option<SubscribeReasonCode>>>,
+    /// QoS 2 publications refused on MQTT 3.1.1: their PUBREL is answered here.
+    refused_qos2: HashSet<u16>,
+    /// MQTT 5 topic aliases the client set, to authorize publications that use them.
+    topic_aliases: HashMap<u16, String>,
+    /// (action, topic) pairs already logged as denied, so a looping device logs once.
+    logged_denials: HashSet<(&'static str, String)>,
+    /// The router sent a DISCONNECT (it refused something); its link is gone next.
+    router_disconnected: bool,
+}
+
+const MAX_LOGGED_DENIALS: usize = 1024;
+
+impl Session {
+    /// Authenticates the CONNECT, registers the client with the router and answers CONNACK.
+    /// Returns None when the client was refused (the CONNACK said why).
+    async fn open(
+        mut io: Io,
+        connect: Packet,
+        peer: SocketAddr,
+        listener: &ListenerPolicy,
+        ctx: &Arc<Context>,
+    ) -> Option<Session> {
+        let Packet::Connect(connect, properties, will, will_properties, login) = connect else {
+            unreachable!("read_connect only returns CONNECT")
+        };
+        let version = io.codec.0;
+        let refuse = |code: ConnectReturnCode, reason: &'static str| {
+            ctx.metrics.refused(reason);
+            (code, reason)
+        };
+
+        let result = async {
+            // Client identifier.
+            let mut client_id = connect.client_id.clone();
+            let mut assigned = None;
+            if client_id.is_empty() {
+                if !connect.clean_session {
+                    return Err(refuse(ConnectReturnCode::ClientIdentifierNotValid, "invalid_client_id"));
+                }
+                client_id = format!("fbbus-{:016x}", rand_id());
+                assigned = Some(client_id.clone());
+            }
+            if client_id == INTERNAL_CLIENT_ID || client_id.contains(['+', '#', '/', '$']) {
+                return Err(refuse(ConnectReturnCode::ClientIdentifierNotValid, "invalid_client_id"));
+            }
+
+            // 1. Authenticate.
+            let username = login.as_ref().map(|l| l.username.clone()).filter(|u| !u.is_empty());
+            let credentials = login.map(|l| (l.username, l.password)).filter(|(u, _)| !u.is_empty());
+            match ctx
+                .authenticator
+                .authenticate(peer.ip(), credentials, listener.anonymous)
+                .await
+            {
+                Outcome::Accepted => {}
+                Outcome::BadCredentials => {
+                    return Err(refuse(ConnectReturnCode::BadUserNamePassword, "bad_credentials"))
+                }
+                Outcome::MissingCredentials => {
+                    return Err(refuse(ConnectReturnCode::NotAuthorized, "missing_credentials"))
+                }
+                Outcome::Throttled(_) => {
+                    return Err(refuse(ConnectReturnCode::ConnectionRateExceeded, "throttled"))
+                }
+            }
+
+            // 2. Authorize the will topic: a will may only go where the client may publish.
+            let session_expiry = properties
+                .as_ref()
+                .and_then(|p| p.session_expiry_interval)
+                .unwrap_or(0);
+            let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
+            if let Some(w) = &will {
+                let topic = String::from_utf8_lossy(&w.topic);
+                let identity = Identity { username: username.as_deref(), client_id: &client_id };
+                let allowed = security::acl::valid_topic(&topic)
+                    && ctx.acl.as_ref().map_or(true, |acl| acl.get().can_publish(identity, &topic));
+                if !allowed {
+                    ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
+                    tracing::warn!(client_id, %topic, "will topic not allowed; CONNECT refused");
+                    return Err(refuse(ConnectReturnCode::NotAuthorized, "will_not_authorized"));
+                }
+            }
+
+            // Register with the router (this takes over an older session with the same id).
+            ctx.wills.cancel_delayed(&client_id);
+            let alias_max = properties.as_ref().and_then(|p| p.topic_alias_max).unwrap_or(0);
+            let linked = tokio::task::block_in_place(|| {
+                ctx.router.link(&client_id, connect.clean_session, alias_max)
+            });
+            let (link_tx, link_rx, ack) = match linked {
+                Ok(link) => link,
+                Err(e) => {
+                    tracing::error!(client_id, error = %e, "router refused the connection");
+                    return Err(refuse(ConnectReturnCode::ServerUnavailable, "router_refused"));
+                }
+            };
+            Ok((client_id, assigned, username, will, link_tx, link_rx, ack))
+        }
+        .await;
+
+        let (client_id, assigned, username, will, link_tx, link_rx, ack) = match result {
+            Ok(accepted) => accepted,
+            Err((code, reason)) => {
+                tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
+                let _ = io.send(connack(code, None)).await;
+                return None;
+            }
+        };
+
+        let mut connack_packet: Option<Packet> = ack.into();
+        if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
+            let mut p = props.take().unwrap_or_default();
+            p.assigned_client_identifier = assigned;
+            p.receive_max = Some(ctx.max_inflight);
+            p.max_packet_size = Some(ctx.max_packet as u32);
+            *props = Some(p);
+        }
+        if let Some(packet) = connack_packet {
+            io.queue(packet);
+        }
+        if io.flush().await.is_err() {
+            let _ = link_tx_disconnect(link_tx).await;
+            return None;
+        }
+
+        ctx.metrics.connects.inc();
+        ctx.metrics.connections.inc();
+        tracing::info!(
+            %peer,
+            listener = listener.name,
+            client_id,
+            username = username.as_deref().unwrap_or(""),
+            version = ?version,
+            keep_alive = connect.keep_alive,
+            "client connected"
+        );
+        Some(Session {
+            io,
+            peer,
+            client_id,
+            username,
+            version,
+            // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
+            keep_alive: (connect.keep_alive > 0)
+                .then(|| Duration::from_secs(connect.keep_alive as u64).mul_f32(1.5)),
+            will,
+            link_tx,
+            link_rx,
+            ctx: Arc::clone(ctx),
+            to_router: Vec::new(),
+            partial_subscribes: HashMap::new(),
+            refused_qos2: HashSet::new(),
+            topic_aliases: HashMap::new(),
+            logged_denials: HashSet::new(),
+            router_disconnected: false,
+        })
+    }
+
+    /// The connection's loop: network reads, router deliveries, keep-alive, shutdown.
+    async fn run(&mut self) -> End {
+        let mut shutdown = self.ctx.shutdown.clone();
+        let far_future = Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600);
+        let deadline = tokio::time::sleep_until(
+            self.keep_alive.map_or(far_future, |k| Instant::now() + k),
+        );
+        tokio::pin!(deadline);
+        loop {
+            tokio::select! {
+                _ = shutdown.changed() => return End::Shutdown,
+                _ = &mut deadline => return End::KeepAlive,
+                read = self.io.fill() => {
+                    let n = match read {
+                        Ok(n) => n,
+                        Err(_) => return End::Abrupt,
+                    };
+                    self.ctx.metrics.bytes_in.inc_by(n as u64);
+                    if let Some(k) = self.keep_alive {
+                        deadline.as_mut().reset(Instant::now() + k);
+                    }
+                    if let Err(end) = self.read_packets().await {
+                        return end;
+                    }
+                }
+                delivered = self.link_rx.next() => {
+                    if let Err(end) = self.deliver(delivered).await {
+                        return end;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Handles every complete packet in the read buffer, then hands the batch to the router.
+    async fn read_packets(&mut self) -> Result<(), End> {
+        loop {
+            let header = match self.io.next_frame() {
+                Ok(Some(header)) => header,
+                Ok(None) => break,
+                Err(ReadError::Oversized { size, max }) => {
+                    self.ctx.metrics.oversized_packets.inc();
+                    tracing::warn!(client_id = self.client_id, size, max, "packet over max_packet_bytes; connection closed");
+                    return Err(End::Oversized);
+                }
+                Err(e) => {
+                    self.ctx.metrics.malformed_packets.inc();
+                    tracing::warn!(client_id = self.client_id, error = %e, "malformed packet; connection closed");
+                    return Err(End::Malformed);
+                }
+            };
+            let qos_pkid = frame::publish_qos_and_pkid(&self.io.read, &header);
+            let packet = match self.io.decode() {
+                Ok(packet) => packet,
+                Err(e) => {
+                    self.ctx.metrics.malformed_packets.inc();
+                    tracing::warn!(client_id = self.client_id, error = %e, "malformed packet; connection closed");
+                    return Err(End::Malformed);
+                }
+            };
+            if let Err(end) = self.inbound(packet, qos_pkid) {
+                // What the client sent before it ended (e.g. PUBLISH then DISCONNECT in one
+                // read) is still delivered.
+                self.route().await?;
+                return Err(end);
+            }
+        }
+        self.route().await?;
+        self.io.flush().await.map_err(|_| End::Abrupt)?;
+        Ok(())
+    }
+
+    /// The packet path for one packet from the client (see the module doc).
+    fn inbound(&mut self, packet: Packet, qos_pkid: Option<(u8, u16)>) -> Result<(), End> {
+        match packet {
+            Packet::Publish(publish, properties) => {
+                let (qos, pkid) = qos_pkid.unwrap_or((0, 0));
+                self.on_publish(publish, properties, qos, pkid)
+            }
+            Packet::Subscribe(subscribe, properties) => {
+                self.on_subscribe(subscribe, properties);
+                Ok(())
+            }
+            Packet::PubRel(pubrel, properties) => {
+                if self.refused_qos2.remove(&pubrel.pkid) {
+                    self.io.queue(Packet::PubComp(
+                        PubComp {
+                            pkid: pubrel.pkid,
+                            reason: PubCompReason::Success,
+                        },
+                        None,
+                    ));
+                } else {
+                    self.to_router.push(Packet::PubRel(pubrel, properties));
+                }
+                Ok(())
+            }
+            packet @ (Packet::PubAck(..)
+            | Packet::PubRec(..)
+            | Packet::PubComp(..)
+            | Packet::Unsubscribe(..)) => {
+                self.to_router.push(packet);
+                Ok(())
+            }
+            Packet::PingReq(_) => {
+                self.io.queue(Packet::PingResp(PingResp));
+                Ok(())
+            }
+            Packet::Disconnect(disconnect, _) => Err(End::Client {
+                with_will: disconnect.reason_code
+                    == DisconnectReasonCode::DisconnectWithWillMessage,
+            }),
+            Packet::Connect(..) => {
+                tracing::warn!(client_id = self.client_id, "second CONNECT; connection closed");
+                Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
+            }
+            _ => {
+                tracing::warn!(client_id = self.client_id, "server-only packet type from a client; connection closed");
+                Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
+            }
+        }
+    }
+
+    fn on_publish(
+        &mut self,
+        publish: Publish,
+        properties: Option<PublishProperties>,
+        qos: u8,
+        pkid: u16,
+    ) -> Result<(), End> {
+        let topic = self.resolve_topic(&publish, properties.as_ref())?;
+
+        // 2. Authorize.
+        if !self.may_publish(&topic) {
+            self.ctx.metrics.acl_denied.with_label_values(&["publish"]).inc();
+            self.log_denial("publish", &topic);
+            self.refuse_publish(qos, pkid);
+            return Ok(());
+        }
+
+        // 3. Check: typed FB topics are validated here (next issue).
+
+        // 4. Route, 5. meter.
+        self.ctx.metrics.messages_in.inc();
+        self.to_router.push(Packet::Publish(publish, properties));
+        Ok(())
+    }
+
+    /// The topic a PUBLISH goes to, following MQTT 5 topic aliases.
+    fn resolve_topic(
+        &mut self,
+        publish: &Publish,
+        properties: Option<&PublishProperties>,
+    ) -> Result<String, End> {
+        let Ok(topic) = std::str::from_utf8(&publish.topic) else {
+            return Err(End::Malformed);
+        };
+        let alias = properties.and_then(|p| p.topic_alias);
+        let topic = match (topic.is_empty(), alias) {
+            (false, Some(alias)) => {
+                self.topic_aliases.insert(alias, topic.to_owned());
+                topic.to_owned()
+            }
+            (false, None) => topic.to_owned(),
+            (true, Some(alias)) => match self.topic_aliases.get(&alias) {
+                Some(t) => t.clone(),
+                None => return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid)),
+            },
+            (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
+        };
+        if !security::acl::valid_topic(&topic) {
+            tracing::warn!(client_id = self.client_id, %topic, "invalid topic name in PUBLISH; connection closed");
+            return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid));
+        }
+        Ok(topic)
+    }
+
+    /// Answers a refused publication. MQTT 5 says "not authorized"; MQTT 3.1.1 has no way
+    /// to refuse a PUBLISH, so like Mosquitto it is acknowledged and dropped — otherwise
+    /// the device's in-flight window would fill with retries that can never succeed.
+    fn refuse_publish(&mut self, qos: u8, pkid: u16) {
+        let v5 = self.version == Version::V5;
+        match qos {
+            1 => self.io.queue(Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: if v5 { PubAckReason::NotAuthorized } else { PubAckReason::Success },
+                },
+                None,
+            )),
+            2 => {
+                self.io.queue(Packet::PubRec(
+                    PubRec {
+                        pkid,
+                        reason: if v5 { PubRecReason::NotAuthorized } else { PubRecReason::Success },
+                    },
+                    None,
+                ));
+                if !v5 {
+                    self.refused_qos2.insert(pkid);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn on_subscribe(&mut self, subscribe: Subscribe, properties: Option<SubscribeProperties>) {
+        let v5 = self.version == Version::V5;
+        let mut refused = Vec::with_capacity(subscribe.filters.len());
+        for filter in &subscribe.filters {
+            let verdict = if !security::acl::valid_filter(&filter.path) {
+                Some(if v5 { SubscribeReasonCode::TopicFilterInvalid } else { SubscribeReasonCode::Failure })
+            } else if !self.may_subscribe(&filter.path) {
+                self.ctx.metrics.acl_denied.with_label_values(&["subscribe"]).inc();
+                self.log_denial("subscribe", &filter.path);
+                Some(if v5 { SubscribeReasonCode::NotAuthorized } else { SubscribeReasonCode::Failure })
+            } else {
+                None
+            };
+            refused.push(verdict);
+        }
+
+        if refused.iter().all(Option::is_none) {
+            self.to_router.push(Packet::Subscribe(subscribe, properties));
+            return;
+        }
+        if refused.iter().all(Option::is_some) {
+            let return_codes = refused.into_iter().flatten().collect();
+            self.io.queue(Packet::SubAck(
+                SubAck {
+                    pkid: subscribe.pkid,
+                    return_codes,
+                },
+                None,
+            ));
+            return;
+        }
+        // Some filters allowed: the router gets those, and its SUBACK is completed with the
+        // refusals in `outbound` so the client sees one code per filter, in order.
+        let allowed = subscribe
+            .filters
+            .into_iter()
+            .zip(&refused)
+            .filter(|(_, r)| r.is_none())
+            .map(|(f, _)| f)
+            .collect();
+        self.partial_subscribes.insert(subscribe.pkid, refused);
+        self.to_router.push(Packet::Subscribe(
+            Subscribe {
+                pkid: subscribe.pkid,
+                filters: allowed,
+            },
+            properties,
+        ));
+    }
+
+    fn identity(&self) -> Identity<'_> {
+        Identity {
+            username: self.username.as_deref(),
+            client_id: &self.client_id,
+        }
+    }
+
+    fn may_publish(&self, topic: &str) -> bool {
+        self.ctx
+            .acl
+            .as_ref()
+            .map_or(true, |acl| acl.get().can_publish(self.identity(), topic))
+    }
+
+    fn may_subscribe(&self, filter: &str) -> bool {
+        self.ctx
+            .acl
+            .as_ref()
+            .map_or(true, |acl| acl.get().can_subscribe(self.identity(), filter))
+    }
+
+    fn log_denial(&mut self, action: &'static str, topic: &str) {
+        if self.logged_denials.len() >= MAX_LOGGED_DENIALS {
+            return;
+        }
+        if self.logged_denials.insert((action, topic.to_owned())) {
+            tracing::warn!(
+                client_id = self.client_id,
+                username = self.username.as_deref().unwrap_or(""),
+                action,
+                topic,
+                "denied by ACL (logged once per client and topic)"
+            );
+        }
+    }
+
+    /// Hands the accepted packets of this read to the router: one wake-up per batch.
+    async fn route(&mut self) -> Result<(), End> {
+        let Some(last) = self.to_router.pop() else {
+            return Ok(());
+        };
+        {
+            let mut buffer = self.link_tx.buffer();
+            buffer.extend(self.to_router.drain(..));
+        }
+        self.link_tx.send(last).await.map_err(|_| End::Router)?;
+        Ok(())
+    }
+
+    /// Writes what the router delivered, draining everything it has queued.
+    async fn deliver(&mut self, first: Result<Option<Notification>, LinkError>) -> Result<(), End> {
+        let mut unscheduled = false;
+        let mut next = first;
+        loop {
+            match next {
+                Ok(Some(Notification::Unschedule)) => unscheduled = true,
+                Ok(Some(notification)) => self.outbound(notification),
+                Ok(None) => {}
+                Err(LinkError::RecvTimeout(_)) => break,
+                Err(_) => {
+                    let _ = self.io.flush().await;
+                    // The router dropped this link: after its DISCONNECT, it refused
+                    // something; otherwise a newer connection took the client id over.
+                    return Err(if self.router_disconnected { End::Router } else { End::Takeover });
+                }
+            }
+            next = self.link_rx.recv_deadline(std::time::Instant::now());
+        }
+        let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
+        self.ctx.metrics.bytes_out.inc_by(written as u64);
+        if unscheduled {
+            self.link_rx.wake().await.map_err(|_| End::Router)?;
+        }
+        Ok(())
+    }
+
+    /// One packet from the router to the client.
+    fn outbound(&mut self, notification: Notification) {
+        let packet: Option<Packet> = notification.into();
+        match packet {
+            Some(Packet::SubAck(mut suback, properties)) => {
+                if let Some(refused) = self.partial_subscribes.remove(&suback.pkid) {
+                    let mut granted = suback.return_codes.into_iter();
+                    suback.return_codes = refused
+                        .into_iter()
+                        .map(|r| r.or_else(|| granted.next()).unwrap_or(SubscribeReasonCode::Unspecified))
+                        .collect();
+                }
+                self.io.queue(Packet::SubAck(suback, properties));
+            }
+            Some(packet @ Packet::Publish(..)) => {
+                self.ctx.metrics.messages_out.inc();
+                self.io.queue(packet);
+            }
+            Some(packet @ Packet::Disconnect(..)) => {
+                self.router_disconnected = true;
+                self.io.queue(packet);
+            }
+            Some(packet) => self.io.queue(packet),
+            None => {}
+        }
+    }
+
+    /// Ends the session: tells the client why (MQTT 5), the router that it is gone,
+    /// fires the will if the end calls for it, and meters the disconnect.
+    async fn close(mut self, end: End) {
+        if self.version == Version::V5 {
+            if let Some(reason_code) = end.v5_disconnect() {
+                self.io.queue(Packet::Disconnect(Disconnect { reason_code }, None));
+                let _ = timeout(Duration::from_secs(1), self.io.flush()).await;
+            }
+        }
+        let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
+        if end.router_link_alive() {
+            let _ = link_tx_disconnect(self.link_tx).await;
+        }
+        let will = self.will.take().filter(|_| end.fires_will());
+        if let Some(will) = will {
+            self.ctx.wills.fire(&self.client_id, will);
+        }
+        self.ctx.metrics.disconnected(end.reason());
+        self.ctx.metrics.connections.dec();
+        tracing::info!(
+            peer = %self.peer,
+            client_id = self.client_id,
+            reason = end.reason().label(),
+            "client disconnected"
+        );
+    }
+}
+
+/// Tells the router a connection ended (it drops the link and, for a clean session, its state).
+async fn link_tx_disconnect(mut link_tx: LinkTx) -> Result<usize, LinkError> {
+    link_tx
+        .send(Packet::Disconnect(
+            Disconnect {
+                reason_code: DisconnectReasonCode::NormalDisconnection,
+            },
+            None,
+        ))
+        .await
+}
+
+/// A random 64-bit id for clients that connect without one.
+fn rand_id() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    // RandomState is seeded from the OS per process and per instance: enough for a name.
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(0),
+    );
+    h.finish()
+}

@@ -1,0 +1,41 @@
+//! # fbbus broker
+//!
+//! The MQTT 3.1.1 + 5 broker a production line runs. It keeps rumqttd's router (topic
+//! matching, retained messages, per-filter commit logs, QoS state) and puts fbbus's own
+//! listeners and connection loop in front of it, because that is where line policy lives:
+//!
+//! ```text
+//!   TCP/TLS ─► listener ─► connection (the packet path) ──LinkTx──► rumqttd router
+//!                          1 authenticate (CONNECT)                      │
+//!                          2 authorize (ACL)                             │
+//!                          3 check (typed FB topics, next issue)         │
+//!                          4 route ───────────────────────────────────────┘
+//!                          5 meter (Prometheus)     ◄──LinkRx── deliveries, acks
+//! ```
+//!
+//! - [`connection`]: one client's session; its module doc is the packet path, in order.
+//! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
+//! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
+//!   MQTT 5 will delay), never after a clean DISCONNECT.
+//! - [`config`]: the TOML file, its embedded default and the secure-by-default rules.
+//! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
+//! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`.
+//!
+//! Password files, access rules and throttling are the `security` crate's.
+
+pub mod admin;
+pub mod authenticator;
+pub mod config;
+pub mod connection;
+pub mod frame;
+pub mod listener;
+pub mod logging;
+pub mod metrics;
+pub mod router;
+pub mod server;
+pub mod tls;
+pub mod watched_file;
+pub mod wills;
+
+pub use config::Config;
+pub use server::Broker;

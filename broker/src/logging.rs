@@ -1,0 +1,25 @@
+//! `tracing` set-up: a level filter from the config (RUST_LOG wins when set), text or JSON.
+//!
+//! What is logged is chosen at the call sites: client ids, user names, topics, peers and
+//! reasons, never a password, a hash or a packet dump (a CONNECT's Debug output would
+//! contain the password).
+
+use tracing_subscriber::EnvFilter;
+
+use crate::config::{LogFormat, LogSection};
+
+pub fn init(log: &LogSection) -> Result<(), String> {
+    let filter = match std::env::var("RUST_LOG") {
+        Ok(env) if !env.is_empty() => EnvFilter::try_new(env),
+        _ => EnvFilter::try_new(&log.level),
+    }
+    .map_err(|e| format!("log level `{}`: {e}", log.level))?;
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let result = match log.format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().flatten_event(true).try_init(),
+    };
+    result.map_err(|e| e.to_string())
+}

@@ -1,0 +1,206 @@
+//! `fbbus`: the line broker and its tools.
+
+use std::io::BufRead;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context as _, Result};
+use broker::{Broker, Config};
+use clap::{Args, Parser, Subcommand};
+use security::{Argon2Params, PasswordFile, StoredHash};
+
+#[derive(Parser)]
+#[command(name = "fbbus", version, about = "fbbus: the message bus for IEC 61499 function-block devices")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the line broker (MQTT 3.1.1 and 5). Without --config: loopback port 1883,
+    /// anonymous, admin HTTP on 127.0.0.1:9883.
+    Serve {
+        /// TOML configuration file (see deploy/fbbus.example.toml).
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+    },
+    /// Validate a configuration file and exit: 0 if fbbus would start with it.
+    CheckConfig { config: PathBuf },
+    /// Manage an argon2id password file, like mosquitto_passwd.
+    Passwd(PasswdArgs),
+}
+
+#[derive(Args)]
+struct PasswdArgs {
+    /// The password file (created by `add` if missing).
+    file: PathBuf,
+    #[command(subcommand)]
+    action: PasswdAction,
+}
+
+#[derive(Subcommand)]
+enum PasswdAction {
+    /// Add a user or change its password. The password is read from a no-echo prompt,
+    /// or with --stdin from the first line of standard input; never from the command line.
+    Add {
+        user: String,
+        #[arg(long)]
+        stdin: bool,
+        /// argon2id memory cost in KiB (default 8192).
+        #[arg(long)]
+        memory_kib: Option<u32>,
+        /// argon2id iterations (default 1).
+        #[arg(long)]
+        iterations: Option<u32>,
+    },
+    /// Remove a user.
+    Delete { user: String },
+    /// List the users (names only) and the kind of hash each has.
+    List,
+    /// Copy the users of a Mosquitto password file ($7$ PBKDF2-SHA512 or $6$ SHA-512)
+    /// into this file; each is rewritten as argon2id at its next successful login.
+    Import {
+        mosquitto_file: PathBuf,
+        /// Replace users that already exist in this file.
+        #[arg(long)]
+        overwrite: bool,
+    },
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Serve { config } => serve(config),
+        Command::CheckConfig { config } => Config::load(&config)
+            .map(|_| println!("{}: ok", config.display()))
+            .map_err(Into::into),
+        Command::Passwd(args) => passwd(args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("fbbus: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn serve(config_path: Option<PathBuf>) -> Result<()> {
+    let config = match &config_path {
+        Some(path) => Config::load(path)?,
+        None => Config::embedded_default(),
+    };
+    broker::logging::init(&config.log).map_err(anyhow::Error::msg)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("fbbus")
+        .build()
+        .context("cannot start the tokio runtime")?;
+    runtime.block_on(async move {
+        match &config_path {
+            Some(p) => tracing::info!(config = %p.display(), line = config.broker.line, "starting"),
+            None => tracing::info!(line = config.broker.line, "starting on the embedded default configuration (loopback only)"),
+        }
+        let broker = Broker::start(config).await?;
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+            .context("cannot listen for SIGTERM")?;
+        tokio::select! {
+            _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
+            _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT: shutting down"),
+        }
+        broker.shutdown(Duration::from_secs(5)).await;
+        Ok(())
+    })
+}
+
+fn passwd(args: PasswdArgs) -> Result<()> {
+    let file = &args.file;
+    let load_or_new = || -> Result<PasswordFile> {
+        if file.exists() {
+            Ok(PasswordFile::load(file)?)
+        } else {
+            Ok(PasswordFile::default())
+        }
+    };
+    match args.action {
+        PasswdAction::Add {
+            user,
+            stdin,
+            memory_kib,
+            iterations,
+        } => {
+            let mut params = Argon2Params::default();
+            if let Some(m) = memory_kib {
+                params.memory_kib = m;
+            }
+            if let Some(t) = iterations {
+                params.iterations = t;
+            }
+            params.validate()?;
+            let mut pf = load_or_new()?;
+            let password = read_password(stdin)?;
+            let phc = security::hash_password(password.as_bytes(), &params)?;
+            pf.set(&user, StoredHash::parse(&phc)?)?;
+            pf.save(file)?;
+            eprintln!("{}: user `{user}` set (argon2id)", file.display());
+        }
+        PasswdAction::Delete { user } => {
+            let mut pf = PasswordFile::load(file)?;
+            if !pf.remove(&user) {
+                bail!("{}: no user `{user}`", file.display());
+            }
+            pf.save(file)?;
+            eprintln!("{}: user `{user}` deleted", file.display());
+        }
+        PasswdAction::List => {
+            let pf = PasswordFile::load(file)?;
+            for user in pf.users() {
+                let kind = match pf.get(user) {
+                    Some(h) if h.is_legacy() => "mosquitto (rehashed to argon2id at next login)",
+                    _ => "argon2id",
+                };
+                println!("{user}\t{kind}");
+            }
+        }
+        PasswdAction::Import {
+            mosquitto_file,
+            overwrite,
+        } => {
+            let source = PasswordFile::load(&mosquitto_file)?;
+            let mut pf = load_or_new()?;
+            let (added, skipped) = pf.merge_from(&source, overwrite);
+            pf.save(file)?;
+            eprintln!(
+                "{}: imported {added} user(s) from {}, skipped {skipped} existing",
+                file.display(),
+                mosquitto_file.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Reads a new password without echo (twice, to catch typos), or one line from stdin.
+fn read_password(from_stdin: bool) -> Result<String> {
+    let password = if from_stdin {
+        let mut line = String::new();
+        std::io::stdin()
+            .lock()
+            .read_line(&mut line)
+            .context("cannot read the password from standard input")?;
+        line.trim_end_matches(['\n', '\r']).to_owned()
+    } else {
+        let first = rpassword::prompt_password("Password: ")
+            .context("cannot read the password from the terminal (use --stdin in scripts)")?;
+        let second = rpassword::prompt_password("Reenter password: ")?;
+        if first != second {
+            bail!("the passwords do not match; nothing changed");
+        }
+        first
+    };
+    if password.is_empty() {
+        bail!("empty password refused; nothing changed");
+    }
+    Ok(password)
+}

@@ -1,0 +1,189 @@
+//! Prometheus metrics, served as text at `/metrics` on the admin port.
+//!
+//! Labels are low-cardinality on purpose (reasons, actions, files), never client ids,
+//! user names or topics: a line of a thousand devices must not become a thousand series,
+//! and a metric must never carry a secret. Per-client detail goes to the log, once.
+
+use prometheus::{
+    Encoder, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts, Registry,
+    TextEncoder,
+};
+
+/// Why a connection ended; the `reason` label of `fbbus_disconnects_total`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DisconnectReason {
+    /// The client sent DISCONNECT.
+    Client,
+    /// MQTT 5 DISCONNECT with reason 0x04: the client asked for its will.
+    ClientWithWill,
+    /// The TCP connection closed or reset without DISCONNECT.
+    Abrupt,
+    /// Nothing received for 1.5 x keep-alive.
+    KeepAlive,
+    /// Another connection with the same client id took the session over.
+    Takeover,
+    /// The client sent bytes that are not MQTT.
+    Malformed,
+    /// The client sent a packet larger than `max_packet_bytes`.
+    Oversized,
+    /// The client broke a protocol rule (e.g. a second CONNECT, a wildcard in a topic).
+    ProtocolError,
+    /// The router ended the connection.
+    Router,
+    /// The broker is shutting down.
+    Shutdown,
+}
+
+impl DisconnectReason {
+    pub fn label(self) -> &'static str {
+        match self {
+            DisconnectReason::Client => "client",
+            DisconnectReason::ClientWithWill => "client_with_will",
+            DisconnectReason::Abrupt => "abrupt",
+            DisconnectReason::KeepAlive => "keep_alive",
+            DisconnectReason::Takeover => "takeover",
+            DisconnectReason::Malformed => "malformed",
+            DisconnectReason::Oversized => "oversized",
+            DisconnectReason::ProtocolError => "protocol_error",
+            DisconnectReason::Router => "router",
+            DisconnectReason::Shutdown => "shutdown",
+        }
+    }
+}
+
+/// Every metric the broker exports.
+pub struct Metrics {
+    registry: Registry,
+    pub connections: IntGauge,
+    pub connects: IntCounter,
+    pub connects_refused: IntCounterVec,
+    pub disconnects: IntCounterVec,
+    pub auth_failures: IntCounterVec,
+    pub logins_throttled: IntCounter,
+    pub auth_cache_hits: IntCounter,
+    pub auth_verify_seconds: Histogram,
+    pub passwords_rehashed: IntCounter,
+    pub acl_denied: IntCounterVec,
+    pub messages_in: IntCounter,
+    pub messages_out: IntCounter,
+    pub bytes_in: IntCounter,
+    pub bytes_out: IntCounter,
+    pub wills_published: IntCounter,
+    pub malformed_packets: IntCounter,
+    pub oversized_packets: IntCounter,
+    pub reloads: IntCounterVec,
+}
+
+impl Metrics {
+    pub fn new() -> Metrics {
+        let registry = Registry::new();
+        let counter = |name: &str, help: &str| {
+            let c = IntCounter::new(name, help).expect("valid metric");
+            registry.register(Box::new(c.clone())).expect("unique metric");
+            c
+        };
+        let counter_vec = |name: &str, help: &str, labels: &[&str]| {
+            let c = IntCounterVec::new(Opts::new(name, help), labels).expect("valid metric");
+            registry.register(Box::new(c.clone())).expect("unique metric");
+            c
+        };
+        let connections =
+            IntGauge::new("fbbus_connections", "MQTT connections currently open").expect("valid");
+        registry
+            .register(Box::new(connections.clone()))
+            .expect("unique metric");
+        let auth_verify_seconds = Histogram::with_opts(
+            HistogramOpts::new(
+                "fbbus_auth_verify_seconds",
+                "Time to verify a password, queueing included (cache hits are not observed)",
+            )
+            .buckets(vec![
+                0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0,
+            ]),
+        )
+        .expect("valid");
+        registry
+            .register(Box::new(auth_verify_seconds.clone()))
+            .expect("unique metric");
+
+        Metrics {
+            connections,
+            connects: counter("fbbus_connects_total", "CONNECTs accepted"),
+            connects_refused: counter_vec(
+                "fbbus_connects_refused_total",
+                "CONNECTs refused, by reason",
+                &["reason"],
+            ),
+            disconnects: counter_vec(
+                "fbbus_disconnects_total",
+                "Connections ended, by reason",
+                &["reason"],
+            ),
+            auth_failures: counter_vec(
+                "fbbus_auth_failures_total",
+                "Failed logins: bad_credentials (wrong password or unknown user) or missing_credentials",
+                &["reason"],
+            ),
+            logins_throttled: counter(
+                "fbbus_logins_throttled_total",
+                "CONNECTs refused because their address failed too often recently",
+            ),
+            auth_cache_hits: counter(
+                "fbbus_auth_cache_hits_total",
+                "Logins verified from the verified-credential cache (argon2 skipped)",
+            ),
+            auth_verify_seconds,
+            passwords_rehashed: counter(
+                "fbbus_passwords_rehashed_total",
+                "Mosquitto password entries rewritten as argon2id after a successful login",
+            ),
+            acl_denied: counter_vec(
+                "fbbus_acl_denied_total",
+                "Operations refused by the access rules, by action (publish, subscribe, will)",
+                &["action"],
+            ),
+            messages_in: counter("fbbus_messages_received_total", "PUBLISH packets received"),
+            messages_out: counter("fbbus_messages_sent_total", "PUBLISH packets sent"),
+            bytes_in: counter("fbbus_bytes_received_total", "MQTT bytes received"),
+            bytes_out: counter("fbbus_bytes_sent_total", "MQTT bytes sent"),
+            wills_published: counter("fbbus_wills_published_total", "Will messages published"),
+            malformed_packets: counter(
+                "fbbus_malformed_packets_total",
+                "Connections closed for bytes that are not valid MQTT",
+            ),
+            oversized_packets: counter(
+                "fbbus_oversized_packets_total",
+                "Connections closed for a packet over broker.max_packet_bytes",
+            ),
+            reloads: counter_vec(
+                "fbbus_file_reloads_total",
+                "Password and ACL file reloads, by file and result",
+                &["file", "result"],
+            ),
+            registry,
+        }
+    }
+
+    pub fn disconnected(&self, reason: DisconnectReason) {
+        self.disconnects.with_label_values(&[reason.label()]).inc();
+    }
+
+    pub fn refused(&self, reason: &str) {
+        self.connects_refused.with_label_values(&[reason]).inc();
+    }
+
+    /// The Prometheus text exposition of every metric.
+    pub fn render(&self) -> String {
+        let mut out = Vec::new();
+        TextEncoder::new()
+            .encode(&self.registry.gather(), &mut out)
+            .expect("text encoding to a Vec cannot fail");
+        String::from_utf8(out).expect("prometheus text is UTF-8")
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}

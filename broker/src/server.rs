@@ -1,0 +1,246 @@
+//! Assembly: builds the broker from a validated [`Config`], binds everything, and runs until
+//! shutdown. Reading this file top to bottom tells what a running fbbus consists of.
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use security::{AclRules, PasswordFile};
+use tokio::net::TcpListener;
+use tokio::sync::{watch, Semaphore};
+use tokio::task::JoinHandle;
+
+use crate::admin::{self, AdminState};
+use crate::authenticator::Authenticator;
+use crate::config::Config;
+use crate::connection::{Context, ListenerPolicy};
+use crate::listener::Listener;
+use crate::metrics::Metrics;
+use crate::router::RouterHandle;
+use crate::watched_file::WatchedFile;
+use crate::wills::{Wills, INTERNAL_CLIENT_ID};
+
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error("{kind} {path}: {message}")]
+    File {
+        kind: &'static str,
+        path: String,
+        message: String,
+    },
+    #[error("listener `{name}`: cannot bind {addr}: {source}")]
+    Bind {
+        name: String,
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("listener `{name}`: {source}")]
+    Tls {
+        name: String,
+        source: crate::tls::TlsError,
+    },
+    #[error("router: {0}")]
+    Router(String),
+}
+
+/// A running broker.
+pub struct Broker {
+    /// (listener name, bound address), in config order.
+    pub listeners: Vec<(String, SocketAddr)>,
+    pub admin: SocketAddr,
+    pub metrics: Arc<Metrics>,
+    shutdown: watch::Sender<bool>,
+    ready: Arc<AtomicBool>,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+impl Broker {
+    /// Binds every listener and the admin endpoint and starts serving.
+    /// Must run inside a multi-threaded tokio runtime.
+    pub async fn start(config: Config) -> Result<Broker, StartError> {
+        let metrics = Arc::new(Metrics::new());
+
+        let passwords = match &config.auth.password_file {
+            Some(path) => Some(Arc::new(load_watched("password file", path, |p| {
+                PasswordFile::load(p).map_err(|e| e.to_string())
+            })?)),
+            None => None,
+        };
+        let acl = match &config.auth.acl_file {
+            Some(path) => Some(Arc::new(load_watched("ACL file", path, |p| {
+                AclRules::load(p).map_err(|e| e.to_string())
+            })?)),
+            None => None,
+        };
+        let authenticator = Arc::new(Authenticator::new(
+            &config.auth,
+            passwords.clone(),
+            Arc::clone(&metrics),
+        ));
+
+        let router = RouterHandle::spawn(&config.broker);
+        let internal = tokio::task::block_in_place(|| router.link(INTERNAL_CLIENT_ID, true, 0))
+            .map_err(|e| StartError::Router(e.to_string()))?;
+        let wills = Wills::new((internal.0, internal.1), Arc::clone(&metrics));
+
+        let (shutdown, shutdown_rx) = watch::channel(false);
+        let ctx = Arc::new(Context {
+            router,
+            authenticator,
+            acl: acl.clone(),
+            wills,
+            metrics: Arc::clone(&metrics),
+            max_packet: config.broker.max_packet_bytes,
+            max_inflight: config.broker.max_inflight,
+            connect_timeout: config.connect_timeout(),
+            shutdown: shutdown_rx.clone(),
+        });
+
+        let mut listeners = Vec::new();
+        for section in &config.listeners {
+            let socket = TcpListener::bind(section.bind)
+                .await
+                .map_err(|source| StartError::Bind {
+                    name: section.name.clone(),
+                    addr: section.bind,
+                    source,
+                })?;
+            let tls = match &section.tls {
+                Some(tls) => Some(crate::tls::acceptor(tls).map_err(|source| StartError::Tls {
+                    name: section.name.clone(),
+                    source,
+                })?),
+                None => None,
+            };
+            listeners.push(Listener {
+                policy: Arc::new(ListenerPolicy {
+                    name: section.name.clone(),
+                    anonymous: section.anonymous(&config.auth),
+                }),
+                socket,
+                tls,
+            });
+        }
+        let admin_socket =
+            TcpListener::bind(config.admin.bind)
+                .await
+                .map_err(|source| StartError::Bind {
+                    name: "admin".into(),
+                    addr: config.admin.bind,
+                    source,
+                })?;
+        let admin_addr = admin_socket.local_addr().map_err(|source| StartError::Bind {
+            name: "admin".into(),
+            addr: config.admin.bind,
+            source,
+        })?;
+
+        let mut tasks = Vec::new();
+        let slots = Arc::new(Semaphore::new(config.broker.max_connections));
+        let bound: Vec<_> = listeners
+            .iter()
+            .map(|l| (l.policy.name.clone(), l.local_addr()))
+            .collect();
+        for listener in listeners {
+            tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
+                tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
+            tasks.push(tokio::spawn(listener.run(Arc::clone(&ctx), Arc::clone(&slots))));
+        }
+
+        let ready = Arc::new(AtomicBool::new(false));
+        let mut admin_shutdown = shutdown_rx.clone();
+        tasks.push(tokio::spawn(admin::serve(
+            admin_socket,
+            AdminState {
+                metrics: Arc::clone(&metrics),
+                ready: Arc::clone(&ready),
+            },
+            async move {
+                let _ = admin_shutdown.changed().await;
+            },
+        )));
+        tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz");
+
+        tasks.push(tokio::spawn(watch_files(
+            passwords,
+            acl,
+            Duration::from_millis(config.auth.reload_poll_ms),
+            Arc::clone(&metrics),
+            shutdown_rx,
+        )));
+
+        ready.store(true, Ordering::Release);
+        Ok(Broker {
+            listeners: bound,
+            admin: admin_addr,
+            metrics,
+            shutdown,
+            ready,
+            tasks,
+        })
+    }
+
+    /// Stops accepting, disconnects every client (MQTT 5: reason 0x8B, server shutting
+    /// down) and waits up to `grace` for the connections to close.
+    pub async fn shutdown(self, grace: Duration) {
+        self.ready.store(false, Ordering::Release);
+        let _ = self.shutdown.send(true);
+        let deadline = tokio::time::Instant::now() + grace;
+        while self.metrics.connections.get() > 0 && tokio::time::Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        for task in self.tasks {
+            task.abort();
+        }
+        tracing::info!("broker stopped");
+    }
+}
+
+fn load_watched<T>(
+    kind: &'static str,
+    path: &std::path::Path,
+    loader: impl Fn(&std::path::Path) -> Result<T, String> + Send + Sync + 'static,
+) -> Result<WatchedFile<T>, StartError> {
+    let label = if kind == "password file" { "password_file" } else { "acl_file" };
+    WatchedFile::load(label, path, loader).map_err(|message| StartError::File {
+        kind,
+        path: path.display().to_string(),
+        message,
+    })
+}
+
+/// Reloads the password and ACL files when they change, and at once on SIGHUP.
+async fn watch_files(
+    passwords: Option<Arc<WatchedFile<PasswordFile>>>,
+    acl: Option<Arc<WatchedFile<AclRules>>>,
+    poll: Duration,
+    metrics: Arc<Metrics>,
+    mut shutdown: watch::Receiver<bool>,
+) {
+    // SIGHUP is always handled, so `systemctl reload` never kills a broker without files.
+    let mut hangup =
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot listen for SIGHUP; files reload on change only");
+                None
+            }
+        };
+    loop {
+        let force = tokio::select! {
+            _ = shutdown.changed() => return,
+            _ = tokio::time::sleep(poll) => false,
+            Some(_) = async { match hangup.as_mut() { Some(h) => h.recv().await, None => std::future::pending().await } } => {
+                tracing::info!("SIGHUP: reloading password and ACL files");
+                true
+            }
+        };
+        if let Some(p) = &passwords {
+            p.reload(force, &metrics);
+        }
+        if let Some(a) = &acl {
+            a.reload(force, &metrics);
+        }
+    }
+}

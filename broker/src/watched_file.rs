@@ -1,0 +1,106 @@
+//! A file the broker keeps loaded and reloads when it changes: the password file and the ACL.
+//!
+//! Readers take an `Arc` snapshot, so a reload never blocks a connection and never drops one:
+//! connected devices keep their session; the new contents apply from the next check.
+//! A file that fails to load on reload is ignored with an error in the log and in
+//! `fbbus_file_reloads_total{result="error"}`: the broker keeps the last good version,
+//! because a half-edited file must not lock a whole line out.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, RwLock};
+use std::time::SystemTime;
+
+use crate::metrics::Metrics;
+
+type Loader<T> = Box<dyn Fn(&Path) -> Result<T, String> + Send + Sync>;
+
+pub struct WatchedFile<T> {
+    /// Short name for logs and the metric label: "password_file" or "acl_file".
+    kind: &'static str,
+    path: PathBuf,
+    loader: Loader<T>,
+    current: RwLock<Arc<T>>,
+    stamp: RwLock<Option<Stamp>>,
+}
+
+/// What tells a changed file from an unchanged one without reading it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Stamp {
+    modified: Option<SystemTime>,
+    len: u64,
+    #[cfg(unix)]
+    inode: u64,
+}
+
+fn stamp(path: &Path) -> Option<Stamp> {
+    let meta = std::fs::metadata(path).ok()?;
+    Some(Stamp {
+        modified: meta.modified().ok(),
+        len: meta.len(),
+        #[cfg(unix)]
+        inode: std::os::unix::fs::MetadataExt::ino(&meta),
+    })
+}
+
+impl<T> WatchedFile<T> {
+    /// Loads the file once; an error here stops the broker from starting.
+    pub fn load(
+        kind: &'static str,
+        path: &Path,
+        loader: impl Fn(&Path) -> Result<T, String> + Send + Sync + 'static,
+    ) -> Result<WatchedFile<T>, String> {
+        let stamp_before = stamp(path);
+        let value = loader(path)?;
+        Ok(WatchedFile {
+            kind,
+            path: path.to_owned(),
+            loader: Box::new(loader),
+            current: RwLock::new(Arc::new(value)),
+            stamp: RwLock::new(stamp_before),
+        })
+    }
+
+    /// The current contents.
+    pub fn get(&self) -> Arc<T> {
+        self.current.read().expect("lock poisoned").clone()
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Replaces the contents after the broker itself rewrote the file (password re-hashing),
+    /// so the poll does not reload what is already in memory.
+    pub fn replace(&self, value: T) {
+        *self.stamp.write().expect("lock poisoned") = stamp(&self.path);
+        *self.current.write().expect("lock poisoned") = Arc::new(value);
+    }
+
+    /// Reloads if the file changed since the last load (`force`: reload anyway, for SIGHUP).
+    /// Returns true when new contents were installed.
+    pub fn reload(&self, force: bool, metrics: &Metrics) -> bool {
+        let now = stamp(&self.path);
+        if !force && *self.stamp.read().expect("lock poisoned") == now {
+            return false;
+        }
+        *self.stamp.write().expect("lock poisoned") = now;
+        match (self.loader)(&self.path) {
+            Ok(value) => {
+                *self.current.write().expect("lock poisoned") = Arc::new(value);
+                metrics.reloads.with_label_values(&[self.kind, "ok"]).inc();
+                tracing::info!(file = %self.path.display(), kind = self.kind, "reloaded");
+                true
+            }
+            Err(e) => {
+                metrics.reloads.with_label_values(&[self.kind, "error"]).inc();
+                tracing::error!(
+                    file = %self.path.display(),
+                    kind = self.kind,
+                    error = %e,
+                    "reload failed; keeping the previous version"
+                );
+                false
+            }
+        }
+    }
+}

@@ -1,0 +1,261 @@
+//! Test support: the real `fbbus` binary on free loopback ports, and small clients.
+#![allow(dead_code)]
+
+pub mod clients;
+pub mod raw;
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// A free TCP port on 127.0.0.1 (bound, then released for the broker to take).
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+pub fn fbbus_bin() -> &'static str {
+    env!("CARGO_BIN_EXE_fbbus")
+}
+
+/// Writes `password` for `user` into a password file with `fbbus passwd ... --stdin`.
+pub fn add_user(file: &Path, user: &str, password: &str) {
+    let mut child = Command::new(fbbus_bin())
+        .args(["passwd", file.to_str().unwrap(), "add", user, "--stdin"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(format!("{password}\n").as_bytes())
+        .unwrap();
+    assert!(child.wait().unwrap().success(), "fbbus passwd add failed");
+}
+
+/// The broker as a child process, killed when dropped.
+pub struct Broker {
+    pub child: Child,
+    pub mqtt: SocketAddr,
+    pub admin: SocketAddr,
+    pub dir: tempfile::TempDir,
+    pub log: PathBuf,
+    pub config: PathBuf,
+}
+
+pub struct Options {
+    /// TOML appended after `[broker]` and before the listener: `[auth]` sections etc.
+    pub extra: String,
+    /// Extra keys for the main listener table.
+    pub listener_extra: String,
+    pub log_level: String,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            extra: String::new(),
+            listener_extra: String::new(),
+            log_level: "info,rumqttd=warn".into(),
+        }
+    }
+}
+
+impl Broker {
+    /// Anonymous loopback broker.
+    pub fn start() -> Broker {
+        Broker::start_with(Options::default(), |_| {})
+    }
+
+    /// `prepare` may write files into the broker's directory before it starts.
+    pub fn start_with(options: Options, prepare: impl FnOnce(&Path)) -> Broker {
+        let dir = tempfile::tempdir().unwrap();
+        prepare(dir.path());
+        let mqtt: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
+        let admin: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
+        let config = dir.path().join("fbbus.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[broker]\nline = \"test\"\nconnect_timeout_ms = 2000\n{extra}\n\
+                 [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n{lextra}\n\
+                 [admin]\nbind = \"{admin}\"\n[log]\nlevel = \"{level}\"\n",
+                extra = options.extra,
+                lextra = options.listener_extra,
+                level = options.log_level,
+            ),
+        )
+        .unwrap();
+        Broker::spawn(dir, config, mqtt, admin)
+    }
+
+    /// Starts the broker on a complete config file the caller wrote.
+    pub fn spawn(
+        dir: tempfile::TempDir,
+        config: PathBuf,
+        mqtt: SocketAddr,
+        admin: SocketAddr,
+    ) -> Broker {
+        let log = dir.path().join("broker.log");
+        let child = Command::new(fbbus_bin())
+            .args(["serve", "--config", config.to_str().unwrap()])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let mut broker = Broker {
+            child,
+            mqtt,
+            admin,
+            dir,
+            log,
+            config,
+        };
+        broker.wait_ready();
+        broker
+    }
+
+    fn wait_ready(&mut self) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < deadline {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                panic!("broker exited with {status}: {}", self.log_text());
+            }
+            if http_get(self.admin, "/readyz").is_some_and(|(code, _)| code == 200) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        panic!("broker not ready in 20 s: {}", self.log_text());
+    }
+
+    pub fn port(&self) -> u16 {
+        self.mqtt.port()
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    pub fn metrics(&self) -> String {
+        http_get(self.admin, "/metrics").expect("metrics").1
+    }
+
+    /// The value of one series, e.g. `fbbus_acl_denied_total{action="publish"}`; 0 if absent.
+    pub fn metric(&self, series: &str) -> f64 {
+        metric_value(&self.metrics(), series)
+    }
+
+    /// Waits until `series` reaches at least `min` (metrics are updated asynchronously).
+    pub fn wait_metric(&self, series: &str, min: f64) -> f64 {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let v = self.metric(series);
+            if v >= min || Instant::now() > deadline {
+                return v;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    pub fn signal(&self, signal: &str) {
+        let status = Command::new("kill")
+            .args([&format!("-{signal}"), &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+}
+
+impl Drop for Broker {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub fn metric_value(text: &str, series: &str) -> f64 {
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find_map(|l| {
+            let (name, value) = l.rsplit_once(' ')?;
+            (name == series).then(|| value.parse().ok())?
+        })
+        .unwrap_or(0.0)
+}
+
+/// A minimal HTTP/1.0 GET: (status code, body).
+pub fn http_get(addr: SocketAddr, path: &str) -> Option<(u16, String)> {
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(s, "GET {path} HTTP/1.0\r\nHost: localhost\r\n\r\n").ok()?;
+    let mut text = String::new();
+    s.read_to_string(&mut text).ok()?;
+    let code = text.split_whitespace().nth(1)?.parse().ok()?;
+    let body = text.split_once("\r\n\r\n").map(|(_, b)| b.to_owned())?;
+    Some((code, body))
+}
+
+/// Runs a command to completion with a timeout; returns (exit success, stdout, stderr).
+pub fn run(cmd: &mut Command, limit: Duration) -> (bool, String, String) {
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot run {cmd:?}: {e}"));
+    let deadline = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut out = String::new();
+            let mut err = String::new();
+            child.stdout.take().unwrap().read_to_string(&mut out).unwrap();
+            child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+            return (status.success(), out, err);
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            return (
+                false,
+                String::from_utf8_lossy(&out.stdout).into(),
+                format!("timed out; {}", String::from_utf8_lossy(&out.stderr)),
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Whether a program is on PATH (CI installs them; a developer machine may not have them).
+pub fn have(program: &str) -> bool {
+    Command::new("sh")
+        .args(["-c", &format!("command -v {program}")])
+        .stdout(Stdio::null())
+        .status()
+        .map(|s| s.success())
+        .unwrap_or(false)
+}
+
+/// Requires a program; in CI its absence is a failure, elsewhere the test is skipped loudly.
+pub fn require(program: &str) -> bool {
+    if have(program) {
+        return true;
+    }
+    if std::env::var_os("CI").is_some() {
+        panic!("{program} is not installed; .ci/run should have installed it");
+    }
+    eprintln!("SKIPPED: {program} not installed (run .ci/run or install it)");
+    false
+}

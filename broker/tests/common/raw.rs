@@ -1,0 +1,177 @@
+//! Hand-built MQTT packets, for what a well-behaved client library will not send:
+//! silence after CONNECT, malformed bytes, oversized packets.
+#![allow(dead_code)]
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::time::Duration;
+
+fn remaining_length(mut len: usize, out: &mut Vec<u8>) {
+    loop {
+        let mut byte = (len % 128) as u8;
+        len /= 128;
+        if len > 0 {
+            byte |= 0x80;
+        }
+        out.push(byte);
+        if len == 0 {
+            break;
+        }
+    }
+}
+
+fn string(s: &[u8], out: &mut Vec<u8>) {
+    out.extend_from_slice(&(s.len() as u16).to_be_bytes());
+    out.extend_from_slice(s);
+}
+
+pub fn packet(byte1: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = vec![byte1];
+    remaining_length(body.len(), &mut out);
+    out.extend_from_slice(body);
+    out
+}
+
+pub struct Connect<'a> {
+    pub version: u8,
+    pub client_id: &'a str,
+    pub keep_alive: u16,
+    pub clean: bool,
+    pub will: Option<(&'a str, &'a [u8])>,
+    pub login: Option<(&'a str, &'a str)>,
+    /// MQTT 5 only: session expiry interval property (seconds).
+    pub session_expiry: Option<u32>,
+    /// MQTT 5 only: will delay interval property (seconds).
+    pub will_delay: Option<u32>,
+}
+
+impl Default for Connect<'_> {
+    fn default() -> Self {
+        Connect {
+            version: 4,
+            client_id: "raw",
+            keep_alive: 60,
+            clean: true,
+            will: None,
+            login: None,
+            session_expiry: None,
+            will_delay: None,
+        }
+    }
+}
+
+impl Connect<'_> {
+    pub fn bytes(&self) -> Vec<u8> {
+        let mut body = Vec::new();
+        string(b"MQTT", &mut body);
+        body.push(self.version);
+        let mut flags = 0u8;
+        if self.clean {
+            flags |= 0x02;
+        }
+        if self.will.is_some() {
+            flags |= 0x04;
+        }
+        if self.login.is_some() {
+            flags |= 0xC0;
+        }
+        body.push(flags);
+        body.extend_from_slice(&self.keep_alive.to_be_bytes());
+        if self.version == 5 {
+            match self.session_expiry {
+                Some(s) => {
+                    body.push(5);
+                    body.push(0x11);
+                    body.extend_from_slice(&s.to_be_bytes());
+                }
+                None => body.push(0),
+            }
+        }
+        string(self.client_id.as_bytes(), &mut body);
+        if let Some((topic, payload)) = self.will {
+            if self.version == 5 {
+                match self.will_delay {
+                    Some(d) => {
+                        body.push(5);
+                        body.push(0x18);
+                        body.extend_from_slice(&d.to_be_bytes());
+                    }
+                    None => body.push(0),
+                }
+            }
+            string(topic.as_bytes(), &mut body);
+            string(payload, &mut body);
+        }
+        if let Some((user, pass)) = self.login {
+            string(user.as_bytes(), &mut body);
+            string(pass.as_bytes(), &mut body);
+        }
+        packet(0x10, &body)
+    }
+}
+
+pub fn publish_qos0(topic: &str, payload: &[u8]) -> Vec<u8> {
+    let mut body = Vec::new();
+    string(topic.as_bytes(), &mut body);
+    body.extend_from_slice(payload);
+    packet(0x30, &body)
+}
+
+pub const DISCONNECT: [u8; 2] = [0xE0, 0x00];
+
+/// A raw TCP connection to the broker.
+pub struct RawClient {
+    pub stream: TcpStream,
+}
+
+impl RawClient {
+    pub fn connect(port: u16) -> RawClient {
+        let stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        RawClient { stream }
+    }
+
+    pub fn send(&mut self, bytes: &[u8]) {
+        self.stream.write_all(bytes).unwrap();
+    }
+
+    /// Reads one packet: (first byte, body). None when the broker closed the connection.
+    pub fn read_packet(&mut self) -> Option<(u8, Vec<u8>)> {
+        let mut byte1 = [0u8; 1];
+        self.stream.read_exact(&mut byte1).ok()?;
+        let mut len = 0usize;
+        let mut shift = 0;
+        loop {
+            let mut b = [0u8; 1];
+            self.stream.read_exact(&mut b).ok()?;
+            len |= ((b[0] & 0x7f) as usize) << shift;
+            shift += 7;
+            if b[0] & 0x80 == 0 {
+                break;
+            }
+        }
+        let mut body = vec![0u8; len];
+        self.stream.read_exact(&mut body).ok()?;
+        Some((byte1[0], body))
+    }
+
+    /// Sends CONNECT and returns the CONNACK return code.
+    pub fn handshake(&mut self, connect: &Connect) -> u8 {
+        self.send(&connect.bytes());
+        let (byte1, body) = self.read_packet().expect("CONNACK");
+        assert_eq!(byte1, 0x20, "expected CONNACK");
+        body[1]
+    }
+
+    /// True once the broker has closed the connection (reads until EOF, skipping packets).
+    pub fn closed_by_broker(&mut self) -> bool {
+        loop {
+            match self.read_packet() {
+                Some(_) => continue,
+                None => return true,
+            }
+        }
+    }
+}
