@@ -165,7 +165,10 @@ impl Authenticator {
             return;
         };
         let result = (|| -> Result<bool, String> {
-            let _guard = self.rewrite.lock().map_err(|_| "lock poisoned".to_string())?;
+            let _guard = self
+                .rewrite
+                .lock()
+                .map_err(|_| "lock poisoned".to_string())?;
             let mut file = PasswordFile::load(watched.path()).map_err(|e| e.to_string())?;
             if file.get(user).map(|h| h.phc()) != Some(verified.phc()) {
                 return Ok(false);

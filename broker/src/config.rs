@@ -213,8 +213,7 @@ pub enum LogFormat {
 impl ListenerSection {
     /// Whether clients without credentials are let in on this listener.
     pub fn anonymous(&self, auth: &AuthSection) -> bool {
-        self.allow_anonymous
-            .unwrap_or(auth.password_file.is_none())
+        self.allow_anonymous.unwrap_or(auth.password_file.is_none())
     }
 }
 
@@ -285,7 +284,11 @@ impl Config {
             ));
         }
         if b.max_connections == 0 {
-            return Err(invalid(file, "broker.max_connections", "must be at least 1"));
+            return Err(invalid(
+                file,
+                "broker.max_connections",
+                "must be at least 1",
+            ));
         }
         if !(64..=268_435_455).contains(&b.max_packet_bytes) {
             return Err(invalid(
@@ -298,7 +301,11 @@ impl Config {
             return Err(invalid(file, "broker.max_inflight", "must be at least 1"));
         }
         if b.connect_timeout_ms == 0 {
-            return Err(invalid(file, "broker.connect_timeout_ms", "must be at least 1"));
+            return Err(invalid(
+                file,
+                "broker.connect_timeout_ms",
+                "must be at least 1",
+            ));
         }
         if b.router_segment_bytes < b.max_packet_bytes {
             return Err(invalid(
@@ -308,7 +315,11 @@ impl Config {
             ));
         }
         if b.router_segment_count < 1 {
-            return Err(invalid(file, "broker.router_segment_count", "must be at least 1"));
+            return Err(invalid(
+                file,
+                "broker.router_segment_count",
+                "must be at least 1",
+            ));
         }
         if b.router_max_outgoing_packets == 0 {
             return Err(invalid(
@@ -318,7 +329,11 @@ impl Config {
             ));
         }
         if self.auth.verify_concurrency == 0 {
-            return Err(invalid(file, "auth.verify_concurrency", "must be at least 1"));
+            return Err(invalid(
+                file,
+                "auth.verify_concurrency",
+                "must be at least 1",
+            ));
         }
         if self.auth.reload_poll_ms < 100 {
             return Err(invalid(file, "auth.reload_poll_ms", "must be at least 100"));

@@ -31,9 +31,9 @@ use bytes::BytesMut;
 use rumqttd::local::{LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{
     v4::V4, v5::V5, ConnAck, ConnAckProperties, ConnectReturnCode, Disconnect,
-    DisconnectReasonCode, Packet, PingResp, Protocol, PubAck, PubAckReason, PubComp,
-    PubCompReason, PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe,
-    SubscribeProperties, SubscribeReasonCode,
+    DisconnectReasonCode, Packet, PingResp, Protocol, PubAck, PubAckReason, PubComp, PubCompReason,
+    PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe, SubscribeProperties,
+    SubscribeReasonCode,
 };
 use rumqttd::Notification;
 use security::{AclRules, Identity};
@@ -122,10 +122,7 @@ impl End {
     /// MQTT 3.1.1 3.1.2.5 / MQTT 5 3.1.2.5: the will is published unless the client
     /// disconnected normally. A broker shutdown is not the device failing: no will.
     fn fires_will(self) -> bool {
-        !matches!(
-            self,
-            End::Client { with_will: false } | End::Shutdown
-        )
+        !matches!(self, End::Client { with_will: false } | End::Shutdown)
     }
 
     fn reason(self) -> DisconnectReason {
@@ -209,8 +206,12 @@ fn strip_properties(packet: Packet) -> Packet {
 fn v311_connack(mut ack: ConnAck) -> ConnAck {
     use ConnectReturnCode::*;
     ack.code = match ack.code {
-        Success | RefusedProtocolVersion | ClientIdentifierNotValid | ServiceUnavailable
-        | BadUserNamePassword | NotAuthorized => ack.code,
+        Success
+        | RefusedProtocolVersion
+        | ClientIdentifierNotValid
+        | ServiceUnavailable
+        | BadUserNamePassword
+        | NotAuthorized => ack.code,
         UnsupportedProtocolVersion => RefusedProtocolVersion,
         ConnectionRateExceeded | ServerBusy | ServerUnavailable => ServiceUnavailable,
         _ => NotAuthorized,
@@ -301,15 +302,27 @@ impl Io {
         match frame::check(&self.read, self.max_packet) {
             Ok(header) => Ok(Some(header)),
             Err(FrameError::Incomplete(_)) => Ok(None),
-            Err(FrameError::MalformedLength) => {
-                Err(ReadError::Malformed("remaining length longer than 4 bytes".into()))
-            }
+            Err(FrameError::MalformedLength) => Err(ReadError::Malformed(
+                "remaining length longer than 4 bytes".into(),
+            )),
             Err(FrameError::TooLarge { size, max }) => Err(ReadError::Oversized { size, max }),
         }
     }
 
     /// Decodes the buffered packet whose header was just checked.
-    fn decode(&mut self) -> Result<Packet, ReadError> {
+    fn decode(&mut self, header: &frame::FixedHeader) -> Result<Packet, ReadError> {
+        // MQTT 5 3.14.2.2: a DISCONNECT may end after its reason code, meaning "no
+        // properties"; rumqttd 0.20 expects the property length. Decode a copy with it.
+        if self.codec.0 == Version::V5 && header.packet_type() == 14 && header.remaining_len == 1 {
+            let mut padded = BytesMut::from(&self.read[..header.frame_len()]);
+            padded[1] = 2;
+            padded.extend_from_slice(&[0]);
+            let _ = self.read.split_to(header.frame_len());
+            return self
+                .codec
+                .read(&mut padded, self.max_packet)
+                .map_err(|e| ReadError::Malformed(e.to_string()));
+        }
         self.codec
             .read(&mut self.read, self.max_packet)
             .map_err(|e| ReadError::Malformed(e.to_string()))
@@ -323,6 +336,15 @@ impl Io {
             connack,
         };
         let header = loop {
+            // The first byte of a session must be CONNECT's; anything else (an HTTP
+            // request, a TLS hello on a plain port) is refused without waiting for more.
+            if self.read.first().is_some_and(|b| *b != 0x10) {
+                return Err(refusal(
+                    "malformed",
+                    "first packet is not an MQTT CONNECT".into(),
+                    None,
+                ));
+            }
             match self.next_frame() {
                 Ok(Some(header)) => break header,
                 Ok(None) => {
@@ -358,7 +380,7 @@ impl Io {
                 ))
             }
         }
-        match self.decode() {
+        match self.decode(&header) {
             Ok(packet @ Packet::Connect(..)) => Ok(packet),
             Ok(_) => unreachable!("the frame was checked to be a CONNECT"),
             Err(e) => Err(refusal("malformed", e.to_string(), None)),
@@ -442,18 +464,29 @@ impl Session {
             let mut assigned = None;
             if client_id.is_empty() {
                 if !connect.clean_session {
-                    return Err(refuse(ConnectReturnCode::ClientIdentifierNotValid, "invalid_client_id"));
+                    return Err(refuse(
+                        ConnectReturnCode::ClientIdentifierNotValid,
+                        "invalid_client_id",
+                    ));
                 }
                 client_id = format!("fbbus-{:016x}", rand_id());
                 assigned = Some(client_id.clone());
             }
             if client_id == INTERNAL_CLIENT_ID || client_id.contains(['+', '#', '/', '$']) {
-                return Err(refuse(ConnectReturnCode::ClientIdentifierNotValid, "invalid_client_id"));
+                return Err(refuse(
+                    ConnectReturnCode::ClientIdentifierNotValid,
+                    "invalid_client_id",
+                ));
             }
 
             // 1. Authenticate.
-            let username = login.as_ref().map(|l| l.username.clone()).filter(|u| !u.is_empty());
-            let credentials = login.map(|l| (l.username, l.password)).filter(|(u, _)| !u.is_empty());
+            let username = login
+                .as_ref()
+                .map(|l| l.username.clone())
+                .filter(|u| !u.is_empty());
+            let credentials = login
+                .map(|l| (l.username, l.password))
+                .filter(|(u, _)| !u.is_empty());
             match ctx
                 .authenticator
                 .authenticate(peer.ip(), credentials, listener.anonymous)
@@ -461,13 +494,22 @@ impl Session {
             {
                 Outcome::Accepted => {}
                 Outcome::BadCredentials => {
-                    return Err(refuse(ConnectReturnCode::BadUserNamePassword, "bad_credentials"))
+                    return Err(refuse(
+                        ConnectReturnCode::BadUserNamePassword,
+                        "bad_credentials",
+                    ))
                 }
                 Outcome::MissingCredentials => {
-                    return Err(refuse(ConnectReturnCode::NotAuthorized, "missing_credentials"))
+                    return Err(refuse(
+                        ConnectReturnCode::NotAuthorized,
+                        "missing_credentials",
+                    ))
                 }
                 Outcome::Throttled(_) => {
-                    return Err(refuse(ConnectReturnCode::ConnectionRateExceeded, "throttled"))
+                    return Err(refuse(
+                        ConnectReturnCode::ConnectionRateExceeded,
+                        "throttled",
+                    ))
                 }
             }
 
@@ -479,27 +521,43 @@ impl Session {
             let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
             if let Some(w) = &will {
                 let topic = String::from_utf8_lossy(&w.topic);
-                let identity = Identity { username: username.as_deref(), client_id: &client_id };
+                let identity = Identity {
+                    username: username.as_deref(),
+                    client_id: &client_id,
+                };
                 let allowed = security::acl::valid_topic(&topic)
-                    && ctx.acl.as_ref().map_or(true, |acl| acl.get().can_publish(identity, &topic));
+                    && ctx
+                        .acl
+                        .as_ref()
+                        .map_or(true, |acl| acl.get().can_publish(identity, &topic));
                 if !allowed {
                     ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
                     tracing::warn!(client_id, %topic, "will topic not allowed; CONNECT refused");
-                    return Err(refuse(ConnectReturnCode::NotAuthorized, "will_not_authorized"));
+                    return Err(refuse(
+                        ConnectReturnCode::NotAuthorized,
+                        "will_not_authorized",
+                    ));
                 }
             }
 
             // Register with the router (this takes over an older session with the same id).
             ctx.wills.cancel_delayed(&client_id);
-            let alias_max = properties.as_ref().and_then(|p| p.topic_alias_max).unwrap_or(0);
+            let alias_max = properties
+                .as_ref()
+                .and_then(|p| p.topic_alias_max)
+                .unwrap_or(0);
             let linked = tokio::task::block_in_place(|| {
-                ctx.router.link(&client_id, connect.clean_session, alias_max)
+                ctx.router
+                    .link(&client_id, connect.clean_session, alias_max)
             });
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
                     tracing::error!(client_id, error = %e, "router refused the connection");
-                    return Err(refuse(ConnectReturnCode::ServerUnavailable, "router_refused"));
+                    return Err(refuse(
+                        ConnectReturnCode::ServerUnavailable,
+                        "router_refused",
+                    ));
                 }
             };
             Ok((client_id, assigned, username, will, link_tx, link_rx, ack))
@@ -568,9 +626,8 @@ impl Session {
     async fn run(&mut self) -> End {
         let mut shutdown = self.ctx.shutdown.clone();
         let far_future = Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600);
-        let deadline = tokio::time::sleep_until(
-            self.keep_alive.map_or(far_future, |k| Instant::now() + k),
-        );
+        let deadline =
+            tokio::time::sleep_until(self.keep_alive.map_or(far_future, |k| Instant::now() + k));
         tokio::pin!(deadline);
         loop {
             tokio::select! {
@@ -606,7 +663,12 @@ impl Session {
                 Ok(None) => break,
                 Err(ReadError::Oversized { size, max }) => {
                     self.ctx.metrics.oversized_packets.inc();
-                    tracing::warn!(client_id = self.client_id, size, max, "packet over max_packet_bytes; connection closed");
+                    tracing::warn!(
+                        client_id = self.client_id,
+                        size,
+                        max,
+                        "packet over max_packet_bytes; connection closed"
+                    );
                     return Err(End::Oversized);
                 }
                 Err(e) => {
@@ -616,7 +678,7 @@ impl Session {
                 }
             };
             let qos_pkid = frame::publish_qos_and_pkid(&self.io.read, &header);
-            let packet = match self.io.decode() {
+            let packet = match self.io.decode(&header) {
                 Ok(packet) => packet,
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
@@ -677,11 +739,17 @@ impl Session {
                     == DisconnectReasonCode::DisconnectWithWillMessage,
             }),
             Packet::Connect(..) => {
-                tracing::warn!(client_id = self.client_id, "second CONNECT; connection closed");
+                tracing::warn!(
+                    client_id = self.client_id,
+                    "second CONNECT; connection closed"
+                );
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
             }
             _ => {
-                tracing::warn!(client_id = self.client_id, "server-only packet type from a client; connection closed");
+                tracing::warn!(
+                    client_id = self.client_id,
+                    "server-only packet type from a client; connection closed"
+                );
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
             }
         }
@@ -698,7 +766,11 @@ impl Session {
 
         // 2. Authorize.
         if !self.may_publish(&topic) {
-            self.ctx.metrics.acl_denied.with_label_values(&["publish"]).inc();
+            self.ctx
+                .metrics
+                .acl_denied
+                .with_label_values(&["publish"])
+                .inc();
             self.log_denial("publish", &topic);
             self.refuse_publish(qos, pkid);
             return Ok(());
@@ -750,7 +822,11 @@ impl Session {
             1 => self.io.queue(Packet::PubAck(
                 PubAck {
                     pkid,
-                    reason: if v5 { PubAckReason::NotAuthorized } else { PubAckReason::Success },
+                    reason: if v5 {
+                        PubAckReason::NotAuthorized
+                    } else {
+                        PubAckReason::Success
+                    },
                 },
                 None,
             )),
@@ -758,7 +834,11 @@ impl Session {
                 self.io.queue(Packet::PubRec(
                     PubRec {
                         pkid,
-                        reason: if v5 { PubRecReason::NotAuthorized } else { PubRecReason::Success },
+                        reason: if v5 {
+                            PubRecReason::NotAuthorized
+                        } else {
+                            PubRecReason::Success
+                        },
                     },
                     None,
                 ));
@@ -775,11 +855,23 @@ impl Session {
         let mut refused = Vec::with_capacity(subscribe.filters.len());
         for filter in &subscribe.filters {
             let verdict = if !security::acl::valid_filter(&filter.path) {
-                Some(if v5 { SubscribeReasonCode::TopicFilterInvalid } else { SubscribeReasonCode::Failure })
+                Some(if v5 {
+                    SubscribeReasonCode::TopicFilterInvalid
+                } else {
+                    SubscribeReasonCode::Failure
+                })
             } else if !self.may_subscribe(&filter.path) {
-                self.ctx.metrics.acl_denied.with_label_values(&["subscribe"]).inc();
+                self.ctx
+                    .metrics
+                    .acl_denied
+                    .with_label_values(&["subscribe"])
+                    .inc();
                 self.log_denial("subscribe", &filter.path);
-                Some(if v5 { SubscribeReasonCode::NotAuthorized } else { SubscribeReasonCode::Failure })
+                Some(if v5 {
+                    SubscribeReasonCode::NotAuthorized
+                } else {
+                    SubscribeReasonCode::Failure
+                })
             } else {
                 None
             };
@@ -787,7 +879,8 @@ impl Session {
         }
 
         if refused.iter().all(Option::is_none) {
-            self.to_router.push(Packet::Subscribe(subscribe, properties));
+            self.to_router
+                .push(Packet::Subscribe(subscribe, properties));
             return;
         }
         if refused.iter().all(Option::is_some) {
@@ -883,7 +976,11 @@ impl Session {
                     let _ = self.io.flush().await;
                     // The router dropped this link: after its DISCONNECT, it refused
                     // something; otherwise a newer connection took the client id over.
-                    return Err(if self.router_disconnected { End::Router } else { End::Takeover });
+                    return Err(if self.router_disconnected {
+                        End::Router
+                    } else {
+                        End::Takeover
+                    });
                 }
             }
             next = self.link_rx.recv_deadline(std::time::Instant::now());
@@ -905,7 +1002,10 @@ impl Session {
                     let mut granted = suback.return_codes.into_iter();
                     suback.return_codes = refused
                         .into_iter()
-                        .map(|r| r.or_else(|| granted.next()).unwrap_or(SubscribeReasonCode::Unspecified))
+                        .map(|r| {
+                            r.or_else(|| granted.next())
+                                .unwrap_or(SubscribeReasonCode::Unspecified)
+                        })
                         .collect();
                 }
                 self.io.queue(Packet::SubAck(suback, properties));
@@ -928,7 +1028,8 @@ impl Session {
     async fn close(mut self, end: End) {
         if self.version == Version::V5 {
             if let Some(reason_code) = end.v5_disconnect() {
-                self.io.queue(Packet::Disconnect(Disconnect { reason_code }, None));
+                self.io
+                    .queue(Packet::Disconnect(Disconnect { reason_code }, None));
                 let _ = timeout(Duration::from_secs(1), self.io.flush()).await;
             }
         }

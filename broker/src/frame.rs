@@ -104,7 +104,10 @@ pub fn publish_qos_and_pkid(buf: &[u8], header: &FixedHeader) -> Option<(u8, u16
     let body = &buf[header.header_len..header.frame_len()];
     let topic_len = u16::from_be_bytes([*body.first()?, *body.get(1)?]) as usize;
     let at = 2 + topic_len;
-    Some((qos, u16::from_be_bytes([*body.get(at)?, *body.get(at + 1)?])))
+    Some((
+        qos,
+        u16::from_be_bytes([*body.get(at)?, *body.get(at + 1)?]),
+    ))
 }
 
 #[cfg(test)]
@@ -133,7 +136,10 @@ mod tests {
     fn too_large_before_the_body_arrives() {
         assert_eq!(
             check(&[0x30, 0xC1, 0x02], 100),
-            Err(FrameError::TooLarge { size: 324, max: 100 })
+            Err(FrameError::TooLarge {
+                size: 324,
+                max: 100
+            })
         );
     }
 

@@ -59,7 +59,8 @@ impl Listener {
                 let stream: Box<dyn Stream> = match tls {
                     None => Box::new(tcp),
                     Some(acceptor) => {
-                        match tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp)).await {
+                        match tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp)).await
+                        {
                             Ok(Ok(tls)) => Box::new(tls),
                             Ok(Err(e)) => {
                                 ctx.metrics.refused("tls_handshake");

@@ -10,7 +10,11 @@ use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
 #[derive(Parser)]
-#[command(name = "fbbus", version, about = "fbbus: the message bus for IEC 61499 function-block devices")]
+#[command(
+    name = "fbbus",
+    version,
+    about = "fbbus: the message bus for IEC 61499 function-block devices"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -100,7 +104,10 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
     runtime.block_on(async move {
         match &config_path {
             Some(p) => tracing::info!(config = %p.display(), line = config.broker.line, "starting"),
-            None => tracing::info!(line = config.broker.line, "starting on the embedded default configuration (loopback only)"),
+            None => tracing::info!(
+                line = config.broker.line,
+                "starting on the embedded default configuration (loopback only)"
+            ),
         }
         let broker = Broker::start(config).await?;
         let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())

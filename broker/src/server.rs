@@ -99,13 +99,14 @@ impl Broker {
 
         let mut listeners = Vec::new();
         for section in &config.listeners {
-            let socket = TcpListener::bind(section.bind)
-                .await
-                .map_err(|source| StartError::Bind {
-                    name: section.name.clone(),
-                    addr: section.bind,
-                    source,
-                })?;
+            let socket =
+                TcpListener::bind(section.bind)
+                    .await
+                    .map_err(|source| StartError::Bind {
+                        name: section.name.clone(),
+                        addr: section.bind,
+                        source,
+                    })?;
             let tls = match &section.tls {
                 Some(tls) => Some(crate::tls::acceptor(tls).map_err(|source| StartError::Tls {
                     name: section.name.clone(),
@@ -122,19 +123,20 @@ impl Broker {
                 tls,
             });
         }
-        let admin_socket =
-            TcpListener::bind(config.admin.bind)
-                .await
-                .map_err(|source| StartError::Bind {
-                    name: "admin".into(),
-                    addr: config.admin.bind,
-                    source,
-                })?;
-        let admin_addr = admin_socket.local_addr().map_err(|source| StartError::Bind {
-            name: "admin".into(),
-            addr: config.admin.bind,
-            source,
-        })?;
+        let admin_socket = TcpListener::bind(config.admin.bind)
+            .await
+            .map_err(|source| StartError::Bind {
+                name: "admin".into(),
+                addr: config.admin.bind,
+                source,
+            })?;
+        let admin_addr = admin_socket
+            .local_addr()
+            .map_err(|source| StartError::Bind {
+                name: "admin".into(),
+                addr: config.admin.bind,
+                source,
+            })?;
 
         let mut tasks = Vec::new();
         let slots = Arc::new(Semaphore::new(config.broker.max_connections));
@@ -145,7 +147,9 @@ impl Broker {
         for listener in listeners {
             tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
                 tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
-            tasks.push(tokio::spawn(listener.run(Arc::clone(&ctx), Arc::clone(&slots))));
+            tasks.push(tokio::spawn(
+                listener.run(Arc::clone(&ctx), Arc::clone(&slots)),
+            ));
         }
 
         let ready = Arc::new(AtomicBool::new(false));
@@ -202,7 +206,11 @@ fn load_watched<T>(
     path: &std::path::Path,
     loader: impl Fn(&std::path::Path) -> Result<T, String> + Send + Sync + 'static,
 ) -> Result<WatchedFile<T>, StartError> {
-    let label = if kind == "password file" { "password_file" } else { "acl_file" };
+    let label = if kind == "password file" {
+        "password_file"
+    } else {
+        "acl_file"
+    };
     WatchedFile::load(label, path, loader).map_err(|message| StartError::File {
         kind,
         path: path.display().to_string(),
@@ -219,14 +227,13 @@ async fn watch_files(
     mut shutdown: watch::Receiver<bool>,
 ) {
     // SIGHUP is always handled, so `systemctl reload` never kills a broker without files.
-    let mut hangup =
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
-            Ok(s) => Some(s),
-            Err(e) => {
-                tracing::warn!(error = %e, "cannot listen for SIGHUP; files reload on change only");
-                None
-            }
-        };
+    let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot listen for SIGHUP; files reload on change only");
+            None
+        }
+    };
     loop {
         let force = tokio::select! {
             _ = shutdown.changed() => return,

@@ -92,7 +92,10 @@ impl<T> WatchedFile<T> {
                 true
             }
             Err(e) => {
-                metrics.reloads.with_label_values(&[self.kind, "error"]).inc();
+                metrics
+                    .reloads
+                    .with_label_values(&[self.kind, "error"])
+                    .inc();
                 tracing::error!(
                     file = %self.path.display(),
                     kind = self.kind,

@@ -88,7 +88,12 @@ impl Wills {
 
     /// A client with this id connected: a will still waiting for its delay is dropped.
     pub fn cancel_delayed(&self, client_id: &str) {
-        if let Some(task) = self.delayed.lock().expect("lock poisoned").remove(client_id) {
+        if let Some(task) = self
+            .delayed
+            .lock()
+            .expect("lock poisoned")
+            .remove(client_id)
+        {
             task.abort();
             tracing::debug!(client_id, "delayed will cancelled by reconnect");
         }

@@ -116,7 +116,9 @@ pub use rumqttc::v5::mqttbytes::v5 as p5;
 /// An MQTT 5 client.
 pub struct V5 {
     pub client: rumqttc::v5::AsyncClient,
-    incoming: mpsc::UnboundedReceiver<p5::Packet>,
+    /// Packets, then the error that ended the event loop. rumqttc's v5 client ends its
+    /// connection on a refused SUBACK/PUBACK/PUBREC code and reports the code only there.
+    incoming: mpsc::UnboundedReceiver<Result<p5::Packet, String>>,
     task: JoinHandle<()>,
 }
 
@@ -152,13 +154,15 @@ impl V5 {
             loop {
                 match eventloop.poll().await {
                     Ok(rumqttc::v5::Event::Incoming(packet)) => {
-                        if tx.send(packet).is_err() {
+                        if tx.send(Ok(packet)).is_err() {
                             return;
                         }
                     }
                     Ok(_) => {}
-                    // rumqttc reports a server DISCONNECT as an error after handing it over.
-                    Err(_) => return,
+                    Err(e) => {
+                        let _ = tx.send(Err(format!("{e:?}")));
+                        return;
+                    }
                 }
             }
         });
@@ -179,8 +183,21 @@ impl V5 {
             let packet = tokio::time::timeout_at(deadline, self.incoming.recv())
                 .await
                 .ok()??;
-            if let Some(t) = pick(packet) {
+            if let Some(t) = pick(packet.ok()?) {
                 return Some(t);
+            }
+        }
+    }
+
+    /// The error that ended the connection, e.g. `SubFail { reason: NotAuthorized }`.
+    pub async fn error(&mut self, within: Duration) -> Option<String> {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let item = tokio::time::timeout_at(deadline, self.incoming.recv())
+                .await
+                .ok()??;
+            if let Err(e) = item {
+                return Some(e);
             }
         }
     }

@@ -119,6 +119,29 @@ pub fn publish_qos0(topic: &str, payload: &[u8]) -> Vec<u8> {
 
 pub const DISCONNECT: [u8; 2] = [0xE0, 0x00];
 
+/// SUBSCRIBE for `filters` at QoS 0 (MQTT 5 adds an empty property list).
+pub fn subscribe(version: u8, pkid: u16, filters: &[&str]) -> Vec<u8> {
+    let mut body = pkid.to_be_bytes().to_vec();
+    if version == 5 {
+        body.push(0);
+    }
+    for f in filters {
+        string(f.as_bytes(), &mut body);
+        body.push(0);
+    }
+    packet(0x82, &body)
+}
+
+/// The reason codes of a SUBACK body.
+pub fn suback_codes(version: u8, body: &[u8]) -> Vec<u8> {
+    let skip = if version == 5 {
+        3 + body[2] as usize
+    } else {
+        2
+    };
+    body[skip..].to_vec()
+}
+
 /// A raw TCP connection to the broker.
 pub struct RawClient {
     pub stream: TcpStream,

@@ -1,0 +1,295 @@
+//! The broker as a service: one port for MQTT 3.1.1 and 5, real peers, bad input,
+//! metrics, configuration refusal, graceful shutdown.
+
+mod common;
+
+use std::process::Command;
+use std::time::Duration;
+
+use common::clients::{self, V4, V5, WAIT};
+use common::raw::{self, RawClient};
+use common::{Broker, Options};
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn v311_and_v5_clients_share_one_port() {
+    let broker = Broker::start();
+    let mut sub4 = V4::connect(broker.port(), "sub4", None).await.unwrap();
+    let mut sub5 = V5::connect(broker.port(), "sub5", None).await.unwrap();
+    sub4.subscribe("line/#").await;
+    sub5.subscribe("line/#").await;
+
+    let pub5 = V5::connect(broker.port(), "pub5", None).await.unwrap();
+    pub5.client
+        .publish(
+            "line/a",
+            rumqttc::v5::mqttbytes::QoS::AtLeastOnce,
+            false,
+            "from-v5",
+        )
+        .await
+        .unwrap();
+    let pub4 = V4::connect(broker.port(), "pub4", None).await.unwrap();
+    pub4.client
+        .publish("line/b", rumqttc::QoS::AtLeastOnce, false, "from-v4")
+        .await
+        .unwrap();
+
+    for expected in ["from-v5", "from-v4"] {
+        let m = sub4.next_publish(WAIT).await.expect("v3.1.1 subscriber");
+        assert_eq!(m.payload, expected);
+        let m = sub5.next_publish(WAIT).await.expect("v5 subscriber");
+        assert_eq!(m.payload, expected);
+    }
+    assert!(broker.metric("fbbus_messages_received_total") >= 2.0);
+    assert!(broker.wait_metric("fbbus_messages_sent_total", 4.0) >= 4.0);
+    assert!(broker.metric("fbbus_bytes_received_total") > 0.0);
+    assert!(broker.metric("fbbus_bytes_sent_total") > 0.0);
+    assert_eq!(broker.metric("fbbus_connections"), 4.0);
+}
+
+#[test]
+fn mosquitto_clients_interoperate_on_both_versions() {
+    if !common::require("mosquitto_sub") {
+        return;
+    }
+    let broker = Broker::start();
+    let port = broker.port().to_string();
+    for version in ["mqttv311", "mqttv5"] {
+        let sub = Command::new("mosquitto_sub")
+            .args(["-h", "127.0.0.1", "-p", &port, "-V", version])
+            .args(["-t", "cell/#", "-C", "2", "-W", "10", "-v"])
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let before = broker.metric("fbbus_connects_total");
+        broker.wait_metric("fbbus_connects_total", before + 1.0);
+        std::thread::sleep(Duration::from_millis(200)); // its SUBSCRIBE follows CONNACK
+        for (topic, qos) in [("cell/1", "0"), ("cell/2", "2")] {
+            let (ok, _, err) = common::run(
+                Command::new("mosquitto_pub")
+                    .args(["-h", "127.0.0.1", "-p", &port, "-V", version])
+                    .args(["-t", topic, "-q", qos, "-m", &format!("{version}-{topic}")]),
+                Duration::from_secs(10),
+            );
+            assert!(ok, "mosquitto_pub {version}: {err}");
+        }
+        let out = sub.wait_with_output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(
+            text.lines().collect::<Vec<_>>(),
+            [
+                format!("cell/1 {version}-cell/1"),
+                format!("cell/2 {version}-cell/2")
+            ],
+            "log: {}",
+            broker.log_text()
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publish_then_disconnect_in_one_write_is_delivered() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "sub", None).await.unwrap();
+    sub.subscribe("burst").await;
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(c.handshake(&raw::Connect::default()), 0);
+    let mut bytes = raw::publish_qos0("burst", b"last words");
+    bytes.extend_from_slice(&raw::DISCONNECT);
+    c.send(&bytes);
+    let m = sub
+        .next_publish(WAIT)
+        .await
+        .expect("the PUBLISH before DISCONNECT");
+    assert_eq!(m.payload, "last words");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_packet_closes_only_that_connection() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "bystander", None).await.unwrap();
+    sub.subscribe("ok").await;
+
+    let mut bad = RawClient::connect(broker.port());
+    assert_eq!(
+        bad.handshake(&raw::Connect {
+            client_id: "bad",
+            ..Default::default()
+        }),
+        0
+    );
+    // A SUBSCRIBE whose topic length runs past the end of the packet.
+    bad.send(&[0x82, 0x05, 0x00, 0x01, 0x00, 0x40, b'a']);
+    assert!(bad.closed_by_broker());
+    assert_eq!(
+        broker.wait_metric("fbbus_malformed_packets_total", 1.0),
+        1.0
+    );
+    assert_eq!(
+        broker.wait_metric("fbbus_disconnects_total{reason=\"malformed\"}", 1.0),
+        1.0
+    );
+
+    // Not MQTT at all, before CONNECT.
+    let mut http = RawClient::connect(broker.port());
+    http.send(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n");
+    assert!(http.closed_by_broker());
+    assert!(broker.wait_metric("fbbus_connects_refused_total{reason=\"malformed\"}", 1.0) >= 1.0);
+
+    // Everyone else is still served.
+    let p = V4::connect(broker.port(), "pub", None).await.unwrap();
+    p.client
+        .publish("ok", rumqttc::QoS::AtMostOnce, false, "still here")
+        .await
+        .unwrap();
+    assert_eq!(
+        sub.next_publish(WAIT).await.expect("delivery").payload,
+        "still here"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversized_packet_closes_that_connection_and_is_counted() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_packet_bytes = 1024\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut sub = V4::connect(broker.port(), "bystander", None).await.unwrap();
+    sub.subscribe("big").await;
+
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(c.handshake(&raw::Connect::default()), 0);
+    c.send(&raw::publish_qos0("big", &[7u8; 4096]));
+    assert!(c.closed_by_broker());
+    assert_eq!(
+        broker.wait_metric("fbbus_oversized_packets_total", 1.0),
+        1.0
+    );
+    assert!(sub.next_publish(Duration::from_millis(500)).await.is_none());
+
+    // MQTT 5: the client is told why (DISCONNECT 0x95, packet too large).
+    let mut c5 = RawClient::connect(broker.port());
+    assert_eq!(
+        c5.handshake(&raw::Connect {
+            version: 5,
+            client_id: "c5",
+            ..Default::default()
+        }),
+        0
+    );
+    c5.send(&raw::publish_qos0("big", &[7u8; 4096]));
+    let (byte1, body) = c5.read_packet().expect("DISCONNECT");
+    assert_eq!((byte1, body[0]), (0xE0, 0x95));
+
+    // A packet just under the limit goes through.
+    let p = V4::connect(broker.port(), "pub", None).await.unwrap();
+    p.client
+        .publish("big", rumqttc::QoS::AtMostOnce, false, vec![1u8; 900])
+        .await
+        .unwrap();
+    assert_eq!(
+        sub.next_publish(WAIT)
+            .await
+            .expect("delivery")
+            .payload
+            .len(),
+        900
+    );
+}
+
+#[test]
+fn unsafe_config_is_refused_with_file_key_and_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("line.toml");
+    std::fs::write(
+        &config,
+        "[[listener]]\nname = \"plant\"\nbind = \"0.0.0.0:18830\"\n",
+    )
+    .unwrap();
+    for args in [
+        vec!["serve", "--config", config.to_str().unwrap()],
+        vec!["check-config", config.to_str().unwrap()],
+    ] {
+        let (ok, _, err) = common::run(
+            Command::new(common::fbbus_bin()).args(&args),
+            Duration::from_secs(10),
+        );
+        assert!(
+            !ok,
+            "{args:?} must refuse a non-loopback listener without passwords"
+        );
+        assert!(err.contains("line.toml"), "{err}");
+        assert!(err.contains("listener[0].bind"), "{err}");
+        assert!(err.contains("password_file"), "{err}");
+    }
+
+    std::fs::write(&config, "[broker]\nmax_conections = 10\n").unwrap();
+    let (ok, _, err) = common::run(
+        Command::new(common::fbbus_bin()).args(["check-config", config.to_str().unwrap()]),
+        Duration::from_secs(10),
+    );
+    assert!(!ok);
+    assert!(err.contains("max_conections"), "{err}");
+}
+
+#[test]
+fn health_and_readiness() {
+    let broker = Broker::start();
+    assert_eq!(common::http_get(broker.admin, "/healthz").unwrap().0, 200);
+    assert_eq!(common::http_get(broker.admin, "/readyz").unwrap().0, 200);
+    let metrics = broker.metrics();
+    for name in [
+        "fbbus_connections",
+        "fbbus_connects_total",
+        "fbbus_messages_received_total",
+        "fbbus_wills_published_total",
+    ] {
+        assert!(metrics.contains(name), "{name} missing from /metrics");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_disconnects_clients_cleanly_and_exits_zero() {
+    let mut broker = Broker::start();
+    let mut c5 = RawClient::connect(broker.port());
+    assert_eq!(
+        c5.handshake(&raw::Connect {
+            version: 5,
+            client_id: "v5",
+            ..Default::default()
+        }),
+        0
+    );
+    let mut watcher = V4::connect(broker.port(), "watcher", None).await.unwrap();
+    watcher.subscribe("will/#").await;
+    let mut c4 = RawClient::connect(broker.port());
+    assert_eq!(
+        c4.handshake(&raw::Connect {
+            client_id: "v4",
+            will: Some(("will/v4", b"gone")),
+            ..Default::default()
+        }),
+        0
+    );
+
+    broker.signal("TERM");
+    let (byte1, body) = c5.read_packet().expect("DISCONNECT before close");
+    assert_eq!((byte1, body[0]), (0xE0, 0x8B), "server shutting down");
+    assert!(c4.closed_by_broker());
+    let status = (0..100)
+        .find_map(|_| {
+            std::thread::sleep(Duration::from_millis(100));
+            broker.child.try_wait().unwrap()
+        })
+        .expect("broker exits within 10 s");
+    assert!(status.success(), "exit status {status}");
+    // A broker shutdown is not a device failure: no will.
+    assert!(watcher
+        .next_publish(Duration::from_millis(300))
+        .await
+        .is_none());
+    let _ = clients::WAIT;
+}
