@@ -307,11 +307,12 @@ impl Config {
                 "must be at least 1",
             ));
         }
-        if b.router_segment_bytes < b.max_packet_bytes {
+        if b.router_segment_bytes < b.max_packet_bytes.max(1024) {
             return Err(invalid(
                 file,
                 "broker.router_segment_bytes",
-                "must be at least broker.max_packet_bytes, or the largest message could not be stored",
+                "must be at least 1024 (rumqttd's minimum) and at least broker.max_packet_bytes, \
+                 or the largest message could not be stored",
             ));
         }
         if b.router_segment_count < 1 {
@@ -367,7 +368,7 @@ impl Config {
                 return Err(invalid(
                     file,
                     &key("bind"),
-                    &format!(
+                    format!(
                         "{} is not a loopback address, so this listener must require authentication: \
                          set [auth] password_file (create one with `fbbus passwd FILE add USER`), \
                          or bind to 127.0.0.1",
@@ -402,7 +403,7 @@ impl Config {
                 Err(invalid(
                     file,
                     &key,
-                    &format!("{} does not exist or is not a file", p.display()),
+                    format!("{} does not exist or is not a file", p.display()),
                 ))
             }
         };

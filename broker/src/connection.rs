@@ -45,6 +45,7 @@ use crate::authenticator::{Authenticator, Outcome};
 use crate::frame::{self, FrameError};
 use crate::metrics::{DisconnectReason, Metrics};
 use crate::router::RouterHandle;
+use crate::session_table::SessionTable;
 use crate::watched_file::WatchedFile;
 use crate::wills::{Will, Wills, INTERNAL_CLIENT_ID};
 
@@ -59,6 +60,7 @@ pub struct Context {
     /// None: no ACL file, every authenticated client may publish and subscribe anywhere.
     pub acl: Option<Arc<WatchedFile<AclRules>>>,
     pub wills: Arc<Wills>,
+    pub sessions: SessionTable,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,
@@ -422,19 +424,19 @@ struct Session {
     will: Option<Will>,
     link_tx: LinkTx,
     link_rx: LinkRx,
+    /// This connection's session number for its client id (see `session_table`).
+    session: u64,
     ctx: Arc<Context>,
     /// Packets accepted from the current network read, handed to the router as one batch.
     to_router: Vec<Packet>,
     /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
     partial_subscribes: HashMap<u16, Vec<Option<SubscribeReasonCode>>>,
-    /// QoS 2 publications refused on MQTT 3.1.1: their PUBREL is answered here.
+    /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
     refused_qos2: HashSet<u16>,
     /// MQTT 5 topic aliases the client set, to authorize publications that use them.
     topic_aliases: HashMap<u16, String>,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
-    /// The router sent a DISCONNECT (it refused something); its link is gone next.
-    router_disconnected: bool,
 }
 
 const MAX_LOGGED_DENIALS: usize = 1024;
@@ -529,7 +531,7 @@ impl Session {
                     && ctx
                         .acl
                         .as_ref()
-                        .map_or(true, |acl| acl.get().can_publish(identity, &topic));
+                        .is_none_or(|acl| acl.get().can_publish(identity, &topic));
                 if !allowed {
                     ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
                     tracing::warn!(client_id, %topic, "will topic not allowed; CONNECT refused");
@@ -542,6 +544,9 @@ impl Session {
 
             // Register with the router (this takes over an older session with the same id).
             ctx.wills.cancel_delayed(&client_id);
+            // The session number is taken before the router link, because linking is what
+            // ends an older connection with this id, and that one must see it is stale.
+            let session = ctx.sessions.open(&client_id);
             let alias_max = properties
                 .as_ref()
                 .and_then(|p| p.topic_alias_max)
@@ -553,6 +558,7 @@ impl Session {
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
+                    ctx.sessions.close(&client_id, session);
                     tracing::error!(client_id, error = %e, "router refused the connection");
                     return Err(refuse(
                         ConnectReturnCode::ServerUnavailable,
@@ -560,11 +566,13 @@ impl Session {
                     ));
                 }
             };
-            Ok((client_id, assigned, username, will, link_tx, link_rx, ack))
+            Ok((
+                client_id, assigned, username, will, session, link_tx, link_rx, ack,
+            ))
         }
         .await;
 
-        let (client_id, assigned, username, will, link_tx, link_rx, ack) = match result {
+        let (client_id, assigned, username, will, session, link_tx, link_rx, ack) = match result {
             Ok(accepted) => accepted,
             Err((code, reason)) => {
                 tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
@@ -586,6 +594,7 @@ impl Session {
         }
         if io.flush().await.is_err() {
             let _ = link_tx_disconnect(link_tx).await;
+            ctx.sessions.close(&client_id, session);
             return None;
         }
 
@@ -612,13 +621,13 @@ impl Session {
             will,
             link_tx,
             link_rx,
+            session,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
             partial_subscribes: HashMap::new(),
             refused_qos2: HashSet::new(),
             topic_aliases: HashMap::new(),
             logged_denials: HashSet::new(),
-            router_disconnected: false,
         })
     }
 
@@ -709,17 +718,25 @@ impl Session {
                 self.on_subscribe(subscribe, properties);
                 Ok(())
             }
-            Packet::PubRel(pubrel, properties) => {
+            Packet::PubRel(pubrel, _) => {
                 if self.refused_qos2.remove(&pubrel.pkid) {
+                    // A refused QoS 2 exchange ends here, never in the router, which drops
+                    // a connection that releases a packet id it never saw.
+                    let reason = match self.version {
+                        Version::V5 => PubCompReason::PacketIdentifierNotFound,
+                        Version::V311 => PubCompReason::Success,
+                    };
                     self.io.queue(Packet::PubComp(
                         PubComp {
                             pkid: pubrel.pkid,
-                            reason: PubCompReason::Success,
+                            reason,
                         },
                         None,
                     ));
                 } else {
-                    self.to_router.push(Packet::PubRel(pubrel, properties));
+                    // rumqttd 0.20 ignores a PUBREL carrying MQTT 5 properties (reason
+                    // string, user properties), which mean nothing to the router anyway.
+                    self.to_router.push(Packet::PubRel(pubrel, None));
                 }
                 Ok(())
             }
@@ -842,9 +859,9 @@ impl Session {
                     },
                     None,
                 ));
-                if !v5 {
-                    self.refused_qos2.insert(pkid);
-                }
+                // MQTT 5 clients should not send PUBREL after a refusing PUBREC; some
+                // (paho 2.2) do, so the id is remembered for both versions.
+                self.refused_qos2.insert(pkid);
             }
             _ => {}
         }
@@ -869,6 +886,14 @@ impl Session {
                 self.log_denial("subscribe", &filter.path);
                 Some(if v5 {
                     SubscribeReasonCode::NotAuthorized
+                } else {
+                    SubscribeReasonCode::Failure
+                })
+            } else if filter.path.starts_with('$') && !filter.path.starts_with("$share/") {
+                // fbbus publishes nothing under `$` topics yet, and rumqttd's router drops a
+                // connection that subscribes to one: refuse the filter, keep the client.
+                Some(if v5 {
+                    SubscribeReasonCode::ImplementationSpecific
                 } else {
                     SubscribeReasonCode::Failure
                 })
@@ -924,14 +949,14 @@ impl Session {
         self.ctx
             .acl
             .as_ref()
-            .map_or(true, |acl| acl.get().can_publish(self.identity(), topic))
+            .is_none_or(|acl| acl.get().can_publish(self.identity(), topic))
     }
 
     fn may_subscribe(&self, filter: &str) -> bool {
         self.ctx
             .acl
             .as_ref()
-            .map_or(true, |acl| acl.get().can_subscribe(self.identity(), filter))
+            .is_none_or(|acl| acl.get().can_subscribe(self.identity(), filter))
     }
 
     fn log_denial(&mut self, action: &'static str, topic: &str) {
@@ -974,13 +999,19 @@ impl Session {
                 Err(LinkError::RecvTimeout(_)) => break,
                 Err(_) => {
                     let _ = self.io.flush().await;
-                    // The router dropped this link: after its DISCONNECT, it refused
-                    // something; otherwise a newer connection took the client id over.
-                    return Err(if self.router_disconnected {
-                        End::Router
-                    } else {
-                        End::Takeover
-                    });
+                    // The router dropped this link: either a newer connection took the
+                    // client id over, or the router refused something this client sent.
+                    return Err(
+                        if self.ctx.sessions.is_current(&self.client_id, self.session) {
+                            tracing::warn!(
+                                client_id = self.client_id,
+                                "the router ended the connection"
+                            );
+                            End::Router
+                        } else {
+                            End::Takeover
+                        },
+                    );
                 }
             }
             next = self.link_rx.recv_deadline(std::time::Instant::now());
@@ -1014,10 +1045,6 @@ impl Session {
                 self.ctx.metrics.messages_out.inc();
                 self.io.queue(packet);
             }
-            Some(packet @ Packet::Disconnect(..)) => {
-                self.router_disconnected = true;
-                self.io.queue(packet);
-            }
             Some(packet) => self.io.queue(packet),
             None => {}
         }
@@ -1041,6 +1068,7 @@ impl Session {
         if let Some(will) = will {
             self.ctx.wills.fire(&self.client_id, will);
         }
+        self.ctx.sessions.close(&self.client_id, self.session);
         self.ctx.metrics.disconnected(end.reason());
         self.ctx.metrics.connections.dec();
         tracing::info!(

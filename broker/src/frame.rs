@@ -46,17 +46,15 @@ pub fn check(buf: &[u8], max_packet: usize) -> Result<FixedHeader, FrameError> {
         return Err(FrameError::Incomplete(2 - buf.len()));
     }
     let mut remaining_len = 0usize;
-    let mut header_len = 1;
     for (i, byte) in buf[1..].iter().enumerate() {
         if i == 4 {
             return Err(FrameError::MalformedLength);
         }
         remaining_len |= ((byte & 0x7f) as usize) << (7 * i);
-        header_len += 1;
         if byte & 0x80 == 0 {
             let header = FixedHeader {
                 byte1: buf[0],
-                header_len,
+                header_len: i + 2,
                 remaining_len,
             };
             if header.frame_len() > max_packet {

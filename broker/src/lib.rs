@@ -33,6 +33,7 @@ pub mod logging;
 pub mod metrics;
 pub mod router;
 pub mod server;
+pub mod session_table;
 pub mod tls;
 pub mod watched_file;
 pub mod wills;

@@ -76,9 +76,7 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve { config } => serve(config),
-        Command::CheckConfig { config } => Config::load(&config)
-            .map(|_| println!("{}: ok", config.display()))
-            .map_err(Into::into),
+        Command::CheckConfig { config } => check_config(&config),
         Command::Passwd(args) => passwd(args),
     };
     match result {
@@ -88,6 +86,14 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// Validates the file and loads everything it names (password file, ACL, TLS files).
+fn check_config(path: &std::path::Path) -> Result<()> {
+    let config = Config::load(path)?;
+    broker::server::check(&config)?;
+    println!("{}: ok", path.display());
+    Ok(())
 }
 
 fn serve(config_path: Option<PathBuf>) -> Result<()> {

@@ -5,13 +5,18 @@
 //! rumqttd does not export the type of the router's event channel, so the channel is
 //! captured in a closure here and the rest of the broker only sees [`RouterHandle::link`].
 
-use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
+use rumqttd::local::{LinkBuilder, LinkRx, LinkTx};
 use rumqttd::{Notification, Router, RouterConfig};
 
 use crate::config::BrokerSection;
 
 type Connect =
-    dyn Fn(&str, bool, u16) -> Result<(LinkTx, LinkRx, Notification), LinkError> + Send + Sync;
+    dyn Fn(&str, bool, u16) -> Result<(LinkTx, LinkRx, Notification), LinkRefused> + Send + Sync;
+
+/// The router did not register a link (it is gone, or full).
+#[derive(Debug, thiserror::Error)]
+#[error("the router refused the connection: {0}")]
+pub struct LinkRefused(String);
 
 pub struct RouterHandle {
     connect: Box<Connect>,
@@ -38,6 +43,7 @@ impl RouterHandle {
                     .dynamic_filters(true)
                     .topic_alias_max(topic_alias_max)
                     .build()
+                    .map_err(|e| LinkRefused(e.to_string()))
             }),
         }
     }
@@ -50,7 +56,7 @@ impl RouterHandle {
         client_id: &str,
         clean_session: bool,
         topic_alias_max: u16,
-    ) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
+    ) -> Result<(LinkTx, LinkRx, Notification), LinkRefused> {
         (self.connect)(client_id, clean_session, topic_alias_max)
     }
 }

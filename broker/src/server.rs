@@ -7,9 +7,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use security::{AclRules, PasswordFile};
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, TcpSocket};
 use tokio::sync::{watch, Semaphore};
 use tokio::task::JoinHandle;
+use tokio_rustls::TlsAcceptor;
 
 use crate::admin::{self, AdminState};
 use crate::authenticator::Authenticator;
@@ -23,7 +24,7 @@ use crate::wills::{Wills, INTERNAL_CLIENT_ID};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
-    #[error("{kind} {path}: {message}")]
+    #[error("{kind}: {message}")]
     File {
         kind: &'static str,
         path: String,
@@ -61,18 +62,11 @@ impl Broker {
     pub async fn start(config: Config) -> Result<Broker, StartError> {
         let metrics = Arc::new(Metrics::new());
 
-        let passwords = match &config.auth.password_file {
-            Some(path) => Some(Arc::new(load_watched("password file", path, |p| {
-                PasswordFile::load(p).map_err(|e| e.to_string())
-            })?)),
-            None => None,
-        };
-        let acl = match &config.auth.acl_file {
-            Some(path) => Some(Arc::new(load_watched("ACL file", path, |p| {
-                AclRules::load(p).map_err(|e| e.to_string())
-            })?)),
-            None => None,
-        };
+        let Files {
+            passwords,
+            acl,
+            mut tls,
+        } = Files::load(&config)?;
         let authenticator = Arc::new(Authenticator::new(
             &config.auth,
             passwords.clone(),
@@ -90,6 +84,7 @@ impl Broker {
             authenticator,
             acl: acl.clone(),
             wills,
+            sessions: Default::default(),
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -98,22 +93,8 @@ impl Broker {
         });
 
         let mut listeners = Vec::new();
-        for section in &config.listeners {
-            let socket =
-                TcpListener::bind(section.bind)
-                    .await
-                    .map_err(|source| StartError::Bind {
-                        name: section.name.clone(),
-                        addr: section.bind,
-                        source,
-                    })?;
-            let tls = match &section.tls {
-                Some(tls) => Some(crate::tls::acceptor(tls).map_err(|source| StartError::Tls {
-                    name: section.name.clone(),
-                    source,
-                })?),
-                None => None,
-            };
+        for (section, tls) in config.listeners.iter().zip(tls.drain(..)) {
+            let socket = bind(&section.name, section.bind)?;
             listeners.push(Listener {
                 policy: Arc::new(ListenerPolicy {
                     name: section.name.clone(),
@@ -123,13 +104,7 @@ impl Broker {
                 tls,
             });
         }
-        let admin_socket = TcpListener::bind(config.admin.bind)
-            .await
-            .map_err(|source| StartError::Bind {
-                name: "admin".into(),
-                addr: config.admin.bind,
-                source,
-            })?;
+        let admin_socket = bind("admin", config.admin.bind)?;
         let admin_addr = admin_socket
             .local_addr()
             .map_err(|source| StartError::Bind {
@@ -199,6 +174,80 @@ impl Broker {
         }
         tracing::info!("broker stopped");
     }
+}
+
+/// Pending connections the kernel queues per listener. Linux's default for tokio's
+/// `bind` is 1024: a line of 1,045 devices reconnecting at once would overflow it and
+/// wait a 1 s SYN retransmit. The kernel caps it at net.core.somaxconn.
+const LISTEN_BACKLOG: u32 = 4096;
+
+fn bind(name: &str, addr: SocketAddr) -> Result<TcpListener, StartError> {
+    let error = |source| StartError::Bind {
+        name: name.to_owned(),
+        addr,
+        source,
+    };
+    let socket = if addr.is_ipv4() {
+        TcpSocket::new_v4()
+    } else {
+        TcpSocket::new_v6()
+    }
+    .map_err(error)?;
+    socket.set_reuseaddr(true).map_err(error)?;
+    socket.bind(addr).map_err(error)?;
+    socket.listen(LISTEN_BACKLOG).map_err(error)
+}
+
+/// The files a configuration names, loaded and checked: what `fbbus check-config` verifies
+/// and what `start` uses, so a file that passes the check is the file that is served.
+struct Files {
+    passwords: Option<Arc<WatchedFile<PasswordFile>>>,
+    acl: Option<Arc<WatchedFile<AclRules>>>,
+    /// One entry per listener, in config order.
+    tls: Vec<Option<TlsAcceptor>>,
+}
+
+impl Files {
+    fn load(config: &Config) -> Result<Files, StartError> {
+        let passwords = match &config.auth.password_file {
+            Some(path) => Some(Arc::new(load_watched("password file", path, |p| {
+                PasswordFile::load(p).map_err(|e| e.to_string())
+            })?)),
+            None => None,
+        };
+        let acl = match &config.auth.acl_file {
+            Some(path) => Some(Arc::new(load_watched("ACL file", path, |p| {
+                AclRules::load(p).map_err(|e| e.to_string())
+            })?)),
+            None => None,
+        };
+        let tls = config
+            .listeners
+            .iter()
+            .map(|l| {
+                l.tls
+                    .as_ref()
+                    .map(|tls| {
+                        crate::tls::acceptor(tls).map_err(|source| StartError::Tls {
+                            name: l.name.clone(),
+                            source,
+                        })
+                    })
+                    .transpose()
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Files {
+            passwords,
+            acl,
+            tls,
+        })
+    }
+}
+
+/// Loads every file the configuration names (password file, ACL, TLS certificates and
+/// keys) without binding anything: `fbbus check-config`.
+pub fn check(config: &Config) -> Result<(), StartError> {
+    Files::load(config).map(|_| ())
 }
 
 fn load_watched<T>(

@@ -204,7 +204,7 @@ fn one_subscribe_with_allowed_and_denied_filters_gets_a_code_per_filter() {
 async fn acl_reloads_without_disconnects_and_denials_are_logged_once() {
     let broker = line_broker();
     let port = broker.port();
-    let mut dev1 = V4::connect(port, "dev1", Some(("dev1", "pw")))
+    let dev1 = V4::connect(port, "dev1", Some(("dev1", "pw")))
         .await
         .unwrap();
     for _ in 0..5 {

@@ -293,3 +293,28 @@ async fn sigterm_disconnects_clients_cleanly_and_exits_zero() {
         .is_none());
     let _ = clients::WAIT;
 }
+
+#[test]
+fn dollar_filters_are_refused_without_dropping_the_client() {
+    let broker = Broker::start();
+    for (version, code) in [(4u8, 0x80u8), (5, 0x83)] {
+        let mut c = RawClient::connect(broker.port());
+        assert_eq!(
+            c.handshake(&raw::Connect {
+                version,
+                ..Default::default()
+            }),
+            0
+        );
+        c.send(&raw::subscribe(version, 3, &["$SYS/#", "plain/#"]));
+        let (byte1, body) = c.read_packet().expect("SUBACK");
+        assert_eq!(byte1, 0x90);
+        assert_eq!(
+            raw::suback_codes(version, &body),
+            [code, 0x00],
+            "MQTT {version}"
+        );
+        c.send(&[0xC0, 0x00]); // PINGREQ: the connection is still served
+        assert_eq!(c.read_packet().expect("PINGRESP").0, 0xD0);
+    }
+}

@@ -1,0 +1,70 @@
+//! Which connection owns each client id, and each client's session number.
+//!
+//! Every accepted CONNECT gets the next session number of its client id. When rumqttd's
+//! router drops a link, the connection compares its number with the current one: a newer
+//! number means another connection took the client id over (MQTT session takeover);
+//! the same number means the router itself ended the link. The number is the Sparkplug
+//! `bdSeq` idea: the device registry uses it so that a late will from an old session never
+//! marks a newer session offline.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+#[derive(Default)]
+pub struct SessionTable {
+    /// client id -> (latest session number, whether that session is connected)
+    sessions: Mutex<HashMap<String, (u64, bool)>>,
+}
+
+impl SessionTable {
+    /// Registers a new connection for `client_id`; returns its session number.
+    pub fn open(&self, client_id: &str) -> u64 {
+        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
+        entry.0 += 1;
+        entry.1 = true;
+        entry.0
+    }
+
+    /// Whether `session` is still the newest session of `client_id`.
+    pub fn is_current(&self, client_id: &str, session: u64) -> bool {
+        self.sessions
+            .lock()
+            .expect("lock poisoned")
+            .get(client_id)
+            .is_some_and(|(latest, _)| *latest == session)
+    }
+
+    /// The connection of `session` ended; the number is kept so the next one is higher.
+    pub fn close(&self, client_id: &str, session: u64) {
+        if let Some(entry) = self
+            .sessions
+            .lock()
+            .expect("lock poisoned")
+            .get_mut(client_id)
+        {
+            if entry.0 == session {
+                entry.1 = false;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_newer_session_makes_the_older_one_stale() {
+        let t = SessionTable::default();
+        let a = t.open("plc");
+        assert!(t.is_current("plc", a));
+        let b = t.open("plc");
+        assert!(b > a);
+        assert!(!t.is_current("plc", a));
+        t.close("plc", a);
+        assert!(t.is_current("plc", b));
+        t.close("plc", b);
+        assert!(t.open("plc") > b);
+    }
+}
