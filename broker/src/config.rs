@@ -74,7 +74,8 @@ pub struct BrokerSection {
     pub connect_timeout_ms: u64,
     /// Router commit-log segment size per subscribed filter.
     pub router_segment_bytes: usize,
-    /// Segments kept per filter: memory per filter is at most size x count.
+    /// Segments kept per filter: memory per filter is at most size x count. The defaults
+    /// (256 KiB x 2) bound a line of 1,000 per-device filters to about 0.5 GiB worst case.
     pub router_segment_count: usize,
     /// Messages queued towards one connection before the router pauses delivery to it.
     pub router_max_outgoing_packets: u64,
@@ -85,10 +86,10 @@ impl Default for BrokerSection {
         BrokerSection {
             line: "line-1".into(),
             max_connections: 4096,
-            max_packet_bytes: 256 * 1024,
+            max_packet_bytes: 64 * 1024,
             max_inflight: 100,
             connect_timeout_ms: 5_000,
-            router_segment_bytes: 1024 * 1024,
+            router_segment_bytes: 256 * 1024,
             router_segment_count: 2,
             router_max_outgoing_packets: 1_000,
         }
