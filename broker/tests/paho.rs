@@ -393,18 +393,7 @@ fn shutdown(scenario: &str, protocol: &str) {
     let signalled = Instant::now();
 
     // The script ends by itself (it waits at most 10 s for the disconnect).
-    let deadline = Instant::now() + LIMIT;
-    let status = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break Some(status);
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = common::wait_until(&mut child, LIMIT);
     reader.join().unwrap();
     out.extend(lines.try_iter());
     let err = stderr_reader.join().unwrap();

@@ -34,12 +34,19 @@ async fn v311_and_v5_clients_share_one_port() {
         .await
         .unwrap();
 
-    for expected in ["from-v5", "from-v4"] {
+    // Two publishers: MQTT orders messages per publisher, not across them.
+    let mut got4 = Vec::new();
+    let mut got5 = Vec::new();
+    for _ in 0..2 {
         let m = sub4.next_publish(WAIT).await.expect("v3.1.1 subscriber");
-        assert_eq!(m.payload, expected);
+        got4.push(String::from_utf8(m.payload.to_vec()).unwrap());
         let m = sub5.next_publish(WAIT).await.expect("v5 subscriber");
-        assert_eq!(m.payload, expected);
+        got5.push(String::from_utf8(m.payload.to_vec()).unwrap());
     }
+    got4.sort();
+    got5.sort();
+    assert_eq!(got4, ["from-v4", "from-v5"]);
+    assert_eq!(got5, ["from-v4", "from-v5"]);
     assert!(broker.metric("fbbus_messages_received_total") >= 2.0);
     assert!(broker.wait_metric("fbbus_messages_sent_total", 4.0) >= 4.0);
     assert!(broker.metric("fbbus_bytes_received_total") > 0.0);
@@ -317,4 +324,76 @@ fn dollar_filters_are_refused_without_dropping_the_client() {
         c.send(&[0xC0, 0x00]); // PINGREQ: the connection is still served
         assert_eq!(c.read_packet().expect("PINGRESP").0, 0xD0);
     }
+}
+
+/// The annotated example in deploy/ is what operators copy: it must stay a valid config
+/// whose files load, as the config grows.
+#[test]
+fn deploy_example_config_passes_check_config() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::create_dir(d.join("tls")).unwrap();
+    common::add_user(&d.join("passwd"), "plc-1", "pw");
+    std::fs::copy(format!("{root}/deploy/acl.example"), d.join("acl")).unwrap();
+    let cert = rcgen::generate_simple_self_signed(vec!["localhost".into()]).unwrap();
+    std::fs::write(d.join("tls/server.crt"), cert.cert.pem()).unwrap();
+    std::fs::write(d.join("tls/server.key"), cert.key_pair.serialize_pem()).unwrap();
+    std::fs::write(d.join("tls/ca.crt"), cert.cert.pem()).unwrap();
+    let example = std::fs::read_to_string(format!("{root}/deploy/fbbus.example.toml")).unwrap();
+    let config = d.join("fbbus.toml");
+    std::fs::write(
+        &config,
+        example.replace("/etc/fbbus/", &format!("{}/", d.display())),
+    )
+    .unwrap();
+
+    let (ok, out, err) = common::run(
+        Command::new(common::fbbus_bin()).args(["check-config", config.to_str().unwrap()]),
+        Duration::from_secs(10),
+    );
+    assert!(
+        ok,
+        "deploy/fbbus.example.toml no longer passes check-config: {err}"
+    );
+    assert!(out.contains(": ok"), "{out}");
+
+    // check-config parses the named files: a broken ACL fails it.
+    std::fs::write(d.join("acl"), "topic sometimes fb/#\n").unwrap();
+    let (ok, _, err) = common::run(
+        Command::new(common::fbbus_bin()).args(["check-config", config.to_str().unwrap()]),
+        Duration::from_secs(10),
+    );
+    assert!(!ok);
+    assert!(err.contains("line 1") && err.contains("sometimes"), "{err}");
+}
+
+#[test]
+fn json_logs_are_one_object_per_line() {
+    let broker = Broker::start_with(
+        Options {
+            log_format: "json",
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            client_id: "json-dev",
+            ..Default::default()
+        }),
+        0
+    );
+    c.send(&raw::DISCONNECT);
+    assert!(c.closed_by_broker());
+    broker.wait_metric("fbbus_disconnects_total{reason=\"client\"}", 1.0);
+    let log = broker.log_text();
+    let events: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+        .collect();
+    assert!(events
+        .iter()
+        .any(|e| e["message"] == "client connected" && e["client_id"] == "json-dev"));
 }

@@ -57,6 +57,8 @@ pub struct Options {
     /// Extra keys for the main listener table.
     pub listener_extra: String,
     pub log_level: String,
+    /// `text` or `json`.
+    pub log_format: &'static str,
 }
 
 impl Default for Options {
@@ -65,6 +67,7 @@ impl Default for Options {
             extra: String::new(),
             listener_extra: String::new(),
             log_level: "info,rumqttd=warn".into(),
+            log_format: "text",
         }
     }
 }
@@ -87,10 +90,11 @@ impl Broker {
             format!(
                 "[broker]\nline = \"test\"\nconnect_timeout_ms = 2000\n{extra}\n\
                  [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n{lextra}\n\
-                 [admin]\nbind = \"{admin}\"\n[log]\nlevel = \"{level}\"\n",
+                 [admin]\nbind = \"{admin}\"\n[log]\nlevel = \"{level}\"\nformat = \"{format}\"\n",
                 extra = options.extra,
                 lextra = options.listener_extra,
                 level = options.log_level,
+                format = options.log_format,
             ),
         )
         .unwrap();
@@ -209,6 +213,22 @@ pub fn http_get(addr: SocketAddr, path: &str) -> Option<(u16, String)> {
     Some((code, body))
 }
 
+/// Waits for a child to exit, at most `limit`; kills and reaps it after that (None).
+pub fn wait_until(child: &mut Child, limit: Duration) -> Option<std::process::ExitStatus> {
+    let deadline = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// Runs a command to completion with a timeout; returns (exit success, stdout, stderr).
 pub fn run(cmd: &mut Command, limit: Duration) -> (bool, String, String) {
     let mut child = cmd
@@ -216,35 +236,18 @@ pub fn run(cmd: &mut Command, limit: Duration) -> (bool, String, String) {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap_or_else(|e| panic!("cannot run {cmd:?}: {e}"));
-    let deadline = Instant::now() + limit;
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            let mut out = String::new();
-            let mut err = String::new();
-            child
-                .stdout
-                .take()
-                .unwrap()
-                .read_to_string(&mut out)
-                .unwrap();
-            child
-                .stderr
-                .take()
-                .unwrap()
-                .read_to_string(&mut err)
-                .unwrap();
-            return (status.success(), out, err);
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            return (
-                false,
-                String::from_utf8_lossy(&out.stdout).into(),
-                format!("timed out; {}", String::from_utf8_lossy(&out.stderr)),
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
+    let status = wait_until(&mut child, limit);
+    let mut out = String::new();
+    let mut err = String::new();
+    if let Some(mut o) = child.stdout.take() {
+        let _ = o.read_to_string(&mut out);
+    }
+    if let Some(mut e) = child.stderr.take() {
+        let _ = e.read_to_string(&mut err);
+    }
+    match status {
+        Some(status) => (status.success(), out, err),
+        None => (false, out, format!("timed out; {err}")),
     }
 }
 
