@@ -141,7 +141,6 @@ fn start_sub(broker: &Broker, client_cert: bool) -> ChildGuard {
         );
     }
     assert!(broker.metric("fbbus_connections") >= 1.0);
-    std::thread::sleep(Duration::from_millis(300)); // its SUBSCRIBE follows CONNACK
     guard
 }
 
@@ -149,7 +148,8 @@ fn publish(broker: &Broker, client_cert: bool, id: &str, message: &str) -> (bool
     let (ok, _, err) = common::run(
         Command::new("mosquitto_pub")
             .args(tls_args(broker, client_cert))
-            .args(["-i", id, "-t", "t", "-m", message]),
+            // Retained: the subscriber gets it even if its SUBSCRIBE is processed later.
+            .args(["-i", id, "-t", "t", "-r", "-m", message]),
         Duration::from_secs(10),
     );
     (ok, err)
