@@ -433,13 +433,25 @@ struct Session {
     partial_subscribes: HashMap<u16, Vec<Option<SubscribeReasonCode>>>,
     /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
     refused_qos2: HashSet<u16>,
-    /// MQTT 5 topic aliases the client set, to authorize publications that use them.
+    /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
+    /// real topic and the router only ever gets full topic names.
     topic_aliases: HashMap<u16, String>,
+    /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
+    /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
+    inflight_in: u16,
+    /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
+    client_max_packet: Option<usize>,
+    /// Deliveries dropped for `client_max_packet` at QoS 2: the router's PUBREL for them is
+    /// answered here, since the client never saw the PUBLISH.
+    dropped_qos2: HashSet<u16>,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
 }
 
 const MAX_LOGGED_DENIALS: usize = 1024;
+
+/// The Topic Alias Maximum rumqttd's router announces in CONNACK.
+const TOPIC_ALIAS_MAX: u16 = 4096;
 
 impl Session {
     /// Authenticates the CONNECT, registers the client with the router and answers CONNACK.
@@ -618,6 +630,10 @@ impl Session {
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
             keep_alive: (connect.keep_alive > 0)
                 .then(|| Duration::from_secs(connect.keep_alive as u64).mul_f32(1.5)),
+            client_max_packet: properties
+                .as_ref()
+                .and_then(|p| p.max_packet_size)
+                .map(|m| m as usize),
             will,
             link_tx,
             link_rx,
@@ -627,6 +643,8 @@ impl Session {
             partial_subscribes: HashMap::new(),
             refused_qos2: HashSet::new(),
             topic_aliases: HashMap::new(),
+            inflight_in: 0,
+            dropped_qos2: HashSet::new(),
             logged_denials: HashSet::new(),
         })
     }
@@ -795,7 +813,23 @@ impl Session {
 
         // 3. Check: typed FB topics are validated here (next issue).
 
-        // 4. Route, 5. meter.
+        // 4. Route, 5. meter. The router gets the full topic, never an alias.
+        if qos > 0 {
+            self.inflight_in += 1;
+            if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
+                tracing::warn!(client_id = self.client_id, receive_maximum = self.ctx.max_inflight,
+                    "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
+                return Err(End::ProtocolError(
+                    DisconnectReasonCode::ReceiveMaximumExceeded,
+                ));
+            }
+        }
+        let mut publish = publish;
+        let mut properties = properties;
+        if let Some(p) = properties.as_mut().filter(|p| p.topic_alias.is_some()) {
+            p.topic_alias = None;
+            publish.topic = topic.into();
+        }
         self.ctx.metrics.messages_in.inc();
         self.to_router.push(Packet::Publish(publish, properties));
         Ok(())
@@ -812,6 +846,9 @@ impl Session {
         };
         let alias = properties.and_then(|p| p.topic_alias);
         let topic = match (topic.is_empty(), alias) {
+            (_, Some(alias)) if alias == 0 || alias > TOPIC_ALIAS_MAX => {
+                return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
+            }
             (false, Some(alias)) => {
                 self.topic_aliases.insert(alias, topic.to_owned());
                 topic.to_owned()
@@ -1016,6 +1053,7 @@ impl Session {
             }
             next = self.link_rx.recv_deadline(std::time::Instant::now());
         }
+        self.route().await?;
         let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
         self.ctx.metrics.bytes_out.inc_by(written as u64);
         if unscheduled {
@@ -1041,12 +1079,76 @@ impl Session {
                 }
                 self.io.queue(Packet::SubAck(suback, properties));
             }
-            Some(packet @ Packet::Publish(..)) => {
-                self.ctx.metrics.messages_out.inc();
-                self.io.queue(packet);
+            Some(packet @ Packet::Publish(..)) => self.deliver_publish(packet),
+            Some(Packet::PubRel(pubrel, _)) if self.dropped_qos2.remove(&pubrel.pkid) => {
+                self.to_router.push(Packet::PubComp(
+                    PubComp {
+                        pkid: pubrel.pkid,
+                        reason: PubCompReason::Success,
+                    },
+                    None,
+                ));
             }
-            Some(packet) => self.io.queue(packet),
+            Some(packet) => {
+                if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
+                    self.inflight_in = self.inflight_in.saturating_sub(1);
+                }
+                self.io.queue(packet)
+            }
             None => {}
+        }
+    }
+
+    /// Encodes a delivery, unless it is larger than the client's Maximum Packet Size:
+    /// then it is dropped as MQTT 5 [MQTT-3.1.2-25] requires, and acknowledged to the
+    /// router on the client's behalf so the session's in-flight window does not leak.
+    fn deliver_publish(&mut self, packet: Packet) {
+        let before = self.io.write.len();
+        self.io.queue(packet);
+        let Some(max) = self.client_max_packet else {
+            self.ctx.metrics.messages_out.inc();
+            return;
+        };
+        let encoded = &self.io.write[before..];
+        if encoded.len() <= max {
+            self.ctx.metrics.messages_out.inc();
+            return;
+        }
+        let qos_pkid = frame::check(encoded, usize::MAX)
+            .ok()
+            .and_then(|h| frame::publish_qos_and_pkid(encoded, &h));
+        let size = encoded.len();
+        self.io.write.truncate(before);
+        self.ctx
+            .metrics
+            .messages_dropped
+            .with_label_values(&["client_max_packet_size"])
+            .inc();
+        tracing::debug!(
+            client_id = self.client_id,
+            size,
+            max,
+            "delivery larger than the client's maximum packet size; dropped"
+        );
+        match qos_pkid {
+            Some((1, pkid)) => self.to_router.push(Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: PubAckReason::Success,
+                },
+                None,
+            )),
+            Some((2, pkid)) => {
+                self.dropped_qos2.insert(pkid);
+                self.to_router.push(Packet::PubRec(
+                    PubRec {
+                        pkid,
+                        reason: PubRecReason::Success,
+                    },
+                    None,
+                ));
+            }
+            _ => {}
         }
     }
 

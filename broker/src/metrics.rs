@@ -69,6 +69,7 @@ pub struct Metrics {
     pub bytes_in: IntCounter,
     pub bytes_out: IntCounter,
     pub wills_published: IntCounter,
+    pub messages_dropped: IntCounterVec,
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
     pub reloads: IntCounterVec,
@@ -151,6 +152,11 @@ impl Metrics {
             bytes_in: counter("fbbus_bytes_received_total", "MQTT bytes received"),
             bytes_out: counter("fbbus_bytes_sent_total", "MQTT bytes sent"),
             wills_published: counter("fbbus_wills_published_total", "Will messages published"),
+            messages_dropped: counter_vec(
+                "fbbus_messages_dropped_total",
+                "Deliveries not sent, by reason (client_max_packet_size)",
+                &["reason"],
+            ),
             malformed_packets: counter(
                 "fbbus_malformed_packets_total",
                 "Connections closed for bytes that are not valid MQTT",

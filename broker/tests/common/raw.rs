@@ -43,6 +43,8 @@ pub struct Connect<'a> {
     pub session_expiry: Option<u32>,
     /// MQTT 5 only: will delay interval property (seconds).
     pub will_delay: Option<u32>,
+    /// MQTT 5 only: the client's Maximum Packet Size property.
+    pub max_packet_size: Option<u32>,
 }
 
 impl Default for Connect<'_> {
@@ -56,6 +58,7 @@ impl Default for Connect<'_> {
             login: None,
             session_expiry: None,
             will_delay: None,
+            max_packet_size: None,
         }
     }
 }
@@ -78,14 +81,17 @@ impl Connect<'_> {
         body.push(flags);
         body.extend_from_slice(&self.keep_alive.to_be_bytes());
         if self.version == 5 {
-            match self.session_expiry {
-                Some(s) => {
-                    body.push(5);
-                    body.push(0x11);
-                    body.extend_from_slice(&s.to_be_bytes());
-                }
-                None => body.push(0),
+            let mut props = Vec::new();
+            if let Some(s) = self.session_expiry {
+                props.push(0x11);
+                props.extend_from_slice(&s.to_be_bytes());
             }
+            if let Some(m) = self.max_packet_size {
+                props.push(0x27);
+                props.extend_from_slice(&m.to_be_bytes());
+            }
+            body.push(props.len() as u8);
+            body.extend_from_slice(&props);
         }
         string(self.client_id.as_bytes(), &mut body);
         if let Some((topic, payload)) = self.will {
@@ -115,6 +121,25 @@ pub fn publish_qos0(topic: &str, payload: &[u8]) -> Vec<u8> {
     string(topic.as_bytes(), &mut body);
     body.extend_from_slice(payload);
     packet(0x30, &body)
+}
+
+/// An MQTT 5 PUBLISH with an optional topic alias property.
+pub fn publish_v5(topic: &str, alias: Option<u16>, qos: u8, pkid: u16, payload: &[u8]) -> Vec<u8> {
+    let mut body = Vec::new();
+    string(topic.as_bytes(), &mut body);
+    if qos > 0 {
+        body.extend_from_slice(&pkid.to_be_bytes());
+    }
+    match alias {
+        Some(a) => {
+            body.push(3);
+            body.push(0x23);
+            body.extend_from_slice(&a.to_be_bytes());
+        }
+        None => body.push(0),
+    }
+    body.extend_from_slice(payload);
+    packet(0x30 | (qos << 1), &body)
 }
 
 pub const DISCONNECT: [u8; 2] = [0xE0, 0x00];

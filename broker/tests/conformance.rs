@@ -1,0 +1,168 @@
+//! MQTT 5 behaviours fbbus enforces in its own packet path (the rest of the conformance
+//! work is listed in docs/conformance.md).
+
+mod common;
+
+use std::time::Duration;
+
+use common::clients::{V4, WAIT};
+use common::raw::{self, RawClient};
+use common::Broker;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn client_topic_aliases_are_resolved_before_routing() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "sub", None).await.unwrap();
+    sub.subscribe("fb/plc-1/#").await;
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            version: 5,
+            client_id: "aliaser",
+            ..Default::default()
+        }),
+        0
+    );
+    c.send(&raw::publish_v5("fb/plc-1/speed", Some(7), 0, 0, b"first"));
+    c.send(&raw::publish_v5("", Some(7), 1, 1, b"second"));
+    for expected in ["first", "second"] {
+        let m = sub.next_publish(WAIT).await.expect("delivery");
+        assert_eq!(
+            (m.topic.as_str(), &m.payload[..]),
+            ("fb/plc-1/speed", expected.as_bytes())
+        );
+    }
+    // An alias never set is a protocol error (DISCONNECT 0x94).
+    c.send(&raw::publish_v5("", Some(8), 0, 0, b"unknown"));
+    let (byte1, body) = loop {
+        let p = c.read_packet().expect("DISCONNECT");
+        if p.0 == 0xE0 {
+            break p;
+        }
+    };
+    assert_eq!((byte1, body[0]), (0xE0, 0x94));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deliveries_over_the_clients_maximum_packet_size_are_dropped() {
+    let broker = Broker::start();
+    let mut small = RawClient::connect(broker.port());
+    let connect = raw::Connect {
+        version: 5,
+        client_id: "small",
+        max_packet_size: Some(100),
+        ..Default::default()
+    };
+    assert_eq!(small.handshake(&connect), 0);
+    small.send(&raw::subscribe(5, 1, &["t"]));
+    assert_eq!(small.read_packet().expect("SUBACK").0, 0x90);
+
+    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
+    for (qos, payload) in [
+        (1, vec![b'x'; 500]),
+        (1, b"fits".to_vec()),
+        (0, vec![b'y'; 500]),
+        (0, b"fits too".to_vec()),
+    ] {
+        let qos = if qos == 1 {
+            rumqttc::QoS::AtLeastOnce
+        } else {
+            rumqttc::QoS::AtMostOnce
+        };
+        publisher
+            .client
+            .publish("t", qos, false, payload)
+            .await
+            .unwrap();
+    }
+    let mut received = Vec::new();
+    small
+        .stream
+        .set_read_timeout(Some(Duration::from_secs(2)))
+        .unwrap();
+    while let Some((byte1, body)) = small.read_packet() {
+        assert!(
+            body.len() + 2 <= 100,
+            "a packet over the client's maximum arrived"
+        );
+        if byte1 & 0xF0 == 0x30 {
+            let qos = (byte1 >> 1) & 3;
+            let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+            let mut at = 2 + topic_len;
+            if qos > 0 {
+                let pkid = [body[at], body[at + 1]];
+                small.send(&[0x40, 0x02, pkid[0], pkid[1]]); // PUBACK
+                at += 2;
+            }
+            let props = body[at] as usize;
+            received.push(String::from_utf8_lossy(&body[at + 1 + props..]).into_owned());
+        }
+        if received.len() == 2 {
+            break;
+        }
+    }
+    assert_eq!(received, ["fits", "fits too"]);
+    assert_eq!(
+        broker.metric("fbbus_messages_dropped_total{reason=\"client_max_packet_size\"}"),
+        2.0
+    );
+    // The dropped QoS 1 delivery was acknowledged for the client: the session still flows.
+    publisher
+        .client
+        .publish("t", rumqttc::QoS::AtLeastOnce, false, "after")
+        .await
+        .unwrap();
+    let (byte1, _) = small.read_packet().expect("later deliveries still arrive");
+    assert_eq!(byte1 & 0xF0, 0x30);
+}
+
+#[test]
+fn more_unacknowledged_publications_than_the_receive_maximum_disconnect() {
+    let broker = Broker::start_with(
+        common::Options {
+            extra: "max_inflight = 5\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            version: 5,
+            client_id: "greedy",
+            ..Default::default()
+        }),
+        0
+    );
+    // Twenty QoS 1 publications in one write: the broker cannot have acknowledged them.
+    let burst: Vec<u8> = (1..=20u16)
+        .flat_map(|pkid| raw::publish_v5("t", None, 1, pkid, b"x"))
+        .collect();
+    c.send(&burst);
+    let disconnect = loop {
+        match c.read_packet() {
+            Some((0xE0, body)) => break body[0],
+            Some(_) => continue,
+            None => panic!("closed without DISCONNECT 0x93"),
+        }
+    };
+    assert_eq!(disconnect, 0x93, "receive maximum exceeded");
+
+    // Within the limit, nothing happens.
+    let mut ok = RawClient::connect(broker.port());
+    assert_eq!(
+        ok.handshake(&raw::Connect {
+            version: 5,
+            client_id: "polite",
+            ..Default::default()
+        }),
+        0
+    );
+    let burst: Vec<u8> = (1..=5u16)
+        .flat_map(|pkid| raw::publish_v5("t", None, 1, pkid, b"x"))
+        .collect();
+    ok.send(&burst);
+    for _ in 0..5 {
+        assert_eq!(ok.read_packet().expect("PUBACK").0, 0x40);
+    }
+}
