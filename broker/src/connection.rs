@@ -41,9 +41,11 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::watch;
 use tokio::time::{timeout, Instant};
 
+use crate::ack_order::AckOrder;
 use crate::authenticator::{Authenticator, Outcome};
 use crate::frame::{self, FrameError};
 use crate::metrics::{DisconnectReason, Metrics};
+use crate::published_qos;
 use crate::router::RouterHandle;
 use crate::session_table::SessionTable;
 use crate::watched_file::WatchedFile;
@@ -441,9 +443,14 @@ struct Session {
     inflight_in: u16,
     /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
     client_max_packet: Option<usize>,
-    /// Deliveries dropped for `client_max_packet` at QoS 2: the router's PUBREL for them is
-    /// answered here, since the client never saw the PUBLISH.
+    /// QoS 2 deliveries acknowledged to the router on the client's behalf (dropped, or sent
+    /// at a lower QoS): the router's PUBREL for them is answered here.
     dropped_qos2: HashSet<u16>,
+    /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
+    /// the PUBREC the router waits for.
+    qos2_sent_as_qos1: HashSet<u16>,
+    /// Acknowledgements to the router, kept in the order the router requires.
+    ack_order: AckOrder,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
 }
@@ -559,13 +566,11 @@ impl Session {
             // The session number is taken before the router link, because linking is what
             // ends an older connection with this id, and that one must see it is stale.
             let session = ctx.sessions.open(&client_id);
-            let alias_max = properties
-                .as_ref()
-                .and_then(|p| p.topic_alias_max)
-                .unwrap_or(0);
+            // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it
+            // sends by subscription filter, so two topics matching one wildcard would share
+            // an alias. fbbus sends full topic names.
             let linked = tokio::task::block_in_place(|| {
-                ctx.router
-                    .link(&client_id, connect.clean_session, alias_max)
+                ctx.router.link(&client_id, connect.clean_session, 0)
             });
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
@@ -645,6 +650,8 @@ impl Session {
             topic_aliases: HashMap::new(),
             inflight_in: 0,
             dropped_qos2: HashSet::new(),
+            qos2_sent_as_qos1: HashSet::new(),
+            ack_order: AckOrder::default(),
             logged_denials: HashSet::new(),
         })
     }
@@ -758,10 +765,29 @@ impl Session {
                 }
                 Ok(())
             }
-            packet @ (Packet::PubAck(..)
-            | Packet::PubRec(..)
-            | Packet::PubComp(..)
-            | Packet::Unsubscribe(..)) => {
+            Packet::PubAck(ack, _) if self.qos2_sent_as_qos1.remove(&ack.pkid) => {
+                self.ack_for_client(2, ack.pkid);
+                Ok(())
+            }
+            Packet::PubAck(ack, properties) => {
+                let pkid = ack.pkid;
+                let packet = Packet::PubAck(ack, properties);
+                self.ack_order.ack(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            Packet::PubRec(rec, properties) => {
+                let pkid = rec.pkid;
+                let packet = Packet::PubRec(rec, properties);
+                self.ack_order.ack(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            Packet::PubComp(comp, properties) => {
+                let pkid = comp.pkid;
+                let packet = Packet::PubComp(comp, properties);
+                self.ack_order.complete(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            packet @ Packet::Unsubscribe(..) => {
                 self.to_router.push(packet);
                 Ok(())
             }
@@ -830,6 +856,7 @@ impl Session {
             p.topic_alias = None;
             publish.topic = topic.into();
         }
+        published_qos::mark(&mut properties, qos);
         self.ctx.metrics.messages_in.inc();
         self.to_router.push(Packet::Publish(publish, properties));
         Ok(())
@@ -1079,15 +1106,22 @@ impl Session {
                 }
                 self.io.queue(Packet::SubAck(suback, properties));
             }
-            Some(packet @ Packet::Publish(..)) => self.deliver_publish(packet),
-            Some(Packet::PubRel(pubrel, _)) if self.dropped_qos2.remove(&pubrel.pkid) => {
-                self.to_router.push(Packet::PubComp(
-                    PubComp {
-                        pkid: pubrel.pkid,
-                        reason: PubCompReason::Success,
-                    },
-                    None,
-                ));
+            Some(Packet::Publish(publish, properties)) => self.deliver_publish(publish, properties),
+            Some(Packet::PubRel(pubrel, properties)) => {
+                self.ack_order.released(pubrel.pkid);
+                if self.dropped_qos2.remove(&pubrel.pkid) {
+                    let complete = Packet::PubComp(
+                        PubComp {
+                            pkid: pubrel.pkid,
+                            reason: PubCompReason::Success,
+                        },
+                        None,
+                    );
+                    self.ack_order
+                        .complete(pubrel.pkid, complete, &mut self.to_router);
+                } else {
+                    self.io.queue(Packet::PubRel(pubrel, properties));
+                }
             }
             Some(packet) => {
                 if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
@@ -1099,57 +1133,98 @@ impl Session {
         }
     }
 
-    /// Encodes a delivery, unless it is larger than the client's Maximum Packet Size:
-    /// then it is dropped as MQTT 5 [MQTT-3.1.2-25] requires, and acknowledged to the
-    /// router on the client's behalf so the session's in-flight window does not leak.
-    fn deliver_publish(&mut self, packet: Packet) {
-        let before = self.io.write.len();
-        self.io.queue(packet);
-        let Some(max) = self.client_max_packet else {
-            self.ctx.metrics.messages_out.inc();
-            return;
-        };
-        let encoded = &self.io.write[before..];
-        if encoded.len() <= max {
-            self.ctx.metrics.messages_out.inc();
-            return;
-        }
-        let qos_pkid = frame::check(encoded, usize::MAX)
-            .ok()
-            .and_then(|h| frame::publish_qos_and_pkid(encoded, &h));
-        let size = encoded.len();
-        self.io.write.truncate(before);
-        self.ctx
-            .metrics
-            .messages_dropped
-            .with_label_values(&["client_max_packet_size"])
-            .inc();
-        tracing::debug!(
-            client_id = self.client_id,
-            size,
-            max,
-            "delivery larger than the client's maximum packet size; dropped"
+    /// Encodes one delivery. Two MQTT rules rumqttd 0.20's router does not follow are
+    /// applied here:
+    /// - the delivery QoS is min(publication QoS, subscription QoS) [MQTT-3.8.4-8]; the
+    ///   router sends at the subscription's QoS, so a lower publication QoS is restored from
+    ///   the marker `on_publish` attached, and the router's handshake is completed for the
+    ///   client ([`Session::ack_for_client`]);
+    /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
+    fn deliver_publish(&mut self, publish: Publish, mut properties: Option<PublishProperties>) {
+        let published = published_qos::take(&mut properties);
+        // `Publish::len` counts a packet id only when the router's QoS is not 0.
+        let (topic, payload, retain) = (
+            publish.topic.clone(),
+            publish.payload.clone(),
+            publish.retain,
         );
-        match qos_pkid {
-            Some((1, pkid)) => self.to_router.push(Packet::PubAck(
+        let routed_above_zero = publish.len() != 2 + topic.len() + payload.len();
+        let may_lower = routed_above_zero && matches!(published, Some(0 | 1));
+        let kept_properties = if may_lower { properties.clone() } else { None };
+
+        let before = self.io.write.len();
+        self.io.queue(Packet::Publish(publish, properties));
+        let encoded = &self.io.write[before..];
+        let (routed_qos, pkid) = frame::check(encoded, usize::MAX)
+            .ok()
+            .and_then(|h| frame::publish_qos_and_pkid(encoded, &h))
+            .unwrap_or((0, 0));
+
+        if routed_qos > 0 {
+            self.ack_order.delivered(pkid);
+        }
+        let qos = published.map_or(routed_qos, |q| q.min(routed_qos));
+        if may_lower && qos < routed_qos {
+            self.io.write.truncate(before);
+            let lower_pkid = if qos == 0 { 0 } else { pkid };
+            let lower = crate::wills::publish_packet(&topic, &payload, qos, retain, lower_pkid);
+            self.io.queue(Packet::Publish(lower, kept_properties));
+            if qos == 0 {
+                self.ack_for_client(routed_qos, pkid);
+            } else {
+                self.qos2_sent_as_qos1.insert(pkid);
+            }
+        }
+
+        let size = self.io.write.len() - before;
+        match self.client_max_packet {
+            Some(max) if size > max => {
+                self.io.write.truncate(before);
+                self.qos2_sent_as_qos1.remove(&pkid);
+                if qos > 0 {
+                    self.ack_for_client(routed_qos, pkid);
+                }
+                self.ctx
+                    .metrics
+                    .messages_dropped
+                    .with_label_values(&["client_max_packet_size"])
+                    .inc();
+                tracing::debug!(
+                    client_id = self.client_id,
+                    size,
+                    max,
+                    "delivery larger than the client's maximum packet size; dropped"
+                );
+            }
+            _ => self.ctx.metrics.messages_out.inc(),
+        }
+    }
+
+    /// Acknowledges a delivery to the router on the client's behalf (the client was not
+    /// sent it at the router's QoS), so the session's in-flight window does not leak.
+    /// At QoS 2 the router answers with PUBREL, which `outbound` completes with PUBCOMP.
+    fn ack_for_client(&mut self, routed_qos: u8, pkid: u16) {
+        let ack = match routed_qos {
+            1 => Packet::PubAck(
                 PubAck {
                     pkid,
                     reason: PubAckReason::Success,
                 },
                 None,
-            )),
-            Some((2, pkid)) => {
+            ),
+            2 => {
                 self.dropped_qos2.insert(pkid);
-                self.to_router.push(Packet::PubRec(
+                Packet::PubRec(
                     PubRec {
                         pkid,
                         reason: PubRecReason::Success,
                     },
                     None,
-                ));
+                )
             }
-            _ => {}
-        }
+            _ => return,
+        };
+        self.ack_order.ack(pkid, ack, &mut self.to_router);
     }
 
     /// Ends the session: tells the client why (MQTT 5), the router that it is gone,

@@ -23,6 +23,7 @@
 //!
 //! Password files, access rules and throttling are the `security` crate's.
 
+pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
 pub mod config;
@@ -31,6 +32,7 @@ pub mod frame;
 pub mod listener;
 pub mod logging;
 pub mod metrics;
+pub mod published_qos;
 pub mod router;
 pub mod server;
 pub mod session_table;

@@ -131,7 +131,7 @@ impl Wills {
         let qos = will.qos.min(1);
         link.1 = link.1 % u16::MAX + 1;
         let publish = publish_packet(&will.topic, &will.payload, qos, will.retain, link.1);
-        let properties = will.properties.map(|p| PublishProperties {
+        let mut properties = will.properties.map(|p| PublishProperties {
             payload_format_indicator: p.payload_format_indicator,
             message_expiry_interval: p.message_expiry_interval,
             topic_alias: None,
@@ -141,6 +141,7 @@ impl Wills {
             subscription_identifiers: Vec::new(),
             content_type: p.content_type,
         });
+        crate::published_qos::mark(&mut properties, qos);
         match link.0.send(Packet::Publish(publish, properties)).await {
             Ok(_) => {
                 self.metrics.wills_published.inc();

@@ -166,3 +166,48 @@ fn more_unacknowledged_publications_than_the_receive_maximum_disconnect() {
         assert_eq!(ok.read_packet().expect("PUBACK").0, 0x40);
     }
 }
+
+/// Lower-QoS deliveries are acknowledged to the router on the client's behalf: many more
+/// than the router's in-flight window must flow through a QoS 2 subscription.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn delivery_qos_is_the_lower_of_publication_and_subscription() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "sub2", None).await.unwrap();
+    sub.client
+        .subscribe("q/#", rumqttc::QoS::ExactlyOnce)
+        .await
+        .unwrap();
+    sub.next(WAIT, |p| {
+        matches!(p, rumqttc::Packet::SubAck(_)).then_some(())
+    })
+    .await
+    .unwrap();
+    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
+    for (topic, qos) in [
+        ("q/0", rumqttc::QoS::AtMostOnce),
+        ("q/1", rumqttc::QoS::AtLeastOnce),
+        ("q/2", rumqttc::QoS::ExactlyOnce),
+    ] {
+        for i in 0..300u32 {
+            publisher
+                .client
+                .publish(topic, qos, false, i.to_be_bytes().to_vec())
+                .await
+                .unwrap();
+        }
+        for i in 0..300u32 {
+            let m = sub
+                .next_publish(Duration::from_secs(10))
+                .await
+                .unwrap_or_else(|| {
+                    panic!(
+                        "{topic}: delivery {i} of 300 missing; log: {}",
+                        broker.log_text()
+                    )
+                });
+            assert_eq!(m.topic, topic);
+            assert_eq!(m.qos, qos, "{topic}: delivered at the publication's QoS");
+            assert_eq!(m.payload[..], i.to_be_bytes(), "{topic}: in order");
+        }
+    }
+}

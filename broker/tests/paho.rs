@@ -135,10 +135,26 @@ fn paho_pubsub_v5() {
     pubsub("5");
 }
 
-// The `delivery_qos` scenario of paho_check.py (delivery QoS = min(publication QoS,
-// granted QoS), MQTT 3.1.1 3.8.4 / MQTT 5 [MQTT-3.8.4-8]) fails on fbbus today: rumqttd
-// 0.20's router delivers at the subscription's QoS. Fixing it is issue 3 (conformance);
-// its test wrappers belong there, so they are not wired up here.
+/// Delivery QoS is min(publication QoS, granted subscription QoS) [MQTT-3.8.4-8].
+/// rumqttd's router delivers at the subscription's QoS; fbbus's packet path restores it.
+fn delivery_qos(protocol: &str) {
+    if !paho_available() {
+        return;
+    }
+    let broker = anonymous_broker();
+    run_scenario(&broker, "delivery_qos", protocol, &[]);
+    assert_metric_at_least(&broker, "fbbus_messages_sent_total", 9.0);
+}
+
+#[test]
+fn paho_delivery_qos_v311() {
+    delivery_qos("311");
+}
+
+#[test]
+fn paho_delivery_qos_v5() {
+    delivery_qos("5");
+}
 
 fn pubsub_authenticated(protocol: &str) {
     if !paho_available() {
