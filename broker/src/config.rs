@@ -74,8 +74,10 @@ pub struct BrokerSection {
     pub connect_timeout_ms: u64,
     /// Router commit-log segment size per subscribed filter.
     pub router_segment_bytes: usize,
-    /// Segments kept per filter: memory per filter is at most size x count. The defaults
-    /// (256 KiB x 2) bound a line of 1,000 per-device filters to about 0.5 GiB worst case.
+    /// Segments kept per filter: memory per filter is at most size x count. It is also how
+    /// far a subscriber may fall behind on that filter before it skips messages: the
+    /// defaults (4 MiB x 4) keep the reference study's largest burst (81,920 messages)
+    /// lossless for a subscriber that cannot keep up.
     pub router_segment_count: usize,
     /// Messages queued towards one connection before the router pauses delivery to it.
     pub router_max_outgoing_packets: u64,
@@ -89,8 +91,8 @@ impl Default for BrokerSection {
             max_packet_bytes: 64 * 1024,
             max_inflight: 100,
             connect_timeout_ms: 5_000,
-            router_segment_bytes: 256 * 1024,
-            router_segment_count: 2,
+            router_segment_bytes: 4 * 1024 * 1024,
+            router_segment_count: 4,
             router_max_outgoing_packets: 1_000,
         }
     }

@@ -457,6 +457,9 @@ struct Session {
 
 const MAX_LOGGED_DENIALS: usize = 1024;
 
+/// Packets from one client waiting for the router before its socket is no longer read.
+const ROUTER_BACKLOG: usize = 1024;
+
 /// The Topic Alias Maximum rumqttd's router announces in CONNACK.
 const TOPIC_ALIAS_MAX: u16 = 4096;
 
@@ -664,10 +667,20 @@ impl Session {
             tokio::time::sleep_until(self.keep_alive.map_or(far_future, |k| Instant::now() + k));
         tokio::pin!(deadline);
         loop {
+            // Backpressure: while the router has not taken this client's previous packets,
+            // stop reading its socket, so a fast publisher is slowed by TCP instead of
+            // growing the router's input queue without bound.
+            let backlogged = self.link_tx.buffer().len() >= ROUTER_BACKLOG;
             tokio::select! {
                 _ = shutdown.changed() => return End::Shutdown,
                 _ = &mut deadline => return End::KeepAlive,
-                read = self.io.fill() => {
+                _ = tokio::time::sleep(Duration::from_millis(1)), if backlogged => {
+                    // Not reading is the broker's choice, not client silence.
+                    if let Some(k) = self.keep_alive {
+                        deadline.as_mut().reset(Instant::now() + k);
+                    }
+                }
+                read = self.io.fill(), if !backlogged => {
                     let n = match read {
                         Ok(n) => n,
                         Err(_) => return End::Abrupt,

@@ -416,3 +416,36 @@ fn json_logs_are_one_object_per_line() {
         .iter()
         .any(|e| e["message"] == "client connected" && e["client_id"] == "json-dev"));
 }
+
+/// A publisher that writes faster than the router takes its messages is slowed by TCP
+/// backpressure, and a burst larger than the backlog still arrives complete and in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_burst_larger_than_the_backlog_arrives_complete_and_in_order() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "sink", None).await.unwrap();
+    sub.subscribe("burst/#").await;
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            client_id: "firehose",
+            ..Default::default()
+        }),
+        0
+    );
+    const N: u32 = 20_000;
+    let burst: Vec<u8> = (0..N)
+        .flat_map(|i| raw::publish_qos0("burst/x", &i.to_be_bytes()))
+        .collect();
+    let writer = std::thread::spawn(move || {
+        c.send(&burst);
+        c
+    });
+    for i in 0..N {
+        let m = sub
+            .next_publish(Duration::from_secs(10))
+            .await
+            .unwrap_or_else(|| panic!("message {i} of {N} missing"));
+        assert_eq!(m.payload[..], i.to_be_bytes());
+    }
+    drop(writer.join().unwrap());
+}

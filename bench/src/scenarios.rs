@@ -1,0 +1,907 @@
+//! The six measurements. Each runs against one freshly started broker, is bounded by a count
+//! and a deadline, and returns what it measured as an [`Outcome`] (also after a timeout).
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, Result};
+use hdrhistogram::Histogram;
+use tokio::io::{AsyncWriteExt, BufWriter};
+use tokio::net::TcpStream;
+use tokio::sync::watch;
+
+use crate::brokers::Running;
+use crate::mqtt::{self, PacketReader};
+
+/// The storm's devices: (user name, password).
+pub type Users = Arc<Vec<(String, String)>>;
+
+/// Payload size of every message.
+pub const PAYLOAD_BYTES: usize = 32;
+/// Time to open one client connection before it counts as failed.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scenario {
+    Fanin,
+    Latency,
+    IdleMem,
+    MsgMem,
+    ConnRate,
+    AuthStorm,
+}
+
+impl Scenario {
+    pub const ALL: [Scenario; 6] = [
+        Scenario::Fanin,
+        Scenario::Latency,
+        Scenario::IdleMem,
+        Scenario::MsgMem,
+        Scenario::ConnRate,
+        Scenario::AuthStorm,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Scenario::Fanin => "fanin",
+            Scenario::Latency => "latency",
+            Scenario::IdleMem => "idlemem",
+            Scenario::MsgMem => "msgmem",
+            Scenario::ConnRate => "connrate",
+            Scenario::AuthStorm => "authstorm",
+        }
+    }
+
+    pub fn parse(name: &str) -> Option<Scenario> {
+        Scenario::ALL.into_iter().find(|s| s.name() == name)
+    }
+
+    /// Short title with the exact parameters, used in the header and the ratio line.
+    pub fn title(self, p: &Params) -> String {
+        match self {
+            Scenario::Fanin => format!(
+                "burst fan-in ({} x {} x {PAYLOAD_BYTES} B, QoS 0)",
+                p.publishers, p.fanin_messages
+            ),
+            Scenario::Latency => format!(
+                "steady latency ({} x {} msg/s x {} s, {PAYLOAD_BYTES} B, QoS 0)",
+                p.publishers, p.latency_rate, p.latency_secs
+            ),
+            Scenario::IdleMem => format!(
+                "memory per idle connection ({} clients, keep-alive {})",
+                p.idle_connections,
+                mqtt::KEEP_ALIVE_SECS
+            ),
+            Scenario::MsgMem => format!(
+                "memory after {} messages ({} x {} x {PAYLOAD_BYTES} B, QoS 0, +2 s)",
+                p.publishers * p.msgmem_per_publisher,
+                p.publishers,
+                p.msgmem_per_publisher
+            ),
+            Scenario::ConnRate => format!(
+                "connections per second ({} anonymous, {} in flight)",
+                p.connrate_connections, p.connrate_inflight
+            ),
+            Scenario::AuthStorm => format!(
+                "authenticated reconnect storm ({} devices at once, fresh broker)",
+                p.storm_devices
+            ),
+        }
+    }
+
+    /// What the scenario does, printed under its header.
+    pub fn description(self, p: &Params) -> String {
+        let secs = p.deadline.as_secs();
+        match self {
+            Scenario::Fanin => format!(
+                "{} publishers each write {} QoS 0 PUBLISHes of {PAYLOAD_BYTES} B to one topic as fast as possible \
+                 (64 KiB buffered writes); one subscriber counts them. msg/s = received / (last receive - first send). \
+                 Deadline {secs} s.",
+                p.publishers, p.fanin_messages
+            ),
+            Scenario::Latency => format!(
+                "{} publishers each send {} msg/s for {} s (one write per message, nodelay) to one subscriber; \
+                 the payload carries the send time (ns since a shared Instant). HDR histogram of receive - send; \
+                 lost = sent - received after a 2 s drain. tokio's 1 ms timer makes the publishers send together \
+                 on each millisecond tick.",
+                p.publishers, p.latency_rate, p.latency_secs
+            ),
+            Scenario::IdleMem => format!(
+                "broker VmRSS 1 s after start, then again 1 s after {} clients completed CONNECT/CONNACK \
+                 (64 in flight) and stay idle. KB/conn = difference / connected clients.",
+                p.idle_connections
+            ),
+            Scenario::MsgMem => format!(
+                "broker VmRSS 1 s after start, then {} publishers x {} messages as fast as possible into one \
+                 subscriber that drains them; VmRSS again 2 s after the traffic stopped, clients still connected.",
+                p.publishers, p.msgmem_per_publisher
+            ),
+            Scenario::ConnRate => format!(
+                "{} connections, CONNECT -> CONNACK, {} in flight at a time, kept open; \
+                 conns/s = connected / (last CONNACK - start).",
+                p.connrate_connections, p.connrate_inflight
+            ),
+            Scenario::AuthStorm => format!(
+                "{} devices with passwords start TCP connect + CONNECT at the same instant against a broker \
+                 process started for this scenario; time until the last CONNACK. Password stores: fbbus argon2id \
+                 (security::hash_password defaults), mosquitto PBKDF2-SHA512 $7$ (mosquitto_passwd), \
+                 rumqttd plaintext static map (no hashing at all).",
+                p.storm_devices
+            ),
+        }
+    }
+
+    pub fn columns(self) -> &'static [&'static str] {
+        match self {
+            Scenario::Fanin => &["msg/s", "delivered", "lost", "send->last recv"],
+            Scenario::Latency => &["p50 ms", "p99 ms", "max ms", "received", "lost"],
+            Scenario::IdleMem => &["RSS before", "RSS after", "KB/conn", "connected"],
+            Scenario::MsgMem => &["RSS before", "RSS after", "delivered", "msg/s"],
+            Scenario::ConnRate => &["conns/s", "connected", "time"],
+            Scenario::AuthStorm => &["all CONNACK", "p50", "p99", "connected", "password store"],
+        }
+    }
+
+    /// Whether a larger key figure is better (decides the wording of the ratio line).
+    pub fn higher_is_better(self) -> bool {
+        matches!(self, Scenario::Fanin | Scenario::ConnRate)
+    }
+
+    /// The key figures as printed in the ratio line.
+    pub fn format_keys(self, keys: &[Option<f64>]) -> String {
+        let k = |i: usize| keys.get(i).copied().flatten();
+        let or_na = |v: Option<String>| v.unwrap_or_else(|| "n/a".into());
+        match self {
+            Scenario::Fanin => or_na(k(0).map(|v| format!("{} msg/s", si(v)))),
+            Scenario::Latency => match (k(0), k(1), k(2)) {
+                (Some(a), Some(b), Some(c)) => format!("p50/p99/max {a:.2}/{b:.2}/{c:.2} ms"),
+                _ => "n/a".into(),
+            },
+            Scenario::IdleMem => or_na(k(0).map(|v| format!("{v:.2} KB/conn"))),
+            Scenario::MsgMem => or_na(k(0).map(|v| format!("{v:.1} MB"))),
+            Scenario::ConnRate => or_na(k(0).map(|v| format!("{v:.0} conn/s"))),
+            Scenario::AuthStorm => or_na(k(0).map(|v| format!("{v:.2} s"))),
+        }
+    }
+
+    pub async fn run(self, broker: &Running, p: &Params, storm_users: Option<Users>) -> Outcome {
+        let result = match self {
+            Scenario::Fanin => fanin(broker, p).await,
+            Scenario::Latency => latency(broker, p).await,
+            Scenario::IdleMem => idle_memory(broker, p).await,
+            Scenario::MsgMem => message_memory(broker, p).await,
+            Scenario::ConnRate => connection_rate(broker, p).await,
+            Scenario::AuthStorm => match storm_users {
+                Some(users) => auth_storm(broker, p, users).await,
+                None => Err(anyhow::anyhow!("no users were prepared")),
+            },
+        };
+        result.unwrap_or_else(|e| Outcome::failed(self, format!("error: {e:#}")))
+    }
+}
+
+/// Sizes of every scenario.
+#[derive(Clone, Debug)]
+pub struct Params {
+    pub publishers: usize,
+    pub fanin_messages: usize,
+    pub latency_rate: u64,
+    pub latency_secs: u64,
+    pub idle_connections: usize,
+    pub msgmem_per_publisher: usize,
+    pub connrate_connections: usize,
+    pub connrate_inflight: usize,
+    pub storm_devices: usize,
+    /// Each scenario's own time limit (the latency scenario adds its duration).
+    pub deadline: Duration,
+}
+
+impl Params {
+    pub fn full() -> Params {
+        Params {
+            publishers: 10,
+            fanin_messages: 20_000,
+            latency_rate: 1_000,
+            latency_secs: 10,
+            idle_connections: 1_000,
+            msgmem_per_publisher: 100_000,
+            connrate_connections: 2_000,
+            connrate_inflight: 64,
+            storm_devices: 1_045,
+            deadline: Duration::from_secs(60),
+        }
+    }
+
+    pub fn quick() -> Params {
+        Params {
+            publishers: 10,
+            fanin_messages: 2_000,
+            latency_rate: 1_000,
+            latency_secs: 2,
+            idle_connections: 100,
+            msgmem_per_publisher: 10_000,
+            connrate_connections: 200,
+            connrate_inflight: 64,
+            storm_devices: 100,
+            deadline: Duration::from_secs(20),
+        }
+    }
+}
+
+/// What one scenario measured on one broker: the table cells, the key figures for the ratio
+/// line (None: not measured) and a note (timeout, failures, errors).
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    pub cells: Vec<String>,
+    pub keys: Vec<Option<f64>>,
+    pub note: Option<String>,
+    /// The key figures are incomplete (deadline hit): shown as "timeout" in the ratio line.
+    pub timed_out: bool,
+}
+
+impl Outcome {
+    pub fn failed(scenario: Scenario, note: String) -> Outcome {
+        Outcome {
+            cells: vec!["-".into(); scenario.columns().len()],
+            keys: Vec::new(),
+            note: Some(note),
+            timed_out: false,
+        }
+    }
+}
+
+fn add_note(note: &mut Option<String>, text: impl Into<String>) {
+    let text = text.into();
+    *note = Some(match note.take() {
+        Some(n) => format!("{n}; {text}"),
+        None => text,
+    });
+}
+
+/// 312400 -> "312.4k".
+pub fn si(v: f64) -> String {
+    if v >= 1e6 {
+        format!("{:.2}M", v / 1e6)
+    } else if v >= 1e3 {
+        format!("{:.1}k", v / 1e3)
+    } else {
+        format!("{v:.0}")
+    }
+}
+
+fn mb(kib: u64) -> String {
+    format!("{:.1} MB", kib as f64 / 1024.0)
+}
+
+fn rss(broker: &Running) -> Result<u64> {
+    broker
+        .rss_kib()
+        .context("cannot read VmRSS of the broker process")
+}
+
+async fn connect(addr: SocketAddr, id: &str) -> Result<TcpStream> {
+    tokio::time::timeout(CONNECT_TIMEOUT, mqtt::connect(addr, id, None))
+        .await
+        .with_context(|| format!("{id}: no CONNACK within {CONNECT_TIMEOUT:?}"))?
+        .with_context(|| id.to_string())
+}
+
+/// One subscriber on `topic` plus `publishers` connected publishers.
+async fn subscriber_and_publishers(
+    addr: SocketAddr,
+    topic: &str,
+    publishers: usize,
+) -> Result<(PacketReader, Vec<TcpStream>)> {
+    let mut sub = connect(addr, "bench-sub").await?;
+    tokio::time::timeout(CONNECT_TIMEOUT, mqtt::subscribe(&mut sub, topic))
+        .await
+        .context("no SUBACK")??;
+    let mut pubs = Vec::with_capacity(publishers);
+    for i in 0..publishers {
+        pubs.push(connect(addr, &format!("bench-pub-{i}")).await?);
+    }
+    // Routers apply a subscription asynchronously to its SUBACK on some brokers.
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    Ok((PacketReader::new(sub), pubs))
+}
+
+#[derive(Debug, PartialEq, Eq)]
+enum DrainEnd {
+    Complete,
+    /// Publishers done and nothing arrived for the idle time: the rest was lost.
+    Idle,
+    Closed,
+    Deadline,
+    Error(String),
+}
+
+struct Drained {
+    reader: PacketReader,
+    received: u64,
+    last_receive: Option<Instant>,
+    end: DrainEnd,
+    latency_ns: Option<Histogram<u64>>,
+}
+
+/// Counts PUBLISHes until `expected` arrived, the publishers are done and the stream was
+/// idle for `idle`, the broker closed the connection, or `end_at`. With `epoch`, the first
+/// 8 payload bytes are a send time (ns since `epoch`) and latencies go into a histogram.
+async fn drain(
+    mut reader: PacketReader,
+    expected: u64,
+    publishers_done: Arc<AtomicUsize>,
+    publishers: usize,
+    idle: Duration,
+    end_at: Instant,
+    epoch: Option<Instant>,
+) -> Drained {
+    let mut latency_ns = epoch.map(|_| {
+        Histogram::<u64>::new_with_bounds(1, 120_000_000_000, 3).expect("valid histogram bounds")
+    });
+    let mut received = 0u64;
+    let mut last_receive = None;
+    let mut last_activity = Instant::now();
+    let mut done_seen: Option<Instant> = None;
+    let end = loop {
+        if received >= expected {
+            break DrainEnd::Complete;
+        }
+        let now = Instant::now();
+        if now >= end_at {
+            break DrainEnd::Deadline;
+        }
+        if done_seen.is_none() && publishers_done.load(Ordering::Acquire) >= publishers {
+            done_seen = Some(now);
+        }
+        if let Some(done) = done_seen {
+            if now.duration_since(done.max(last_activity)) >= idle {
+                break DrainEnd::Idle;
+            }
+        }
+        match tokio::time::timeout(Duration::from_millis(100), reader.read_more()).await {
+            Err(_) => continue,
+            Ok(Err(e)) => break DrainEnd::Error(e.to_string()),
+            Ok(Ok(0)) => break DrainEnd::Closed,
+            Ok(Ok(_)) => {
+                let t = Instant::now();
+                last_activity = t;
+                let now_ns = epoch.map(|e| t.duration_since(e).as_nanos() as u64);
+                let mut got = 0u64;
+                loop {
+                    match reader.next_packet() {
+                        Ok(Some((header, body))) => {
+                            if let Some(payload) = mqtt::publish_payload(header, body) {
+                                got += 1;
+                                if let (Some(h), Some(now_ns), Some(ts)) =
+                                    (latency_ns.as_mut(), now_ns, payload.get(..8))
+                                {
+                                    let sent = u64::from_be_bytes(ts.try_into().expect("8 bytes"));
+                                    h.saturating_record(now_ns.saturating_sub(sent).max(1));
+                                }
+                            }
+                        }
+                        Ok(None) => break,
+                        Err(e) => {
+                            return Drained {
+                                reader,
+                                received: received + got,
+                                last_receive,
+                                end: DrainEnd::Error(e.to_string()),
+                                latency_ns,
+                            }
+                        }
+                    }
+                }
+                if got > 0 {
+                    received += got;
+                    last_receive = Some(t);
+                }
+            }
+        }
+    };
+    Drained {
+        reader,
+        received,
+        last_receive,
+        end,
+        latency_ns,
+    }
+}
+
+struct Burst {
+    sent: u64,
+    expected: u64,
+    received: u64,
+    first_send: Instant,
+    last_receive: Option<Instant>,
+    timed_out: bool,
+    note: Option<String>,
+    /// Every client connection, still open.
+    _keep: (PacketReader, Vec<TcpStream>),
+}
+
+impl Burst {
+    fn rate(&self) -> Option<f64> {
+        let last = self.last_receive?;
+        let secs = last.duration_since(self.first_send).as_secs_f64();
+        (secs > 0.0).then(|| self.received as f64 / secs)
+    }
+}
+
+/// `publishers` x `per_publisher` QoS 0 messages as fast as possible into one subscriber.
+async fn burst(
+    addr: SocketAddr,
+    publishers: usize,
+    per_publisher: usize,
+    deadline: Duration,
+) -> Result<Burst> {
+    let topic = "bench/burst";
+    let (reader, pubs) = subscriber_and_publishers(addr, topic, publishers).await?;
+    let packet = Arc::new(mqtt::publish_packet(topic, &[0x5a; PAYLOAD_BYTES]));
+    let (go_tx, go_rx) = watch::channel(false);
+    let done = Arc::new(AtomicUsize::new(0));
+    let sent = Arc::new(AtomicU64::new(0));
+    let first_error = Arc::new(Mutex::new(None::<String>));
+    let end_at = Instant::now() + deadline;
+    let mut tasks = Vec::with_capacity(publishers);
+    for stream in pubs {
+        let (mut go, packet, done, sent, first_error) = (
+            go_rx.clone(),
+            packet.clone(),
+            done.clone(),
+            sent.clone(),
+            first_error.clone(),
+        );
+        tasks.push(tokio::spawn(async move {
+            let _ = go.wait_for(|go| *go).await;
+            let mut writer = BufWriter::with_capacity(64 * 1024, stream);
+            let send_all = async {
+                for _ in 0..per_publisher {
+                    writer.write_all(&packet).await?;
+                    sent.fetch_add(1, Ordering::Relaxed);
+                }
+                writer.flush().await
+            };
+            let result = tokio::time::timeout_at(end_at.into(), send_all).await;
+            match result {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    first_error
+                        .lock()
+                        .unwrap()
+                        .get_or_insert(format!("publisher: {e}"));
+                }
+                Err(_) => {
+                    first_error
+                        .lock()
+                        .unwrap()
+                        .get_or_insert("publishers hit the deadline".into());
+                }
+            }
+            done.fetch_add(1, Ordering::Release);
+            writer.into_inner()
+        }));
+    }
+    let expected = (publishers * per_publisher) as u64;
+    let drained = tokio::spawn(drain(
+        reader,
+        expected,
+        done.clone(),
+        publishers,
+        Duration::from_secs(2),
+        end_at,
+        None,
+    ));
+    let first_send = Instant::now();
+    go_tx.send(true).ok();
+    let mut streams = Vec::with_capacity(publishers);
+    for t in tasks {
+        streams.push(t.await.context("publisher task")?);
+    }
+    let drained = drained.await.context("subscriber task")?;
+    let mut note = first_error.lock().unwrap().take();
+    let timed_out =
+        drained.end == DrainEnd::Deadline || note.as_deref() == Some("publishers hit the deadline");
+    match &drained.end {
+        DrainEnd::Closed => add_note(&mut note, "broker closed the subscriber"),
+        DrainEnd::Error(e) => add_note(&mut note, format!("subscriber: {e}")),
+        _ => {}
+    }
+    if timed_out {
+        add_note(&mut note, "timeout");
+    }
+    Ok(Burst {
+        sent: sent.load(Ordering::Relaxed),
+        expected,
+        received: drained.received,
+        first_send,
+        last_receive: drained.last_receive,
+        timed_out,
+        note,
+        _keep: (drained.reader, streams),
+    })
+}
+
+fn delivered(received: u64, expected: u64) -> String {
+    format!("{received}/{expected}")
+}
+
+fn lost(received: u64, sent: u64) -> String {
+    let lost = sent.saturating_sub(received);
+    if sent == 0 {
+        "-".into()
+    } else {
+        format!("{lost} ({:.1}%)", lost as f64 * 100.0 / sent as f64)
+    }
+}
+
+async fn fanin(broker: &Running, p: &Params) -> Result<Outcome> {
+    let b = burst(broker.addr, p.publishers, p.fanin_messages, p.deadline).await?;
+    let rate = b.rate();
+    let span = b
+        .last_receive
+        .map(|l| format!("{:.3} s", l.duration_since(b.first_send).as_secs_f64()))
+        .unwrap_or_else(|| "-".into());
+    Ok(Outcome {
+        cells: vec![
+            rate.map(si).unwrap_or_else(|| "-".into()),
+            delivered(b.received, b.expected),
+            lost(b.received, b.sent),
+            span,
+        ],
+        keys: vec![rate],
+        note: b.note.clone(),
+        timed_out: b.timed_out,
+    })
+}
+
+async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
+    let topic = "bench/latency";
+    let (reader, pubs) = subscriber_and_publishers(broker.addr, topic, p.publishers).await?;
+    let per_publisher = p.latency_rate * p.latency_secs;
+    let period_ns = 1_000_000_000 / p.latency_rate.max(1);
+    let epoch = Instant::now();
+    let end_at = Instant::now() + p.deadline + Duration::from_secs(p.latency_secs);
+    let start = tokio::time::Instant::now() + Duration::from_millis(100);
+    let done = Arc::new(AtomicUsize::new(0));
+    let sent = Arc::new(AtomicU64::new(0));
+    let first_error = Arc::new(Mutex::new(None::<String>));
+    let publishers = pubs.len();
+    let mut tasks = Vec::with_capacity(publishers);
+    for (i, mut stream) in pubs.into_iter().enumerate() {
+        let (done, sent, first_error) = (done.clone(), sent.clone(), first_error.clone());
+        tasks.push(tokio::spawn(async move {
+            let mut packet = mqtt::publish_packet(topic, &[0u8; PAYLOAD_BYTES]);
+            let ts_at = packet.len() - PAYLOAD_BYTES;
+            packet[ts_at + 8..ts_at + 12].copy_from_slice(&(i as u32).to_be_bytes());
+            let send_all = async {
+                for k in 0..per_publisher {
+                    // An absolute schedule: a late send does not shift the later ones. tokio's
+                    // timer has 1 ms resolution, so at 1,000 msg/s the publishers' sends share
+                    // each millisecond tick (10 messages at once into the broker).
+                    tokio::time::sleep_until(start + Duration::from_nanos(k * period_ns)).await;
+                    let now_ns = epoch.elapsed().as_nanos() as u64;
+                    packet[ts_at..ts_at + 8].copy_from_slice(&now_ns.to_be_bytes());
+                    packet[ts_at + 12..ts_at + 20].copy_from_slice(&k.to_be_bytes());
+                    stream.write_all(&packet).await?;
+                    sent.fetch_add(1, Ordering::Relaxed);
+                }
+                Ok::<(), std::io::Error>(())
+            };
+            match tokio::time::timeout_at(end_at.into(), send_all).await {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    first_error
+                        .lock()
+                        .unwrap()
+                        .get_or_insert(format!("publisher: {e}"));
+                }
+                Err(_) => {
+                    first_error
+                        .lock()
+                        .unwrap()
+                        .get_or_insert("publishers hit the deadline".into());
+                }
+            }
+            done.fetch_add(1, Ordering::Release);
+            stream
+        }));
+    }
+    let expected = per_publisher * publishers as u64;
+    let drained = drain(
+        reader,
+        expected,
+        done.clone(),
+        publishers,
+        Duration::from_secs(2),
+        end_at,
+        Some(epoch),
+    )
+    .await;
+    let mut streams = Vec::with_capacity(publishers);
+    for t in tasks {
+        streams.push(t.await.context("publisher task")?);
+    }
+    let sent = sent.load(Ordering::Relaxed);
+    let mut note = first_error.lock().unwrap().take();
+    let timed_out = drained.end == DrainEnd::Deadline;
+    match &drained.end {
+        DrainEnd::Closed => add_note(&mut note, "broker closed the subscriber"),
+        DrainEnd::Error(e) => add_note(&mut note, format!("subscriber: {e}")),
+        _ => {}
+    }
+    if timed_out {
+        add_note(&mut note, "timeout");
+    }
+    let h = drained.latency_ns.expect("latency histogram");
+    let ms = |ns: u64| ns as f64 / 1e6;
+    let (p50, p99, max) = if h.is_empty() {
+        (None, None, None)
+    } else {
+        (
+            Some(ms(h.value_at_quantile(0.50))),
+            Some(ms(h.value_at_quantile(0.99))),
+            Some(ms(h.max())),
+        )
+    };
+    let f = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into());
+    drop(streams);
+    Ok(Outcome {
+        cells: vec![
+            f(p50),
+            f(p99),
+            f(max),
+            delivered(drained.received, expected),
+            lost(drained.received, sent),
+        ],
+        keys: vec![p50, p99, max],
+        note,
+        timed_out,
+    })
+}
+
+struct Opened {
+    streams: Vec<TcpStream>,
+    /// Time from the common start to each successful CONNACK.
+    done_after: Vec<Duration>,
+    failures: usize,
+    first_error: Option<String>,
+    timed_out: bool,
+}
+
+/// Opens `n` connections, at most `in_flight` at a time, all released at one instant.
+/// With `users`, connection i logs in as users[i] (and uses the user name as client id).
+async fn open_many(
+    addr: SocketAddr,
+    n: usize,
+    in_flight: usize,
+    prefix: &str,
+    users: Option<Users>,
+    end_at: Instant,
+) -> Opened {
+    let next = Arc::new(AtomicUsize::new(0));
+    let (go_tx, go_rx) = watch::channel(None::<Instant>);
+    let workers = in_flight.clamp(1, n.max(1));
+    let mut tasks = Vec::with_capacity(workers);
+    for _ in 0..workers {
+        let (mut go, next, users, prefix) = (
+            go_rx.clone(),
+            next.clone(),
+            users.clone(),
+            prefix.to_string(),
+        );
+        tasks.push(tokio::spawn(async move {
+            let start = match go.wait_for(|g| g.is_some()).await {
+                Ok(g) => g.expect("start instant"),
+                Err(_) => return (Vec::new(), Vec::new(), 0, None, false),
+            };
+            let (mut streams, mut times, mut failures, mut first_error) =
+                (Vec::new(), Vec::new(), 0usize, None::<String>);
+            let mut timed_out = false;
+            loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                if i >= n {
+                    break;
+                }
+                let (id, credentials) = match users.as_deref() {
+                    Some(users) => (users[i].0.clone(), Some((&*users[i].0, &*users[i].1))),
+                    None => (format!("{prefix}-{i:05}"), None),
+                };
+                match tokio::time::timeout_at(end_at.into(), mqtt::connect(addr, &id, credentials))
+                    .await
+                {
+                    Ok(Ok(s)) => {
+                        times.push(start.elapsed());
+                        streams.push(s);
+                    }
+                    Ok(Err(e)) => {
+                        failures += 1;
+                        first_error.get_or_insert(format!("{e:#}"));
+                    }
+                    Err(_) => {
+                        timed_out = true;
+                        break;
+                    }
+                }
+            }
+            (streams, times, failures, first_error, timed_out)
+        }));
+    }
+    go_tx.send(Some(Instant::now())).ok();
+    let mut opened = Opened {
+        streams: Vec::with_capacity(n),
+        done_after: Vec::with_capacity(n),
+        failures: 0,
+        first_error: None,
+        timed_out: false,
+    };
+    for t in tasks {
+        match t.await {
+            Ok((streams, times, failures, first_error, timed_out)) => {
+                opened.streams.extend(streams);
+                opened.done_after.extend(times);
+                opened.failures += failures;
+                if opened.first_error.is_none() {
+                    opened.first_error = first_error;
+                }
+                opened.timed_out |= timed_out;
+            }
+            Err(e) => {
+                opened.first_error.get_or_insert(format!("worker: {e}"));
+            }
+        }
+    }
+    // Connections never attempted because of the deadline count as not connected.
+    opened.done_after.sort();
+    opened
+}
+
+fn opened_note(o: &Opened, n: usize) -> Option<String> {
+    let mut note = None;
+    if o.failures > 0 {
+        add_note(
+            &mut note,
+            format!(
+                "{} failed: {}",
+                o.failures,
+                o.first_error.as_deref().unwrap_or("?")
+            ),
+        );
+    }
+    if o.timed_out {
+        add_note(
+            &mut note,
+            format!("timeout ({} of {n} connected)", o.streams.len()),
+        );
+    }
+    note
+}
+
+async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome> {
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let before = rss(broker)?;
+    let end_at = Instant::now() + p.deadline;
+    let opened = open_many(
+        broker.addr,
+        p.idle_connections,
+        64,
+        "bench-idle",
+        None,
+        end_at,
+    )
+    .await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let after = rss(broker)?;
+    let n = opened.streams.len();
+    // KB as /proc reports it (kB = 1024 bytes), like the reference figures.
+    let per_conn = (n > 0).then(|| (after as f64 - before as f64) / n as f64);
+    Ok(Outcome {
+        cells: vec![
+            mb(before),
+            mb(after),
+            per_conn
+                .map(|v| format!("{v:.2}"))
+                .unwrap_or_else(|| "-".into()),
+            format!("{n}/{}", p.idle_connections),
+        ],
+        keys: vec![per_conn],
+        note: opened_note(&opened, p.idle_connections),
+        timed_out: opened.timed_out,
+    })
+}
+
+async fn message_memory(broker: &Running, p: &Params) -> Result<Outcome> {
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let before = rss(broker)?;
+    let b = burst(
+        broker.addr,
+        p.publishers,
+        p.msgmem_per_publisher,
+        p.deadline,
+    )
+    .await?;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let after = rss(broker)?;
+    let rate = b.rate();
+    let after_mb = after as f64 / 1024.0;
+    Ok(Outcome {
+        cells: vec![
+            mb(before),
+            mb(after),
+            delivered(b.received, b.expected),
+            rate.map(si).unwrap_or_else(|| "-".into()),
+        ],
+        keys: vec![Some(after_mb)],
+        note: b.note.clone(),
+        timed_out: b.timed_out,
+    })
+}
+
+async fn connection_rate(broker: &Running, p: &Params) -> Result<Outcome> {
+    let end_at = Instant::now() + p.deadline;
+    let opened = open_many(
+        broker.addr,
+        p.connrate_connections,
+        p.connrate_inflight,
+        "bench-rate",
+        None,
+        end_at,
+    )
+    .await;
+    let n = opened.streams.len();
+    let last = opened.done_after.last().copied();
+    let rate = last.and_then(|l| (l.as_secs_f64() > 0.0).then(|| n as f64 / l.as_secs_f64()));
+    Ok(Outcome {
+        cells: vec![
+            rate.map(|r| format!("{r:.0}"))
+                .unwrap_or_else(|| "-".into()),
+            format!("{n}/{}", p.connrate_connections),
+            last.map(|l| format!("{:.3} s", l.as_secs_f64()))
+                .unwrap_or_else(|| "-".into()),
+        ],
+        keys: vec![rate],
+        note: opened_note(&opened, p.connrate_connections),
+        timed_out: opened.timed_out,
+    })
+}
+
+async fn auth_storm(broker: &Running, p: &Params, users: Users) -> Result<Outcome> {
+    let n = users.len();
+    let end_at = Instant::now() + p.deadline;
+    let opened = open_many(broker.addr, n, n, "bench-storm", Some(users), end_at).await;
+    let connected = opened.streams.len();
+    let pct = |q: f64| -> Option<Duration> {
+        let d = &opened.done_after;
+        (!d.is_empty()).then(|| d[((d.len() as f64 * q) as usize).min(d.len() - 1)])
+    };
+    let secs = |d: Option<Duration>| {
+        d.map(|d| format!("{:.3} s", d.as_secs_f64()))
+            .unwrap_or_else(|| "-".into())
+    };
+    let all = opened.done_after.last().copied();
+    let store = match broker.kind {
+        crate::brokers::BrokerKind::Fbbus => "argon2id m=8192 t=1 p=1",
+        crate::brokers::BrokerKind::Rumqttd => "plaintext map",
+        _ => "PBKDF2-SHA512 $7$",
+    };
+    let mut note = opened_note(&opened, n);
+    // "All have CONNACK" is only true when nobody failed.
+    let complete = connected == n;
+    if !complete && note.is_none() {
+        add_note(&mut note, format!("{} not connected", n - connected));
+    }
+    Ok(Outcome {
+        cells: vec![
+            secs(all),
+            secs(pct(0.50)),
+            secs(pct(0.99)),
+            format!("{connected}/{n}"),
+            store.into(),
+        ],
+        keys: vec![all.filter(|_| complete).map(|d| d.as_secs_f64())],
+        note,
+        timed_out: opened.timed_out,
+    })
+}
