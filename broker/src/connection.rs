@@ -283,8 +283,9 @@ impl Io {
     fn new(stream: Box<dyn Stream>, max_packet: usize) -> Io {
         Io {
             stream,
-            read: BytesMut::with_capacity(4 * 1024),
-            write: BytesMut::with_capacity(4 * 1024),
+            // Small to start: an idle device should cost little; busy ones grow on demand.
+            read: BytesMut::with_capacity(512),
+            write: BytesMut::new(),
             codec: Codec(Version::V311),
             max_packet,
         }
@@ -292,8 +293,8 @@ impl Io {
 
     /// Reads more bytes from the socket. Cancel-safe: bytes read stay in the buffer.
     async fn fill(&mut self) -> Result<usize, ReadError> {
-        if self.read.capacity() - self.read.len() < 1024 {
-            self.read.reserve(16 * 1024);
+        if self.read.capacity() - self.read.len() < 256 {
+            self.read.reserve(4 * 1024);
         }
         match self.stream.read_buf(&mut self.read).await {
             Ok(0) | Err(_) => Err(ReadError::Closed),
