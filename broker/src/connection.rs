@@ -233,6 +233,56 @@ fn connack(code: ConnectReturnCode, properties: Option<ConnAckProperties>) -> Pa
     )
 }
 
+/// Packet types a client may send: CONNECT, PUBLISH, PUBACK, PUBREC, PUBREL, PUBCOMP,
+/// SUBSCRIBE, UNSUBSCRIBE, PINGREQ, DISCONNECT. (AUTH, 15, is not supported.)
+const FROM_CLIENTS: [u8; 10] = [1, 3, 4, 5, 6, 7, 8, 10, 12, 14];
+
+/// Decodes the complete frame at the start of `buf` (its header already checked).
+///
+/// rumqttd 0.20's decoders panic on some input (a v5 CONNACK-typed packet with a body
+/// reaches an `unreachable!`), and a panic would end the connection task without telling
+/// the router or firing the will. Server-only packet types are refused before decoding;
+/// a panic that remains is caught and reported as a malformed packet.
+fn decode_frame(
+    codec: &Codec,
+    buf: &mut BytesMut,
+    header: &frame::FixedHeader,
+    max_packet: usize,
+) -> Result<Packet, ReadError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        decode_unguarded(codec, buf, header, max_packet)
+    }))
+    .unwrap_or_else(|_| {
+        let _ = buf.split_to(header.frame_len().min(buf.len()));
+        Err(ReadError::Malformed("the decoder panicked".into()))
+    })
+}
+
+fn decode_unguarded(
+    codec: &Codec,
+    buf: &mut BytesMut,
+    header: &frame::FixedHeader,
+    max_packet: usize,
+) -> Result<Packet, ReadError> {
+    if !FROM_CLIENTS.contains(&header.packet_type()) {
+        return Err(ReadError::ServerOnlyType(header.packet_type()));
+    }
+    // MQTT 5 3.14.2.2: a DISCONNECT may end after its reason code, meaning "no
+    // properties"; rumqttd 0.20 expects the property length. Decode a copy with it.
+    if codec.0 == Version::V5 && header.packet_type() == 14 && header.remaining_len == 1 {
+        let mut padded = BytesMut::from(&buf[..header.frame_len()]);
+        padded[1] = 2;
+        padded.extend_from_slice(&[0]);
+        let _ = buf.split_to(header.frame_len());
+        return codec
+            .read(&mut padded, max_packet)
+            .map_err(|e| ReadError::Malformed(e.to_string()));
+    }
+    codec
+        .read(buf, max_packet)
+        .map_err(|e| ReadError::Malformed(e.to_string()))
+}
+
 /// A CONNECT that could not be read, with the CONNACK to answer it (if any).
 struct Refusal {
     reason: &'static str,
@@ -266,7 +316,12 @@ struct Io {
 enum ReadError {
     Closed,
     Malformed(String),
-    Oversized { size: usize, max: usize },
+    /// A packet type only servers send (e.g. CONNACK): a protocol error.
+    ServerOnlyType(u8),
+    Oversized {
+        size: usize,
+        max: usize,
+    },
 }
 
 impl std::fmt::Display for ReadError {
@@ -274,6 +329,7 @@ impl std::fmt::Display for ReadError {
         match self {
             ReadError::Closed => f.write_str("connection closed"),
             ReadError::Malformed(why) => write!(f, "malformed packet: {why}"),
+            ReadError::ServerOnlyType(t) => write!(f, "packet type {t} is not sent by clients"),
             ReadError::Oversized { size, max } => write!(f, "packet of {size} bytes, limit {max}"),
         }
     }
@@ -316,21 +372,7 @@ impl Io {
 
     /// Decodes the buffered packet whose header was just checked.
     fn decode(&mut self, header: &frame::FixedHeader) -> Result<Packet, ReadError> {
-        // MQTT 5 3.14.2.2: a DISCONNECT may end after its reason code, meaning "no
-        // properties"; rumqttd 0.20 expects the property length. Decode a copy with it.
-        if self.codec.0 == Version::V5 && header.packet_type() == 14 && header.remaining_len == 1 {
-            let mut padded = BytesMut::from(&self.read[..header.frame_len()]);
-            padded[1] = 2;
-            padded.extend_from_slice(&[0]);
-            let _ = self.read.split_to(header.frame_len());
-            return self
-                .codec
-                .read(&mut padded, self.max_packet)
-                .map_err(|e| ReadError::Malformed(e.to_string()));
-        }
-        self.codec
-            .read(&mut self.read, self.max_packet)
-            .map_err(|e| ReadError::Malformed(e.to_string()))
+        decode_frame(&self.codec, &mut self.read, header, self.max_packet)
     }
 
     /// Reads the first packet, which must be CONNECT, and picks the codec from it.
@@ -726,15 +768,24 @@ impl Session {
                 }
             };
             let qos_pkid = frame::publish_qos_and_pkid(&self.io.read, &header);
-            let packet = match self.io.decode(&header) {
-                Ok(packet) => packet,
+            let decoded = self.io.decode(&header);
+            let end = match decoded {
+                Ok(packet) => self.inbound(packet, qos_pkid).err(),
+                Err(ReadError::ServerOnlyType(t)) => {
+                    tracing::warn!(
+                        client_id = self.client_id,
+                        packet_type = t,
+                        "server-only packet type from a client; connection closed"
+                    );
+                    Some(End::ProtocolError(DisconnectReasonCode::ProtocolError))
+                }
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
                     tracing::warn!(client_id = self.client_id, error = %e, "malformed packet; connection closed");
-                    return Err(End::Malformed);
+                    Some(End::Malformed)
                 }
             };
-            if let Err(end) = self.inbound(packet, qos_pkid) {
+            if let Some(end) = end {
                 // What the client sent before it ended (e.g. PUBLISH then DISCONNECT in one
                 // read) is still delivered.
                 self.route().await?;
@@ -820,13 +871,8 @@ impl Session {
                 );
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
             }
-            _ => {
-                tracing::warn!(
-                    client_id = self.client_id,
-                    "server-only packet type from a client; connection closed"
-                );
-                Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
-            }
+            // Server-only types never get here: `decode_frame` refuses them.
+            _ => Err(End::ProtocolError(DisconnectReasonCode::ProtocolError)),
         }
     }
 
@@ -1295,4 +1341,54 @@ fn rand_id() -> u64 {
             .unwrap_or(0),
     );
     h.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Random and mutated packets through both codecs must never panic: a panic would end
+    /// the connection task without telling the router or firing the will.
+    #[test]
+    fn codecs_survive_random_and_mutated_packets() {
+        let seeds: [&[u8]; 6] = [
+            &[0x10, 12, 0, 4, b'M', b'Q', b'T', b'T', 5, 2, 0, 60, 0, 0],
+            &[0x30, 8, 0, 3, b'a', b'/', b'b', 0, b'h', b'i'],
+            &[0x32, 9, 0, 1, b't', 0, 7, 0, b'x', b'y', b'z'],
+            &[0x82, 7, 0, 1, 0, 0, 2, b'a', 1],
+            &[0xA2, 6, 0, 2, 0, 0, 1, b'a'],
+            &[0xE0, 2, 0x04, 0],
+        ];
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for round in 0..200_000u32 {
+            let mut bytes = seeds[round as usize % seeds.len()].to_vec();
+            for _ in 0..(next() % 4) {
+                let at = (next() as usize) % bytes.len();
+                bytes[at] = next() as u8;
+            }
+            if next() % 3 == 0 {
+                bytes.truncate((next() as usize) % (bytes.len() + 1));
+            }
+            if next() % 5 == 0 {
+                bytes.extend((0..next() % 8).map(|_| next() as u8));
+            }
+            for version in [Version::V311, Version::V5] {
+                let mut buf = BytesMut::from(&bytes[..]);
+                let Ok(header) = frame::check(&buf, 1024) else {
+                    continue;
+                };
+                // The unguarded path: this test is what keeps the guard a last resort.
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    decode_unguarded(&Codec(version), &mut buf, &header, 1024)
+                }));
+                assert!(result.is_ok(), "{version:?} codec panicked on {bytes:02x?}");
+            }
+        }
+    }
 }

@@ -449,3 +449,33 @@ async fn a_burst_larger_than_the_backlog_arrives_complete_and_in_order() {
     }
     drop(writer.join().unwrap());
 }
+
+/// A packet type only servers send (here a CONNACK with a body, which rumqttd 0.20's v5
+/// decoder would panic on) ends that connection as a protocol error, with the usual
+/// clean-up: its will fires and the connection count comes back down.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn server_only_packet_types_end_the_connection_cleanly() {
+    let broker = Broker::start();
+    let mut watcher = V4::connect(broker.port(), "watcher", None).await.unwrap();
+    watcher.subscribe("will/#").await;
+    let mut c = RawClient::connect(broker.port());
+    let connect = raw::Connect {
+        version: 5,
+        client_id: "confused",
+        will: Some(("will/confused", b"gone")),
+        ..Default::default()
+    };
+    assert_eq!(c.handshake(&connect), 0);
+    assert_eq!(broker.metric("fbbus_connections"), 2.0);
+    c.send(&[0x2d, 0x02, 0x04, 0x1f]);
+    let (byte1, body) = c.read_packet().expect("DISCONNECT");
+    assert_eq!((byte1, body[0]), (0xE0, 0x82), "protocol error");
+    assert!(c.closed_by_broker());
+    let will = watcher.next_publish(WAIT).await.expect("the will fires");
+    assert_eq!(will.payload, "gone");
+    assert_eq!(
+        broker.wait_metric("fbbus_disconnects_total{reason=\"protocol_error\"}", 1.0),
+        1.0
+    );
+    assert_eq!(broker.metric("fbbus_connections"), 1.0);
+}
