@@ -22,7 +22,7 @@
 //! (refused by rumqttd 0.20), wills on takeover and keep-alive expiry, one port for
 //! MQTT 3.1.1 and 5, and refusals with the right reason codes.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -494,6 +494,15 @@ struct Session {
     qos2_sent_as_qos1: HashSet<u16>,
     /// Acknowledgements to the router, kept in the order the router requires.
     ack_order: AckOrder,
+    /// The client's Receive Maximum (MQTT 5 3.1.2.11.3): QoS 1/2 deliveries it may have
+    /// unacknowledged at once. 65535 when not given (and on 3.1.1).
+    client_receive_max: u16,
+    /// QoS 1/2 deliveries sent and not yet acknowledged by the client.
+    outstanding_out: u16,
+    /// Deliveries waiting for the client's window, in order.
+    held: VecDeque<(Publish, Option<PublishProperties>)>,
+    /// The router paused delivery and is woken once `held` is short again.
+    wake_pending: bool,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
 }
@@ -502,6 +511,9 @@ const MAX_LOGGED_DENIALS: usize = 1024;
 
 /// Packets from one client waiting for the router before its socket is no longer read.
 const ROUTER_BACKLOG: usize = 1024;
+
+/// Deliveries held for a client's Receive Maximum before the router is no longer woken.
+const HOLD_LIMIT: usize = 1024;
 
 /// The Topic Alias Maximum rumqttd's router announces in CONNACK.
 const TOPIC_ALIAS_MAX: u16 = 4096;
@@ -698,6 +710,14 @@ impl Session {
             dropped_qos2: HashSet::new(),
             qos2_sent_as_qos1: HashSet::new(),
             ack_order: AckOrder::default(),
+            client_receive_max: properties
+                .as_ref()
+                .and_then(|p| p.receive_maximum)
+                .filter(|m| *m > 0)
+                .unwrap_or(u16::MAX),
+            outstanding_out: 0,
+            held: VecDeque::new(),
+            wake_pending: false,
             logged_denials: HashSet::new(),
         })
     }
@@ -792,8 +812,13 @@ impl Session {
                 return Err(end);
             }
         }
+        self.release_held();
         self.route().await?;
         self.io.flush().await.map_err(|_| End::Abrupt)?;
+        if self.wake_pending && self.held.len() < HOLD_LIMIT {
+            self.wake_pending = false;
+            self.link_rx.wake().await.map_err(|_| End::Router)?;
+        }
         Ok(())
     }
 
@@ -831,10 +856,12 @@ impl Session {
                 Ok(())
             }
             Packet::PubAck(ack, _) if self.qos2_sent_as_qos1.remove(&ack.pkid) => {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 self.ack_for_client(2, ack.pkid);
                 Ok(())
             }
             Packet::PubAck(ack, properties) => {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 let pkid = ack.pkid;
                 let packet = Packet::PubAck(ack, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
@@ -847,6 +874,7 @@ impl Session {
                 Ok(())
             }
             Packet::PubComp(comp, properties) => {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 let pkid = comp.pkid;
                 let packet = Packet::PubComp(comp, properties);
                 self.ack_order.complete(pkid, packet, &mut self.to_router);
@@ -1144,9 +1172,23 @@ impl Session {
         let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
         self.ctx.metrics.bytes_out.inc_by(written as u64);
         if unscheduled {
-            self.link_rx.wake().await.map_err(|_| End::Router)?;
+            if self.held.len() < HOLD_LIMIT {
+                self.link_rx.wake().await.map_err(|_| End::Router)?;
+            } else {
+                self.wake_pending = true;
+            }
         }
         Ok(())
+    }
+
+    /// Sends held deliveries while the client's Receive Maximum allows.
+    fn release_held(&mut self) {
+        while self.outstanding_out < self.client_receive_max {
+            let Some((publish, properties)) = self.held.pop_front() else {
+                break;
+            };
+            self.deliver_publish(publish, properties);
+        }
     }
 
     /// One packet from the router to the client.
@@ -1166,7 +1208,14 @@ impl Session {
                 }
                 self.io.queue(Packet::SubAck(suback, properties));
             }
-            Some(Packet::Publish(publish, properties)) => self.deliver_publish(publish, properties),
+            Some(Packet::Publish(publish, properties)) => {
+                // Order is kept: once something is held, everything after it waits too.
+                if self.held.is_empty() && self.outstanding_out < self.client_receive_max {
+                    self.deliver_publish(publish, properties);
+                } else {
+                    self.held.push_back((publish, properties));
+                }
+            }
             Some(Packet::PubRel(pubrel, properties)) => {
                 self.ack_order.released(pubrel.pkid);
                 if self.dropped_qos2.remove(&pubrel.pkid) {
@@ -1256,7 +1305,12 @@ impl Session {
                     "delivery larger than the client's maximum packet size; dropped"
                 );
             }
-            _ => self.ctx.metrics.messages_out.inc(),
+            _ => {
+                self.ctx.metrics.messages_out.inc();
+                if qos > 0 {
+                    self.outstanding_out += 1;
+                }
+            }
         }
     }
 

@@ -154,9 +154,23 @@ async fn password_file_reloads_without_dropping_devices() {
         "after reload"
     );
     assert!(dev.alive());
-    assert!(V4::connect(port, "plc-1b", Some(("plc-1", "pw-1")))
-        .await
-        .is_err());
+    // The two edits may be seen by different polls: wait until the deletion is in force.
+    let mut refused = false;
+    for _ in 0..50 {
+        if V4::connect(port, "plc-1b", Some(("plc-1", "pw-1")))
+            .await
+            .is_err()
+        {
+            refused = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(refused, "plc-1 can still log in after its deletion");
+    assert!(
+        dev.alive(),
+        "deleting plc-1 from the file did not disconnect it"
+    );
 
     // A broken file is refused on reload; the previous users keep working.
     std::fs::write(&passwd, "this line has no colon\n").unwrap();

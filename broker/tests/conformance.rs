@@ -211,3 +211,57 @@ async fn delivery_qos_is_the_lower_of_publication_and_subscription() {
         }
     }
 }
+
+/// [MQTT-3.3.4-9]: no more unacknowledged QoS 1/2 deliveries than the client's Receive
+/// Maximum; the rest wait, in order, and follow as the client acknowledges.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deliveries_respect_the_clients_receive_maximum() {
+    let broker = Broker::start();
+    let mut c = RawClient::connect(broker.port());
+    let connect = raw::Connect {
+        version: 5,
+        client_id: "slow",
+        receive_maximum: Some(2),
+        ..Default::default()
+    };
+    assert_eq!(c.handshake(&connect), 0);
+    let mut sub = raw::subscribe(5, 1, &["rm"]);
+    *sub.last_mut().unwrap() = 1; // QoS 1
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+
+    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
+    for i in 0..10u8 {
+        publisher
+            .client
+            .publish("rm", rumqttc::QoS::AtLeastOnce, false, vec![i])
+            .await
+            .unwrap();
+    }
+    let read_publish = |c: &mut RawClient| -> Option<(u16, u8)> {
+        let (byte1, body) = c.read_packet()?;
+        assert_eq!(byte1 & 0xF0, 0x30);
+        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+        let pkid = u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]]);
+        Some((pkid, *body.last().unwrap()))
+    };
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(700)))
+        .unwrap();
+    let mut window = vec![read_publish(&mut c).unwrap(), read_publish(&mut c).unwrap()];
+    assert!(
+        read_publish(&mut c).is_none(),
+        "a third delivery before any PUBACK"
+    );
+    let mut payloads = Vec::new();
+    while let Some((pkid, payload)) = window.first().copied() {
+        window.remove(0);
+        payloads.push(payload);
+        let [hi, lo] = pkid.to_be_bytes();
+        c.send(&[0x40, 0x02, hi, lo]);
+        if payloads.len() + window.len() < 10 {
+            window.push(read_publish(&mut c).expect("the next delivery after a PUBACK"));
+        }
+    }
+    assert_eq!(payloads, (0..10).collect::<Vec<u8>>());
+}

@@ -45,6 +45,8 @@ pub struct Connect<'a> {
     pub will_delay: Option<u32>,
     /// MQTT 5 only: the client's Maximum Packet Size property.
     pub max_packet_size: Option<u32>,
+    /// MQTT 5 only: the client's Receive Maximum property.
+    pub receive_maximum: Option<u16>,
 }
 
 impl Default for Connect<'_> {
@@ -59,6 +61,7 @@ impl Default for Connect<'_> {
             session_expiry: None,
             will_delay: None,
             max_packet_size: None,
+            receive_maximum: None,
         }
     }
 }
@@ -88,6 +91,10 @@ impl Connect<'_> {
             }
             if let Some(m) = self.max_packet_size {
                 props.push(0x27);
+                props.extend_from_slice(&m.to_be_bytes());
+            }
+            if let Some(m) = self.receive_maximum {
+                props.push(0x21);
                 props.extend_from_slice(&m.to_be_bytes());
             }
             body.push(props.len() as u8);
