@@ -471,6 +471,8 @@ struct Session {
     link_rx: LinkRx,
     /// This connection's session number for its client id (see `session_table`).
     session: u64,
+    /// What happens to the session in the router when this connection ends.
+    lifetime: SessionLifetime,
     ctx: Arc<Context>,
     /// Packets accepted from the current network read, handed to the router as one batch.
     to_router: Vec<Packet>,
@@ -624,12 +626,23 @@ impl Session {
             // The session number is taken before the router link, because linking is what
             // ends an older connection with this id, and that one must see it is stale.
             let session = ctx.sessions.open(&client_id);
+            // Session lifetime. rumqttd keeps a link's session after it ends unless the link
+            // is clean (the MQTT 3.1.1 rule). MQTT 5 separates the two: Clean Start discards
+            // an existing session now, Session Expiry decides whether this one outlives the
+            // connection. So a v5 link is clean only for Clean Start with expiry 0; Clean
+            // Start with expiry > 0 first ends the old session with a purge link.
+            let lifetime = match version {
+                Version::V311 => SessionLifetime::v311(connect.clean_session),
+                Version::V5 => SessionLifetime::v5(connect.clean_session, session_expiry),
+            };
+            if lifetime.purge_before_link {
+                purge_router_session(&ctx.router, &client_id).await;
+            }
             // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it
             // sends by subscription filter, so two topics matching one wildcard would share
             // an alias. fbbus sends full topic names.
-            let linked = tokio::task::block_in_place(|| {
-                ctx.router.link(&client_id, connect.clean_session, 0)
-            });
+            let linked =
+                tokio::task::block_in_place(|| ctx.router.link(&client_id, lifetime.clean_link, 0));
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
@@ -641,13 +654,31 @@ impl Session {
                     ));
                 }
             };
-            Ok((
-                client_id, assigned, username, will, session, link_tx, link_rx, ack,
-            ))
+            Ok(Accepted {
+                client_id,
+                assigned,
+                username,
+                will,
+                session,
+                lifetime,
+                link_tx,
+                link_rx,
+                ack,
+            })
         }
         .await;
 
-        let (client_id, assigned, username, will, session, link_tx, link_rx, ack) = match result {
+        let Accepted {
+            client_id,
+            assigned,
+            username,
+            will,
+            session,
+            lifetime,
+            link_tx,
+            link_rx,
+            ack,
+        } = match result {
             Ok(accepted) => accepted,
             Err((code, reason)) => {
                 tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
@@ -701,6 +732,7 @@ impl Session {
             link_tx,
             link_rx,
             session,
+            lifetime,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
             partial_subscribes: HashMap::new(),
@@ -1360,6 +1392,14 @@ impl Session {
             self.ctx.wills.fire(&self.client_id, will);
         }
         self.ctx.sessions.close(&self.client_id, self.session);
+        if let Some(after) = self.lifetime.expires_after {
+            let (ctx, client_id, session) =
+                (Arc::clone(&self.ctx), self.client_id.clone(), self.session);
+            tokio::spawn(async move {
+                tokio::time::sleep(after).await;
+                end_idle_session(&ctx, &client_id, session).await;
+            });
+        }
         self.ctx.metrics.disconnected(end.reason());
         self.ctx.metrics.connections.dec();
         tracing::info!(
@@ -1368,6 +1408,78 @@ impl Session {
             reason = end.reason().label(),
             "client disconnected"
         );
+    }
+}
+
+/// A CONNECT that passed: everything `Session::open` builds the session from.
+struct Accepted {
+    client_id: String,
+    /// The client id fbbus chose, when the client sent none.
+    assigned: Option<String>,
+    username: Option<String>,
+    will: Option<Will>,
+    session: u64,
+    lifetime: SessionLifetime,
+    link_tx: LinkTx,
+    link_rx: LinkRx,
+    ack: Notification,
+}
+
+/// When the router's copy of a session ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct SessionLifetime {
+    /// Link the connection as clean: the router keeps nothing after it ends.
+    clean_link: bool,
+    /// End an existing saved session before linking (MQTT 5 Clean Start, expiry > 0).
+    purge_before_link: bool,
+    /// End the saved session this long after the connection ends (unless the client is
+    /// back). None: the router's rule (clean: nothing kept; MQTT 3.1.1 persistent: forever).
+    expires_after: Option<Duration>,
+}
+
+impl SessionLifetime {
+    fn v311(clean_session: bool) -> SessionLifetime {
+        SessionLifetime {
+            clean_link: clean_session,
+            purge_before_link: false,
+            expires_after: None,
+        }
+    }
+
+    /// MQTT 5 3.1.2.4 and 3.1.2.11.2. An expiry of 0xFFFFFFFF never expires.
+    fn v5(clean_start: bool, session_expiry: u32) -> SessionLifetime {
+        let persists = session_expiry > 0;
+        SessionLifetime {
+            clean_link: clean_start && !persists,
+            purge_before_link: clean_start && persists,
+            expires_after: match session_expiry {
+                u32::MAX => None,
+                _ if clean_start && !persists => None,
+                secs => Some(Duration::from_secs(secs as u64)),
+            },
+        }
+    }
+}
+
+/// Ends a session the router saved for `client_id`: a clean link with that client id
+/// replaces the saved state, and is disconnected at once.
+async fn purge_router_session(router: &RouterHandle, client_id: &str) {
+    let linked = tokio::task::block_in_place(|| router.link(client_id, true, 0));
+    if let Ok((tx, _rx, _)) = linked {
+        let _ = link_tx_disconnect(tx).await;
+    }
+}
+
+/// The expiry of a session is due: ends it in the router unless the client is back.
+async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
+    // Linking under the table's lock orders the purge before any new connection of this
+    // client id, whose own link then simply replaces the purge link.
+    let linked = ctx.sessions.with_idle(client_id, session, || {
+        tokio::task::block_in_place(|| ctx.router.link(client_id, true, 0))
+    });
+    if let Some(Ok((tx, _rx, _))) = linked {
+        let _ = link_tx_disconnect(tx).await;
+        tracing::debug!(client_id, "session expired");
     }
 }
 

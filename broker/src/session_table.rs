@@ -6,6 +6,10 @@
 //! the same number means the router itself ended the link. The number is the Sparkplug
 //! `bdSeq` idea: the device registry uses it so that a late will from an old session never
 //! marks a newer session offline.
+//!
+//! The number also makes MQTT 5 session expiry simple: when a session's expiry is due,
+//! it is ended only if its number is still the newest and nobody is connected with it
+//! ([`SessionTable::with_idle`]); a client that came back in time has a newer number.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
@@ -33,6 +37,16 @@ impl SessionTable {
             .expect("lock poisoned")
             .get(client_id)
             .is_some_and(|(latest, _)| *latest == session)
+    }
+
+    /// Runs `f` if `session` is the newest session of `client_id` and not connected, with
+    /// the table held, so no connection of that client id starts while `f` runs.
+    pub fn with_idle<R>(&self, client_id: &str, session: u64, f: impl FnOnce() -> R) -> Option<R> {
+        let sessions = self.sessions.lock().expect("lock poisoned");
+        match sessions.get(client_id) {
+            Some((latest, false)) if *latest == session => Some(f()),
+            _ => None,
+        }
     }
 
     /// The connection of `session` ended; the number is kept so the next one is higher.
@@ -64,7 +78,10 @@ mod tests {
         assert!(!t.is_current("plc", a));
         t.close("plc", a);
         assert!(t.is_current("plc", b));
+        assert_eq!(t.with_idle("plc", b, || ()), None, "connected");
         t.close("plc", b);
+        assert_eq!(t.with_idle("plc", b, || 7), Some(7));
+        assert_eq!(t.with_idle("plc", a, || 7), None, "stale");
         assert!(t.open("plc") > b);
     }
 }

@@ -265,3 +265,89 @@ async fn deliveries_respect_the_clients_receive_maximum() {
     }
     assert_eq!(payloads, (0..10).collect::<Vec<u8>>());
 }
+
+/// Connects, returns (session present, the client).
+fn connect_v5(port: u16, id: &str, clean: bool, expiry: u32) -> (bool, RawClient) {
+    let mut c = RawClient::connect(port);
+    c.send(
+        &raw::Connect {
+            version: 5,
+            client_id: id,
+            clean,
+            session_expiry: Some(expiry),
+            ..Default::default()
+        }
+        .bytes(),
+    );
+    let (byte1, body) = c.read_packet().expect("CONNACK");
+    assert_eq!((byte1, body[1]), (0x20, 0), "CONNACK success");
+    (body[0] & 1 == 1, c)
+}
+
+/// Subscribes at QoS 1, disconnects cleanly, and has another client publish while offline.
+async fn leave_a_message_behind(broker: &Broker, mut c: RawClient, topic: &str) {
+    let mut sub = raw::subscribe(5, 1, &[topic]);
+    *sub.last_mut().unwrap() = 1;
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    c.send(&raw::DISCONNECT);
+    assert!(c.closed_by_broker());
+    let publisher = V4::connect(
+        broker.port(),
+        &format!("pub-{}", topic.replace('/', "-")),
+        None,
+    )
+    .await
+    .unwrap();
+    publisher
+        .client
+        .publish(topic, rumqttc::QoS::AtLeastOnce, false, "while offline")
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+}
+
+fn next_publish_payload(c: &mut RawClient) -> Option<Vec<u8>> {
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(800)))
+        .unwrap();
+    let (byte1, body) = c.read_packet()?;
+    (byte1 & 0xF0 == 0x30).then_some(body)
+}
+
+/// MQTT 5 3.1.2.11.2: the session lives as long as the Session Expiry Interval says,
+/// independently of Clean Start (rumqttd alone applies the MQTT 3.1.1 clean-session rule).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mqtt5_session_expiry_decides_how_long_a_session_lives() {
+    let broker = Broker::start();
+    let port = broker.port();
+
+    // Clean Start 0, expiry 0: the session ends with the connection.
+    let (_, c) = connect_v5(port, "se-zero", false, 0);
+    leave_a_message_behind(&broker, c, "se/zero").await;
+    let (present, mut c) = connect_v5(port, "se-zero", false, 0);
+    assert!(!present, "expiry 0: no session after the connection ended");
+    assert!(
+        next_publish_payload(&mut c).is_none(),
+        "expiry 0: nothing was queued"
+    );
+
+    // Clean Start 1, expiry 300: a fresh session that outlives the connection.
+    let (present, c) = connect_v5(port, "se-long", true, 300);
+    assert!(!present);
+    leave_a_message_behind(&broker, c, "se/long").await;
+    let (present, mut c) = connect_v5(port, "se-long", false, 300);
+    assert!(present, "expiry 300: the session is resumed");
+    assert!(
+        next_publish_payload(&mut c).is_some(),
+        "the offline message is delivered"
+    );
+
+    // Expiry 1 s: gone after 2.5 s offline.
+    let (_, c) = connect_v5(port, "se-short", false, 1);
+    leave_a_message_behind(&broker, c, "se/short").await;
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    let (present, mut c) = connect_v5(port, "se-short", false, 1);
+    assert!(!present, "expired session resumed");
+    assert!(next_publish_payload(&mut c).is_none());
+}
