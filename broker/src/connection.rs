@@ -668,17 +668,7 @@ impl Session {
         }
         .await;
 
-        let Accepted {
-            client_id,
-            assigned,
-            username,
-            will,
-            session,
-            lifetime,
-            link_tx,
-            link_rx,
-            ack,
-        } = match result {
+        let accepted = match result {
             Ok(accepted) => accepted,
             Err((code, reason)) => {
                 tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
@@ -687,10 +677,10 @@ impl Session {
             }
         };
 
-        let mut connack_packet: Option<Packet> = ack.into();
+        let mut connack_packet: Option<Packet> = accepted.ack.into();
         if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
             let mut p = props.take().unwrap_or_default();
-            p.assigned_client_identifier = assigned;
+            p.assigned_client_identifier = accepted.assigned;
             p.receive_max = Some(ctx.max_inflight);
             p.max_packet_size = Some(ctx.max_packet as u32);
             *props = Some(p);
@@ -699,8 +689,8 @@ impl Session {
             io.queue(packet);
         }
         if io.flush().await.is_err() {
-            let _ = link_tx_disconnect(link_tx).await;
-            ctx.sessions.close(&client_id, session);
+            let _ = link_tx_disconnect(accepted.link_tx).await;
+            ctx.sessions.close(&accepted.client_id, accepted.session);
             return None;
         }
 
@@ -709,8 +699,8 @@ impl Session {
         tracing::info!(
             %peer,
             listener = listener.name,
-            client_id,
-            username = username.as_deref().unwrap_or(""),
+            client_id = accepted.client_id,
+            username = accepted.username.as_deref().unwrap_or(""),
             version = ?version,
             keep_alive = connect.keep_alive,
             "client connected"
@@ -718,8 +708,8 @@ impl Session {
         Some(Session {
             io,
             peer,
-            client_id,
-            username,
+            client_id: accepted.client_id,
+            username: accepted.username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
             keep_alive: (connect.keep_alive > 0)
@@ -728,11 +718,11 @@ impl Session {
                 .as_ref()
                 .and_then(|p| p.max_packet_size)
                 .map(|m| m as usize),
-            will,
-            link_tx,
-            link_rx,
-            session,
-            lifetime,
+            will: accepted.will,
+            link_tx: accepted.link_tx,
+            link_rx: accepted.link_rx,
+            session: accepted.session,
+            lifetime: accepted.lifetime,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
             partial_subscribes: HashMap::new(),
