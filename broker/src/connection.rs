@@ -1,21 +1,24 @@
 //! One MQTT connection, from CONNECT to close. This file is the packet path.
 //!
-//! Every packet a client sends goes through [`Session::inbound`], in this order:
+//! Every packet a client sends goes through `Session::inbound`, in this order:
 //!
-//! 1. **authenticated** — once, at CONNECT ([`Session::open`] via the `Authenticator`);
+//! 1. **authenticated** — once, at CONNECT (`Session::open` via the `Authenticator`);
 //!    a session only exists for a client that passed, so every later step knows who it is;
 //! 2. **authorized** — PUBLISH topics and SUBSCRIBE filters against the ACL
-//!    ([`Session::on_publish`], [`Session::on_subscribe`]); the will topic at CONNECT;
+//!    (`Session::on_publish`, `Session::on_subscribe`); the will topic at CONNECT;
 //! 3. **checked** — the place typed FB topic checks plug in (next issue), between the
 //!    ACL and the router, so an ill-typed message is never routed;
 //! 4. **routed** — handed to rumqttd's router through the connection's `LinkTx`, one
 //!    batch per network read;
 //! 5. **metered** — counted in `Metrics` as it is accepted or refused.
 //!
-//! Packets the router sends back (deliveries, acknowledgements) go through
-//! [`Session::outbound`], which only meters them and completes SUBACKs for filters the
-//! ACL refused. The end of a connection is one [`End`] value: it decides the MQTT 5
-//! DISCONNECT reason, whether the will fires, and the disconnect metric label.
+//! Packets the router sends back go through `Session::outbound`: deliveries get the MQTT
+//! rules rumqttd's router leaves out (delivery QoS, the client's Maximum Packet Size and
+//! Receive Maximum: `Session::deliver_publish`), SUBACKs are completed for filters the
+//! ACL refused, and acknowledgements towards the router keep its order (`ack_order`).
+//! The end of a connection is one `End` value: it decides the MQTT 5 DISCONNECT reason,
+//! whether the will fires, and the disconnect metric label. Bytes and packets are the
+//! `framed` and `codec` modules' business; session lifetimes are `session_lifetime`'s.
 //!
 //! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
 //! needs what that loop hides: the peer address (login throttling), keep-alive 0
@@ -27,33 +30,30 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use bytes::BytesMut;
 use rumqttd::local::{LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{
-    v4::V4, v5::V5, ConnAck, ConnAckProperties, ConnectReturnCode, Disconnect,
-    DisconnectReasonCode, Packet, PingResp, Protocol, PubAck, PubAckReason, PubComp, PubCompReason,
-    PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe, SubscribeProperties,
-    SubscribeReasonCode,
+    ConnectReturnCode, Disconnect, DisconnectReasonCode, Packet, PingResp, PubAck, PubAckReason,
+    PubComp, PubCompReason, PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe,
+    SubscribeProperties, SubscribeReasonCode,
 };
 use rumqttd::Notification;
 use security::{AclRules, Identity};
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::AsyncWriteExt;
 use tokio::sync::watch;
 use tokio::time::{timeout, Instant};
 
 use crate::ack_order::AckOrder;
 use crate::authenticator::{Authenticator, Outcome};
-use crate::frame::{self, FrameError};
+use crate::codec::{connack, ReadError, Version};
+use crate::frame;
+use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
 use crate::published_qos;
-use crate::router::RouterHandle;
+use crate::router::{unlink, RouterHandle};
+use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
 use crate::session_table::SessionTable;
 use crate::watched_file::WatchedFile;
 use crate::wills::{Will, Wills, INTERNAL_CLIENT_ID};
-
-/// A byte stream a client connected over: TCP or TLS over TCP.
-pub trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}
-impl<T: AsyncRead + AsyncWrite + Send + Unpin> Stream for T {}
 
 /// Everything connections share, built once by `server`.
 pub struct Context {
@@ -160,301 +160,6 @@ impl End {
     /// Whether the router still holds this connection and must be told it ended.
     fn router_link_alive(self) -> bool {
         !matches!(self, End::Takeover | End::Router)
-    }
-}
-
-/// MQTT version of a connection, chosen from CONNECT's protocol level.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Version {
-    V311,
-    V5,
-}
-
-/// rumqttd's codecs, behind one type. The 3.1.1 codec panics on packets with MQTT 5
-/// properties, so they are stripped here: a v5 publisher's properties do not exist for a
-/// v3.1.1 subscriber.
-struct Codec(Version);
-
-impl Codec {
-    fn read(&self, buf: &mut BytesMut, max: usize) -> Result<Packet, rumqttd::protocol::Error> {
-        match self.0 {
-            Version::V311 => V4.read_mut(buf, max),
-            Version::V5 => V5.read_mut(buf, max),
-        }
-    }
-
-    fn write(&self, packet: Packet, buf: &mut BytesMut) -> Result<usize, rumqttd::protocol::Error> {
-        match self.0 {
-            Version::V5 => V5.write(packet, buf),
-            Version::V311 => V4.write(strip_properties(packet), buf),
-        }
-    }
-}
-
-fn strip_properties(packet: Packet) -> Packet {
-    match packet {
-        Packet::ConnAck(ack, _) => Packet::ConnAck(v311_connack(ack), None),
-        Packet::Publish(p, _) => Packet::Publish(p, None),
-        Packet::PubAck(p, _) => Packet::PubAck(p, None),
-        Packet::PubRec(p, _) => Packet::PubRec(p, None),
-        Packet::PubRel(p, _) => Packet::PubRel(p, None),
-        Packet::PubComp(p, _) => Packet::PubComp(p, None),
-        Packet::SubAck(p, _) => Packet::SubAck(p, None),
-        Packet::UnsubAck(p, _) => Packet::UnsubAck(p, None),
-        Packet::Disconnect(p, _) => Packet::Disconnect(p, None),
-        other => other,
-    }
-}
-
-/// MQTT 3.1.1 has six CONNACK codes; rumqttd's 3.1.1 writer panics on the others.
-fn v311_connack(mut ack: ConnAck) -> ConnAck {
-    use ConnectReturnCode::*;
-    ack.code = match ack.code {
-        Success
-        | RefusedProtocolVersion
-        | ClientIdentifierNotValid
-        | ServiceUnavailable
-        | BadUserNamePassword
-        | NotAuthorized => ack.code,
-        UnsupportedProtocolVersion => RefusedProtocolVersion,
-        ConnectionRateExceeded | ServerBusy | ServerUnavailable => ServiceUnavailable,
-        _ => NotAuthorized,
-    };
-    ack
-}
-
-fn connack(code: ConnectReturnCode, properties: Option<ConnAckProperties>) -> Packet {
-    Packet::ConnAck(
-        ConnAck {
-            session_present: false,
-            code,
-        },
-        properties,
-    )
-}
-
-/// Packet types a client may send: CONNECT, PUBLISH, PUBACK, PUBREC, PUBREL, PUBCOMP,
-/// SUBSCRIBE, UNSUBSCRIBE, PINGREQ, DISCONNECT. (AUTH, 15, is not supported.)
-const FROM_CLIENTS: [u8; 10] = [1, 3, 4, 5, 6, 7, 8, 10, 12, 14];
-
-/// Decodes the complete frame at the start of `buf` (its header already checked).
-///
-/// rumqttd 0.20's decoders panic on some input (a v5 CONNACK-typed packet with a body
-/// reaches an `unreachable!`), and a panic would end the connection task without telling
-/// the router or firing the will. Server-only packet types are refused before decoding;
-/// a panic that remains is caught and reported as a malformed packet.
-fn decode_frame(
-    codec: &Codec,
-    buf: &mut BytesMut,
-    header: &frame::FixedHeader,
-    max_packet: usize,
-) -> Result<Packet, ReadError> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        decode_unguarded(codec, buf, header, max_packet)
-    }))
-    .unwrap_or_else(|_| {
-        let _ = buf.split_to(header.frame_len().min(buf.len()));
-        Err(ReadError::Malformed("the decoder panicked".into()))
-    })
-}
-
-fn decode_unguarded(
-    codec: &Codec,
-    buf: &mut BytesMut,
-    header: &frame::FixedHeader,
-    max_packet: usize,
-) -> Result<Packet, ReadError> {
-    if !FROM_CLIENTS.contains(&header.packet_type()) {
-        return Err(ReadError::ServerOnlyType(header.packet_type()));
-    }
-    // MQTT 5 3.14.2.2: a DISCONNECT may end after its reason code, meaning "no
-    // properties"; rumqttd 0.20 expects the property length. Decode a copy with it.
-    if codec.0 == Version::V5 && header.packet_type() == 14 && header.remaining_len == 1 {
-        let mut padded = BytesMut::from(&buf[..header.frame_len()]);
-        padded[1] = 2;
-        padded.extend_from_slice(&[0]);
-        let _ = buf.split_to(header.frame_len());
-        return codec
-            .read(&mut padded, max_packet)
-            .map_err(|e| ReadError::Malformed(e.to_string()));
-    }
-    codec
-        .read(buf, max_packet)
-        .map_err(|e| ReadError::Malformed(e.to_string()))
-}
-
-/// A CONNECT that could not be read, with the CONNACK to answer it (if any).
-struct Refusal {
-    reason: &'static str,
-    detail: String,
-    connack: Option<ConnectReturnCode>,
-}
-
-impl Refusal {
-    fn report(&self, metrics: &Metrics, peer: SocketAddr) {
-        metrics.refused(self.reason);
-        match self.reason {
-            "malformed" => metrics.malformed_packets.inc(),
-            "oversized" => metrics.oversized_packets.inc(),
-            _ => {}
-        }
-        tracing::info!(%peer, reason = self.reason, detail = %self.detail, "CONNECT refused");
-    }
-}
-
-/// The socket with its read and write buffers.
-struct Io {
-    stream: Box<dyn Stream>,
-    read: BytesMut,
-    write: BytesMut,
-    codec: Codec,
-    max_packet: usize,
-}
-
-/// Something wrong with the bytes a client sent.
-#[derive(Debug)]
-enum ReadError {
-    Closed,
-    Malformed(String),
-    /// A packet type only servers send (e.g. CONNACK): a protocol error.
-    ServerOnlyType(u8),
-    Oversized {
-        size: usize,
-        max: usize,
-    },
-}
-
-impl std::fmt::Display for ReadError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            ReadError::Closed => f.write_str("connection closed"),
-            ReadError::Malformed(why) => write!(f, "malformed packet: {why}"),
-            ReadError::ServerOnlyType(t) => write!(f, "packet type {t} is not sent by clients"),
-            ReadError::Oversized { size, max } => write!(f, "packet of {size} bytes, limit {max}"),
-        }
-    }
-}
-
-impl Io {
-    fn new(stream: Box<dyn Stream>, max_packet: usize) -> Io {
-        Io {
-            stream,
-            // Small to start: an idle device should cost little; busy ones grow on demand.
-            read: BytesMut::with_capacity(512),
-            write: BytesMut::new(),
-            codec: Codec(Version::V311),
-            max_packet,
-        }
-    }
-
-    /// Reads more bytes from the socket. Cancel-safe: bytes read stay in the buffer.
-    async fn fill(&mut self) -> Result<usize, ReadError> {
-        if self.read.capacity() - self.read.len() < 256 {
-            self.read.reserve(4 * 1024);
-        }
-        match self.stream.read_buf(&mut self.read).await {
-            Ok(0) | Err(_) => Err(ReadError::Closed),
-            Ok(n) => Ok(n),
-        }
-    }
-
-    /// The header of the next buffered packet, if it is complete.
-    fn next_frame(&self) -> Result<Option<frame::FixedHeader>, ReadError> {
-        match frame::check(&self.read, self.max_packet) {
-            Ok(header) => Ok(Some(header)),
-            Err(FrameError::Incomplete(_)) => Ok(None),
-            Err(FrameError::MalformedLength) => Err(ReadError::Malformed(
-                "remaining length longer than 4 bytes".into(),
-            )),
-            Err(FrameError::TooLarge { size, max }) => Err(ReadError::Oversized { size, max }),
-        }
-    }
-
-    /// Decodes the buffered packet whose header was just checked.
-    fn decode(&mut self, header: &frame::FixedHeader) -> Result<Packet, ReadError> {
-        decode_frame(&self.codec, &mut self.read, header, self.max_packet)
-    }
-
-    /// Reads the first packet, which must be CONNECT, and picks the codec from it.
-    async fn read_connect(&mut self) -> Result<Packet, Refusal> {
-        let refusal = |reason, detail: String, connack| Refusal {
-            reason,
-            detail,
-            connack,
-        };
-        let header = loop {
-            // The first byte of a session must be CONNECT's; anything else (an HTTP
-            // request, a TLS hello on a plain port) is refused without waiting for more.
-            if self.read.first().is_some_and(|b| *b != 0x10) {
-                return Err(refusal(
-                    "malformed",
-                    "first packet is not an MQTT CONNECT".into(),
-                    None,
-                ));
-            }
-            match self.next_frame() {
-                Ok(Some(header)) => break header,
-                Ok(None) => {
-                    self.fill()
-                        .await
-                        .map_err(|_| refusal("closed_before_connect", String::new(), None))?;
-                }
-                Err(ReadError::Oversized { size, max }) => {
-                    return Err(refusal(
-                        "oversized",
-                        format!("CONNECT of {size} bytes, limit {max}"),
-                        None,
-                    ))
-                }
-                Err(e) => return Err(refusal("malformed", e.to_string(), None)),
-            }
-        };
-        match frame::connect_protocol_level(&self.read, &header) {
-            Some(4) => self.codec = Codec(Version::V311),
-            Some(5) => self.codec = Codec(Version::V5),
-            Some(level) => {
-                return Err(refusal(
-                    "unsupported_protocol",
-                    format!("protocol level {level}; fbbus speaks MQTT 3.1.1 (4) and 5"),
-                    Some(ConnectReturnCode::RefusedProtocolVersion),
-                ))
-            }
-            None => {
-                return Err(refusal(
-                    "malformed",
-                    "first packet is not an MQTT CONNECT".into(),
-                    None,
-                ))
-            }
-        }
-        match self.decode(&header) {
-            Ok(packet @ Packet::Connect(..)) => Ok(packet),
-            Ok(_) => unreachable!("the frame was checked to be a CONNECT"),
-            Err(e) => Err(refusal("malformed", e.to_string(), None)),
-        }
-    }
-
-    /// Encodes a packet into the write buffer.
-    fn queue(&mut self, packet: Packet) {
-        if let Err(e) = self.codec.write(packet, &mut self.write) {
-            tracing::error!(error = %e, "could not encode a packet for a client; dropped");
-        }
-    }
-
-    /// Writes the write buffer out; returns the bytes written.
-    async fn flush(&mut self) -> std::io::Result<usize> {
-        if self.write.is_empty() {
-            return Ok(0);
-        }
-        self.stream.write_all(&self.write).await?;
-        let n = self.write.len();
-        self.write.clear();
-        Ok(n)
-    }
-
-    async fn send(&mut self, packet: Packet) -> std::io::Result<usize> {
-        self.queue(packet);
-        self.flush().await
     }
 }
 
@@ -689,7 +394,7 @@ impl Session {
             io.queue(packet);
         }
         if io.flush().await.is_err() {
-            let _ = link_tx_disconnect(accepted.link_tx).await;
+            let _ = unlink(accepted.link_tx).await;
             ctx.sessions.close(&accepted.client_id, accepted.session);
             return None;
         }
@@ -1375,7 +1080,7 @@ impl Session {
         }
         let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
         if end.router_link_alive() {
-            let _ = link_tx_disconnect(self.link_tx).await;
+            let _ = unlink(self.link_tx).await;
         }
         let will = self.will.take().filter(|_| end.fires_will());
         if let Some(will) = will {
@@ -1415,76 +1120,6 @@ struct Accepted {
     ack: Notification,
 }
 
-/// When the router's copy of a session ends.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct SessionLifetime {
-    /// Link the connection as clean: the router keeps nothing after it ends.
-    clean_link: bool,
-    /// End an existing saved session before linking (MQTT 5 Clean Start, expiry > 0).
-    purge_before_link: bool,
-    /// End the saved session this long after the connection ends (unless the client is
-    /// back). None: the router's rule (clean: nothing kept; MQTT 3.1.1 persistent: forever).
-    expires_after: Option<Duration>,
-}
-
-impl SessionLifetime {
-    fn v311(clean_session: bool) -> SessionLifetime {
-        SessionLifetime {
-            clean_link: clean_session,
-            purge_before_link: false,
-            expires_after: None,
-        }
-    }
-
-    /// MQTT 5 3.1.2.4 and 3.1.2.11.2. An expiry of 0xFFFFFFFF never expires.
-    fn v5(clean_start: bool, session_expiry: u32) -> SessionLifetime {
-        let persists = session_expiry > 0;
-        SessionLifetime {
-            clean_link: clean_start && !persists,
-            purge_before_link: clean_start && persists,
-            expires_after: match session_expiry {
-                u32::MAX => None,
-                _ if clean_start && !persists => None,
-                secs => Some(Duration::from_secs(secs as u64)),
-            },
-        }
-    }
-}
-
-/// Ends a session the router saved for `client_id`: a clean link with that client id
-/// replaces the saved state, and is disconnected at once.
-async fn purge_router_session(router: &RouterHandle, client_id: &str) {
-    let linked = tokio::task::block_in_place(|| router.link(client_id, true, 0));
-    if let Ok((tx, _rx, _)) = linked {
-        let _ = link_tx_disconnect(tx).await;
-    }
-}
-
-/// The expiry of a session is due: ends it in the router unless the client is back.
-async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
-    // Linking under the table's lock orders the purge before any new connection of this
-    // client id, whose own link then simply replaces the purge link.
-    let linked = ctx.sessions.with_idle(client_id, session, || {
-        tokio::task::block_in_place(|| ctx.router.link(client_id, true, 0))
-    });
-    if let Some(Ok((tx, _rx, _))) = linked {
-        let _ = link_tx_disconnect(tx).await;
-        tracing::debug!(client_id, "session expired");
-    }
-}
-
-/// Tells the router a connection ended (it drops the link and, for a clean session, its state).
-async fn link_tx_disconnect(mut link_tx: LinkTx) -> Result<usize, LinkError> {
-    link_tx
-        .send(Packet::Disconnect(
-            Disconnect {
-                reason_code: DisconnectReasonCode::NormalDisconnection,
-            },
-            None,
-        ))
-        .await
-}
-
 /// A random 64-bit id for clients that connect without one.
 fn rand_id() -> u64 {
     use std::hash::{BuildHasher, Hasher};
@@ -1497,54 +1132,4 @@ fn rand_id() -> u64 {
             .unwrap_or(0),
     );
     h.finish()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Random and mutated packets through both codecs must never panic: a panic would end
-    /// the connection task without telling the router or firing the will.
-    #[test]
-    fn codecs_survive_random_and_mutated_packets() {
-        let seeds: [&[u8]; 6] = [
-            &[0x10, 12, 0, 4, b'M', b'Q', b'T', b'T', 5, 2, 0, 60, 0, 0],
-            &[0x30, 8, 0, 3, b'a', b'/', b'b', 0, b'h', b'i'],
-            &[0x32, 9, 0, 1, b't', 0, 7, 0, b'x', b'y', b'z'],
-            &[0x82, 7, 0, 1, 0, 0, 2, b'a', 1],
-            &[0xA2, 6, 0, 2, 0, 0, 1, b'a'],
-            &[0xE0, 2, 0x04, 0],
-        ];
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
-        for round in 0..200_000u32 {
-            let mut bytes = seeds[round as usize % seeds.len()].to_vec();
-            for _ in 0..(next() % 4) {
-                let at = (next() as usize) % bytes.len();
-                bytes[at] = next() as u8;
-            }
-            if next() % 3 == 0 {
-                bytes.truncate((next() as usize) % (bytes.len() + 1));
-            }
-            if next() % 5 == 0 {
-                bytes.extend((0..next() % 8).map(|_| next() as u8));
-            }
-            for version in [Version::V311, Version::V5] {
-                let mut buf = BytesMut::from(&bytes[..]);
-                let Ok(header) = frame::check(&buf, 1024) else {
-                    continue;
-                };
-                // The unguarded path: this test is what keeps the guard a last resort.
-                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    decode_unguarded(&Codec(version), &mut buf, &header, 1024)
-                }));
-                assert!(result.is_ok(), "{version:?} codec panicked on {bytes:02x?}");
-            }
-        }
-    }
 }

@@ -14,6 +14,10 @@
 //! ```
 //!
 //! - [`connection`]: one client's session; its module doc is the packet path, in order.
+//!   Around it: [`framed`] (the socket and its buffers), [`codec`] (rumqttd's MQTT codecs
+//!   and the guards in front of them), [`frame`] (the bytes fbbus reads itself),
+//!   [`ack_order`] and [`published_qos`] (delivery rules the router leaves out),
+//!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
 //! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
 //! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
 //!   MQTT 5 will delay), never after a clean DISCONNECT.
@@ -26,15 +30,18 @@
 pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
+pub mod codec;
 pub mod config;
 pub mod connection;
 pub mod frame;
+pub mod framed;
 pub mod listener;
 pub mod logging;
 pub mod metrics;
 pub mod published_qos;
 pub mod router;
 pub mod server;
+pub mod session_lifetime;
 pub mod session_table;
 pub mod tls;
 pub mod watched_file;

@@ -14,7 +14,8 @@ use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_rustls::TlsAcceptor;
 
-use crate::connection::{self, Context, ListenerPolicy, Stream};
+use crate::connection::{self, Context, ListenerPolicy};
+use crate::framed::Stream;
 
 pub struct Listener {
     pub policy: Arc<ListenerPolicy>,

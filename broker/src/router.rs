@@ -5,7 +5,8 @@
 //! rumqttd does not export the type of the router's event channel, so the channel is
 //! captured in a closure here and the rest of the broker only sees [`RouterHandle::link`].
 
-use rumqttd::local::{LinkBuilder, LinkRx, LinkTx};
+use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
+use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
 use rumqttd::{Notification, Router, RouterConfig};
 
 use crate::config::BrokerSection;
@@ -59,4 +60,16 @@ impl RouterHandle {
     ) -> Result<(LinkTx, LinkRx, Notification), LinkRefused> {
         (self.connect)(client_id, clean_session, topic_alias_max)
     }
+}
+
+/// Tells the router a link ended: it drops the link and, for a clean session, its state.
+pub async fn unlink(mut link_tx: LinkTx) -> Result<usize, LinkError> {
+    link_tx
+        .send(Packet::Disconnect(
+            Disconnect {
+                reason_code: DisconnectReasonCode::NormalDisconnection,
+            },
+            None,
+        ))
+        .await
 }

@@ -1,0 +1,72 @@
+//! How long the router keeps a client's session after its connection ends.
+//!
+//! rumqttd keeps a link's session unless the link is clean: the MQTT 3.1.1 rule. MQTT 5
+//! separates the two questions: Clean Start discards an existing session when the client
+//! connects, and the Session Expiry Interval decides how long the new one outlives the
+//! connection (3.1.2.4, 3.1.2.11.2). [`SessionLifetime`] maps the CONNECT onto rumqttd:
+//! a v5 link is clean only for Clean Start with expiry 0; Clean Start with expiry > 0 first
+//! ends the old session with a purge link; an expiry timer ends an idle session, guarded
+//! by the session number so a client that came back keeps its session.
+
+use std::time::Duration;
+
+use crate::connection::Context;
+use crate::router::{unlink, RouterHandle};
+
+/// When the router's copy of a session ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SessionLifetime {
+    /// Link the connection as clean: the router keeps nothing after it ends.
+    pub clean_link: bool,
+    /// End an existing saved session before linking (MQTT 5 Clean Start, expiry > 0).
+    pub purge_before_link: bool,
+    /// End the saved session this long after the connection ends (unless the client is
+    /// back). None: the router's rule (clean: nothing kept; MQTT 3.1.1 persistent: forever).
+    pub expires_after: Option<Duration>,
+}
+
+impl SessionLifetime {
+    pub fn v311(clean_session: bool) -> SessionLifetime {
+        SessionLifetime {
+            clean_link: clean_session,
+            purge_before_link: false,
+            expires_after: None,
+        }
+    }
+
+    /// MQTT 5 3.1.2.4 and 3.1.2.11.2. An expiry of 0xFFFFFFFF never expires.
+    pub fn v5(clean_start: bool, session_expiry: u32) -> SessionLifetime {
+        let persists = session_expiry > 0;
+        SessionLifetime {
+            clean_link: clean_start && !persists,
+            purge_before_link: clean_start && persists,
+            expires_after: match session_expiry {
+                u32::MAX => None,
+                _ if clean_start && !persists => None,
+                secs => Some(Duration::from_secs(secs as u64)),
+            },
+        }
+    }
+}
+
+/// Ends a session the router saved for `client_id`: a clean link with that client id
+/// replaces the saved state, and is disconnected at once.
+pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
+    let linked = tokio::task::block_in_place(|| router.link(client_id, true, 0));
+    if let Ok((tx, _rx, _)) = linked {
+        let _ = unlink(tx).await;
+    }
+}
+
+/// The expiry of a session is due: ends it in the router unless the client is back.
+pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
+    // Linking under the table's lock orders the purge before any new connection of this
+    // client id, whose own link then simply replaces the purge link.
+    let linked = ctx.sessions.with_idle(client_id, session, || {
+        tokio::task::block_in_place(|| ctx.router.link(client_id, true, 0))
+    });
+    if let Some(Ok((tx, _rx, _))) = linked {
+        let _ = unlink(tx).await;
+        tracing::debug!(client_id, "session expired");
+    }
+}
