@@ -32,9 +32,9 @@ use std::time::Duration;
 
 use rumqttd::local::{LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{
-    ConnectReturnCode, Disconnect, DisconnectReasonCode, Packet, PingResp, PubAck, PubAckReason,
-    PubComp, PubCompReason, PubRec, PubRecReason, Publish, PublishProperties, SubAck, Subscribe,
-    SubscribeProperties, SubscribeReasonCode,
+    ConnectReturnCode, Disconnect, DisconnectReasonCode, Filter, Packet, PingResp, PubAck,
+    PubAckReason, PubComp, PubCompReason, PubRec, PubRecReason, Publish, PublishProperties,
+    RetainForwardRule, SubAck, Subscribe, SubscribeProperties, SubscribeReasonCode,
 };
 use rumqttd::Notification;
 use security::{AclRules, Identity};
@@ -48,7 +48,7 @@ use crate::codec::{connack, ReadError, Version};
 use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
-use crate::published_qos;
+use crate::origin::{self, Origin};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
 use crate::session_table::SessionTable;
@@ -210,6 +210,10 @@ struct Session {
     held: VecDeque<(Publish, Option<PublishProperties>)>,
     /// The router paused delivery and is woken once `held` is short again.
     wake_pending: bool,
+    /// The client's subscriptions by filter, with their MQTT 5 options.
+    subscriptions: HashMap<String, Filter>,
+    /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
+    special_subscriptions: bool,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
 }
@@ -445,6 +449,8 @@ impl Session {
             outstanding_out: 0,
             held: VecDeque::new(),
             wake_pending: false,
+            subscriptions: HashMap::new(),
+            special_subscriptions: false,
             logged_denials: HashSet::new(),
         })
     }
@@ -607,8 +613,10 @@ impl Session {
                 self.ack_order.complete(pkid, packet, &mut self.to_router);
                 Ok(())
             }
-            packet @ Packet::Unsubscribe(..) => {
-                self.to_router.push(packet);
+            Packet::Unsubscribe(unsubscribe, properties) => {
+                self.remember_subscriptions(std::iter::empty(), &unsubscribe.filters);
+                self.to_router
+                    .push(Packet::Unsubscribe(unsubscribe, properties));
                 Ok(())
             }
             Packet::PingReq(_) => {
@@ -671,7 +679,15 @@ impl Session {
             p.topic_alias = None;
             publish.topic = topic.into();
         }
-        published_qos::mark(&mut properties, qos);
+        let retain = publish.retain;
+        origin::mark(
+            &mut properties,
+            &Origin {
+                qos,
+                retain,
+                publisher: self.client_id.clone(),
+            },
+        );
         self.ctx.metrics.messages_in.inc();
         self.to_router.push(Packet::Publish(publish, properties));
         Ok(())
@@ -782,6 +798,13 @@ impl Session {
             refused.push(verdict);
         }
 
+        let granted = subscribe
+            .filters
+            .iter()
+            .zip(&refused)
+            .filter(|(_, r)| r.is_none())
+            .map(|(f, _)| f);
+        self.remember_subscriptions(granted, &[]);
         if refused.iter().all(Option::is_none) {
             self.to_router
                 .push(Packet::Subscribe(subscribe, properties));
@@ -976,8 +999,13 @@ impl Session {
     ///   the marker `on_publish` attached, and the router's handshake is completed for the
     ///   client ([`Session::ack_for_client`]);
     /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
-    fn deliver_publish(&mut self, publish: Publish, mut properties: Option<PublishProperties>) {
-        let published = published_qos::take(&mut properties);
+    fn deliver_publish(&mut self, mut publish: Publish, mut properties: Option<PublishProperties>) {
+        let origin = origin::take(&mut properties);
+        let published = origin.as_ref().map(|o| o.qos);
+        let (deliver, retain_as_published) = self.subscription_options(&publish, origin.as_ref());
+        if retain_as_published {
+            publish.retain = true;
+        }
         // `Publish::len` counts a packet id only when the router's QoS is not 0.
         let (topic, payload, retain) = (
             publish.topic.clone(),
@@ -998,6 +1026,11 @@ impl Session {
 
         if routed_qos > 0 {
             self.ack_order.delivered(pkid);
+        }
+        if !deliver {
+            self.io.write.truncate(before);
+            self.ack_for_client(routed_qos, pkid);
+            return;
         }
         let qos = published.map_or(routed_qos, |q| q.min(routed_qos));
         if may_lower && qos < routed_qos {
@@ -1039,6 +1072,63 @@ impl Session {
                 }
             }
         }
+    }
+
+    /// What the client's subscription options say about one delivery: whether to send it
+    /// (No Local [MQTT-3.8.3-3], Retain Handling 2 [MQTT-3.3.1-11]) and whether to set RETAIN
+    /// as published [MQTT-3.3.1-12]. rumqttd's router ignores these options; a delivery
+    /// with RETAIN set is a retained message sent at subscribe time (the router clears
+    /// RETAIN on live deliveries). When several subscriptions match, the delivery is sent
+    /// unless every matching one excludes it.
+    fn subscription_options(&self, publish: &Publish, origin: Option<&Origin>) -> (bool, bool) {
+        if !self.special_subscriptions {
+            return (true, false);
+        }
+        let Ok(topic) = std::str::from_utf8(&publish.topic) else {
+            return (true, false);
+        };
+        let matching: Vec<&Filter> = self
+            .subscriptions
+            .iter()
+            .filter(|(path, _)| security::acl::filter_matches(path, topic))
+            .map(|(_, f)| f)
+            .collect();
+        if matching.is_empty() {
+            return (true, false);
+        }
+        let own = origin.is_some_and(|o| o.publisher == self.client_id);
+        if own && matching.iter().all(|f| f.nolocal) {
+            return (false, false);
+        }
+        if publish.retain
+            && matching
+                .iter()
+                .all(|f| matches!(f.retain_forward_rule, RetainForwardRule::Never))
+        {
+            return (false, false);
+        }
+        let retained_origin = origin.is_some_and(|o| o.retain);
+        let rap = !publish.retain && retained_origin && matching.iter().any(|f| f.preserve_retain);
+        (true, rap)
+    }
+
+    /// Records the client's subscriptions and whether any uses an option the router ignores.
+    fn remember_subscriptions<'a>(
+        &mut self,
+        added: impl Iterator<Item = &'a Filter>,
+        removed: &[String],
+    ) {
+        for f in added {
+            self.subscriptions.insert(f.path.clone(), f.clone());
+        }
+        for path in removed {
+            self.subscriptions.remove(path);
+        }
+        self.special_subscriptions = self.subscriptions.values().any(|f| {
+            f.nolocal
+                || f.preserve_retain
+                || matches!(f.retain_forward_rule, RetainForwardRule::Never)
+        });
     }
 
     /// Acknowledges a delivery to the router on the client's behalf (the client was not

@@ -141,7 +141,14 @@ impl Wills {
             subscription_identifiers: Vec::new(),
             content_type: p.content_type,
         });
-        crate::published_qos::mark(&mut properties, qos);
+        crate::origin::mark(
+            &mut properties,
+            &crate::origin::Origin {
+                qos,
+                retain: will.retain,
+                publisher: client_id.to_owned(),
+            },
+        );
         match link.0.send(Packet::Publish(publish, properties)).await {
             Ok(_) => {
                 self.metrics.wills_published.inc();

@@ -351,3 +351,75 @@ async fn mqtt5_session_expiry_decides_how_long_a_session_lives() {
     assert!(!present, "expired session resumed");
     assert!(next_publish_payload(&mut c).is_none());
 }
+
+/// Reads PUBLISH packets for `within`: (RETAIN flag, payload) of each.
+fn publishes_within(c: &mut RawClient, within: Duration) -> Vec<(bool, Vec<u8>)> {
+    c.stream.set_read_timeout(Some(within)).unwrap();
+    let mut got = Vec::new();
+    while let Some((byte1, body)) = c.read_packet() {
+        if byte1 & 0xF0 != 0x30 {
+            continue;
+        }
+        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+        let mut at = 2 + topic_len;
+        if (byte1 >> 1) & 3 > 0 {
+            let [hi, lo] = [body[at], body[at + 1]];
+            c.send(&[0x40, 0x02, hi, lo]);
+            at += 2;
+        }
+        let props = body[at] as usize;
+        got.push((byte1 & 1 == 1, body[at + 1 + props..].to_vec()));
+    }
+    got
+}
+
+/// No Local [MQTT-3.8.3-3], Retain As Published [MQTT-3.3.1-12] and Retain Handling 2
+/// [MQTT-3.3.1-11]: subscription options rumqttd's router ignores, applied by fbbus.
+#[test]
+fn mqtt5_subscription_options_are_honoured() {
+    let broker = Broker::start();
+    let port = broker.port();
+    // A retained message is already there.
+    let mut retainer = RawClient::connect(port);
+    assert_eq!(
+        retainer.handshake(&raw::Connect {
+            version: 5,
+            client_id: "retainer",
+            ..Default::default()
+        }),
+        0
+    );
+    let mut retained = raw::publish_v5("opt/t", None, 0, 0, b"kept");
+    retained[0] |= 1; // RETAIN
+    retainer.send(&retained);
+
+    let (_, mut c) = connect_v5(port, "options", true, 0);
+    // No Local + Retain As Published + Retain Handling 2 on one filter.
+    // Retain Handling 2 (bits 4-5), Retain As Published (bit 3), No Local (bit 2), QoS 0.
+    c.send(&raw::subscribe_with_options(1, "opt/#", 0b0010_1100));
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    c.send(&raw::publish_v5("opt/own", None, 0, 0, b"mine"));
+    let mut live = raw::publish_v5("opt/t", None, 0, 0, b"live retained");
+    live[0] |= 1;
+    retainer.send(&live);
+    retainer.send(&raw::publish_v5("opt/t", None, 0, 0, b"live plain"));
+
+    let got = publishes_within(&mut c, Duration::from_millis(800));
+    let payloads: Vec<&[u8]> = got.iter().map(|(_, p)| &p[..]).collect();
+    assert!(
+        !payloads.contains(&&b"kept"[..]),
+        "Retain Handling 2: no retained message at subscribe"
+    );
+    assert!(
+        !payloads.contains(&&b"mine"[..]),
+        "No Local: own publication came back"
+    );
+    assert_eq!(
+        got,
+        [
+            (true, b"live retained".to_vec()),
+            (false, b"live plain".to_vec())
+        ],
+        "Retain As Published keeps RETAIN on a live delivery, and only where it was set"
+    );
+}

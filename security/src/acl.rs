@@ -404,6 +404,11 @@ pub fn valid_filter(f: &str) -> bool {
     true
 }
 
+/// Does subscription `filter` (possibly `$share/<group>/...`) match `topic`?
+pub fn filter_matches(filter: &str, topic: &str) -> bool {
+    strip_shared_prefix(filter).is_some_and(|f| valid_filter(f) && is_subset(topic, f))
+}
+
 /// Does every topic matched by filter `a` also match filter `b`?
 ///
 /// Both must be valid filters; a topic name is a filter that matches only
@@ -463,6 +468,16 @@ fn starts_with_wildcard(filter: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn filters_match_topics() {
+        assert!(filter_matches("a/+/c", "a/b/c"));
+        assert!(filter_matches("a/#", "a"));
+        assert!(filter_matches("$share/g/a/#", "a/b"));
+        assert!(!filter_matches("#", "$SYS/x"));
+        assert!(filter_matches("$SYS/#", "$SYS/x"));
+        assert!(!filter_matches("a/+", "a/b/c"));
+    }
 
     const EXAMPLE: &str = "\
 # comment

@@ -164,6 +164,16 @@ pub fn subscribe(version: u8, pkid: u16, filters: &[&str]) -> Vec<u8> {
     packet(0x82, &body)
 }
 
+/// MQTT 5 SUBSCRIBE of one filter with an explicit options byte (QoS in bits 0-1, No Local
+/// bit 2, Retain As Published bit 3, Retain Handling bits 4-5).
+pub fn subscribe_with_options(pkid: u16, filter: &str, options: u8) -> Vec<u8> {
+    let mut body = pkid.to_be_bytes().to_vec();
+    body.push(0);
+    string(filter.as_bytes(), &mut body);
+    body.push(options);
+    packet(0x82, &body)
+}
+
 /// The reason codes of a SUBACK body.
 pub fn suback_codes(version: u8, body: &[u8]) -> Vec<u8> {
     let skip = if version == 5 {
