@@ -992,13 +992,17 @@ impl Session {
         }
     }
 
-    /// Encodes one delivery. Two MQTT rules rumqttd 0.20's router does not follow are
-    /// applied here:
-    /// - the delivery QoS is min(publication QoS, subscription QoS) [MQTT-3.8.4-8]; the
+    /// Encodes one delivery, applying the MQTT rules rumqttd 0.20's router leaves out, in
+    /// this order:
+    /// - the subscriptions' options ([`Session::subscription_options`]): No Local and
+    ///   Retain Handling 2 may drop the delivery, Retain As Published restores RETAIN;
+    /// - the delivery QoS is min(publication QoS, subscription QoS) [MQTT-3.8.4-8]: the
     ///   router sends at the subscription's QoS, so a lower publication QoS is restored from
-    ///   the marker `on_publish` attached, and the router's handshake is completed for the
-    ///   client ([`Session::ack_for_client`]);
+    ///   the message's `origin`;
     /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
+    ///
+    /// Whatever the client is not sent at the router's QoS is acknowledged to the router
+    /// for it ([`Session::ack_for_client`]).
     fn deliver_publish(&mut self, mut publish: Publish, mut properties: Option<PublishProperties>) {
         let origin = origin::take(&mut properties);
         let published = origin.as_ref().map(|o| o.qos);
