@@ -13,6 +13,22 @@ use tokio::net::TcpStream;
 use tokio::sync::watch;
 
 use crate::brokers::Running;
+
+/// Keeps the first reason a publisher stopped early (an I/O error or the deadline), for
+/// the scenario's note.
+fn note_publisher_end(
+    first_error: &Mutex<Option<String>>,
+    result: std::result::Result<std::io::Result<()>, tokio::time::error::Elapsed>,
+) {
+    let reason = match result {
+        Ok(Ok(())) => return,
+        Ok(Err(e)) => format!("publisher: {e}"),
+        Err(_) => "publishers hit the deadline".into(),
+    };
+    if let Ok(mut first) = first_error.lock() {
+        first.get_or_insert(reason);
+    }
+}
 use crate::mqtt::{self, PacketReader};
 
 /// The storm's devices: (user name, password).
@@ -464,22 +480,10 @@ async fn burst(
                 }
                 writer.flush().await
             };
-            let result = tokio::time::timeout_at(end_at.into(), send_all).await;
-            match result {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => {
-                    first_error
-                        .lock()
-                        .unwrap()
-                        .get_or_insert(format!("publisher: {e}"));
-                }
-                Err(_) => {
-                    first_error
-                        .lock()
-                        .unwrap()
-                        .get_or_insert("publishers hit the deadline".into());
-                }
-            }
+            note_publisher_end(
+                &first_error,
+                tokio::time::timeout_at(end_at.into(), send_all).await,
+            );
             done.fetch_add(1, Ordering::Release);
             writer.into_inner()
         }));
@@ -590,21 +594,10 @@ async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
                 }
                 Ok::<(), std::io::Error>(())
             };
-            match tokio::time::timeout_at(end_at.into(), send_all).await {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => {
-                    first_error
-                        .lock()
-                        .unwrap()
-                        .get_or_insert(format!("publisher: {e}"));
-                }
-                Err(_) => {
-                    first_error
-                        .lock()
-                        .unwrap()
-                        .get_or_insert("publishers hit the deadline".into());
-                }
-            }
+            note_publisher_end(
+                &first_error,
+                tokio::time::timeout_at(end_at.into(), send_all).await,
+            );
             done.fetch_add(1, Ordering::Release);
             stream
         }));
