@@ -1,0 +1,323 @@
+//! A device's FB interface: what it declares at birth, and how the broker checks it.
+//!
+//! A declaration names the device's FB instances and, per FB, its event outputs and
+//! inputs (each with its IEC 61499 WITH list) and its data outputs and inputs with their
+//! types. Outputs are what the device publishes (`fb/<device>/<fb>/<port>`); inputs are
+//! what it consumes, declared so the registry shows the whole interface.
+//!
+//! Parsing keeps types as text ([`Declaration`]) so that [`Declaration::validate`] can
+//! report every mistake at once, each with its FB and port, instead of stopping at the
+//! first bad type the way a typed deserializer would.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::types::DataType;
+
+/// An interface as sent by a device: types still as text.
+pub type Declaration = Interface<String>;
+
+/// A device's FB instances by name.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    bound(deserialize = "T: Deserialize<'de>", serialize = "T: Serialize")
+)]
+pub struct Interface<T = DataType> {
+    pub fbs: BTreeMap<String, FbInterface<T>>,
+}
+
+/// One FB instance's interface.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    bound(deserialize = "T: Deserialize<'de>", serialize = "T: Serialize")
+)]
+pub struct FbInterface<T = DataType> {
+    /// The FB's type name (`CONVEYOR`, `E_CYCLE`, ...); informative.
+    #[serde(rename = "type", default, skip_serializing_if = "Option::is_none")]
+    pub fb_type: Option<String>,
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub events_out: BTreeMap<String, Event>,
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub events_in: BTreeMap<String, Event>,
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub data_out: BTreeMap<String, T>,
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub data_in: BTreeMap<String, T>,
+}
+
+/// An event port: the data ports whose values it carries (IEC 61499 WITH), in order.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Event {
+    #[serde(default)]
+    pub with: Vec<String>,
+}
+
+/// One mistake in a declaration, located precisely.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, thiserror::Error)]
+#[error("{}{}{error}", fb.as_ref().map(|f| format!("FB {f}: ")).unwrap_or_default(), port.as_ref().map(|p| format!("port {p}: ")).unwrap_or_default())]
+pub struct DeclarationError {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fb: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub port: Option<String>,
+    pub error: String,
+}
+
+/// Most FBs a device may declare, and most ports per FB: bounds what one birth costs.
+pub const MAX_FBS: usize = 256;
+pub const MAX_PORTS: usize = 256;
+
+/// An IEC 61131-3 identifier: a letter or `_`, then letters, digits and `_`. Names become
+/// topic levels, so this also keeps `/`, `+`, `#` and `$` out of them.
+pub fn is_identifier(name: &str) -> bool {
+    let mut chars = name.chars();
+    matches!(chars.next(), Some(c) if c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && name.len() <= 64
+}
+
+impl Declaration {
+    /// Parses a birth payload (JSON). Syntax errors say where they are.
+    pub fn from_json(payload: &[u8]) -> Result<Declaration, DeclarationError> {
+        serde_json::from_slice(payload).map_err(|e| DeclarationError {
+            fb: None,
+            port: None,
+            error: format!("not a valid interface declaration: {e}"),
+        })
+    }
+
+    /// Checks every FB and port and returns the typed interface, or every mistake found.
+    pub fn validate(self) -> Result<Interface, Vec<DeclarationError>> {
+        let mut errors = Vec::new();
+        let mut err = |fb: &str, port: Option<&str>, error: String| {
+            errors.push(DeclarationError {
+                fb: Some(fb.to_owned()),
+                port: port.map(str::to_owned),
+                error,
+            })
+        };
+        if self.fbs.len() > MAX_FBS {
+            return Err(vec![DeclarationError {
+                fb: None,
+                port: None,
+                error: format!("{} FBs declared; at most {MAX_FBS}", self.fbs.len()),
+            }]);
+        }
+        let mut fbs = BTreeMap::new();
+        for (name, fb) in self.fbs {
+            if !is_identifier(&name) {
+                err(
+                    &name,
+                    None,
+                    "FB name is not an IEC 61131-3 identifier".into(),
+                );
+                continue;
+            }
+            let ports =
+                fb.events_out.len() + fb.events_in.len() + fb.data_out.len() + fb.data_in.len();
+            if ports > MAX_PORTS {
+                err(
+                    &name,
+                    None,
+                    format!("{ports} ports declared; at most {MAX_PORTS}"),
+                );
+                continue;
+            }
+            let typed = |ports: BTreeMap<String, String>,
+                         err: &mut dyn FnMut(&str, Option<&str>, String)| {
+                let mut out = BTreeMap::new();
+                for (port, ty) in ports {
+                    match ty.parse::<DataType>() {
+                        Ok(t) => {
+                            out.insert(port, t);
+                        }
+                        Err(e) => err(&name, Some(&port), e.to_string()),
+                    }
+                }
+                out
+            };
+            let data_out = typed(fb.data_out, &mut err);
+            let data_in = typed(fb.data_in, &mut err);
+
+            // Every port name is a topic level of this FB, so names are unique across kinds.
+            let mut seen = std::collections::BTreeSet::new();
+            let names = fb
+                .events_out
+                .keys()
+                .chain(fb.events_in.keys())
+                .chain(data_out.keys())
+                .chain(data_in.keys());
+            for port in names {
+                if !is_identifier(port) {
+                    err(
+                        &name,
+                        Some(port),
+                        "port name is not an IEC 61131-3 identifier".into(),
+                    );
+                } else if !seen.insert(port.as_str()) {
+                    err(
+                        &name,
+                        Some(port),
+                        "declared twice (port names are unique within an FB)".into(),
+                    );
+                }
+            }
+            let check_with =
+                |events: &BTreeMap<String, Event>,
+                 data: &BTreeMap<String, DataType>,
+                 dir: &str,
+                 err: &mut dyn FnMut(&str, Option<&str>, String)| {
+                    for (event, e) in events {
+                        let mut listed = std::collections::BTreeSet::new();
+                        for w in &e.with {
+                            if !data.contains_key(w) {
+                                err(
+                                    &name,
+                                    Some(event),
+                                    format!("WITH {w}: no data {dir} of that name in this FB"),
+                                );
+                            } else if !listed.insert(w) {
+                                err(&name, Some(event), format!("WITH {w}: listed twice"));
+                            }
+                        }
+                    }
+                };
+            check_with(&fb.events_out, &data_out, "output", &mut err);
+            check_with(&fb.events_in, &data_in, "input", &mut err);
+            fbs.insert(
+                name,
+                FbInterface {
+                    fb_type: fb.fb_type,
+                    events_out: fb.events_out,
+                    events_in: fb.events_in,
+                    data_out,
+                    data_in,
+                },
+            );
+        }
+        if errors.is_empty() {
+            Ok(Interface { fbs })
+        } else {
+            Err(errors)
+        }
+    }
+}
+
+/// An output port a device may publish on, resolved from its interface.
+#[derive(Debug, Clone, PartialEq)]
+pub enum OutputPort<'a> {
+    /// An event output and the (name, type) of each WITH data port, in WITH order.
+    Event(Vec<(&'a str, DataType)>),
+    /// A data output and its type.
+    Data(DataType),
+}
+
+impl Interface {
+    /// The output port `fb.port`, if the interface declares one.
+    pub fn output(&self, fb: &str, port: &str) -> Option<OutputPort<'_>> {
+        let fb = self.fbs.get(fb)?;
+        if let Some(ty) = fb.data_out.get(port) {
+            return Some(OutputPort::Data(*ty));
+        }
+        let event = fb.events_out.get(port)?;
+        Some(OutputPort::Event(
+            event
+                .with
+                .iter()
+                .filter_map(|w| fb.data_out.get(w).map(|t| (w.as_str(), *t)))
+                .collect(),
+        ))
+    }
+
+    /// Every output port as (fb, port), for registries and bridges.
+    pub fn outputs(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.fbs.iter().flat_map(|(fb, i)| {
+            i.events_out
+                .keys()
+                .chain(i.data_out.keys())
+                .map(move |p| (fb.as_str(), p.as_str()))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decl(json: &str) -> Declaration {
+        Declaration::from_json(json.as_bytes()).unwrap()
+    }
+
+    #[test]
+    fn a_good_declaration_resolves_its_outputs() {
+        let i = decl(
+            r#"{"fbs":{"CONV":{"type":"CONVEYOR",
+                "events_out":{"MOVED":{"with":["POSITION","SENSOR_IN"]}},
+                "events_in":{"START":{"with":["SPEED"]}},
+                "data_out":{"POSITION":"INT","SENSOR_IN":"BOOL"},
+                "data_in":{"SPEED":"REAL"}}}}"#,
+        )
+        .validate()
+        .unwrap();
+        assert_eq!(
+            i.output("CONV", "MOVED"),
+            Some(OutputPort::Event(vec![
+                ("POSITION", "INT".parse().unwrap()),
+                ("SENSOR_IN", "BOOL".parse().unwrap())
+            ]))
+        );
+        assert_eq!(
+            i.output("CONV", "POSITION"),
+            Some(OutputPort::Data("INT".parse().unwrap()))
+        );
+        assert_eq!(i.output("CONV", "START"), None, "inputs are not published");
+        assert_eq!(i.output("NOPE", "MOVED"), None);
+        assert_eq!(i.outputs().count(), 3);
+        let json = serde_json::to_string(&i).unwrap();
+        assert!(json.contains(r#""POSITION":"INT""#), "{json}");
+    }
+
+    #[test]
+    fn every_mistake_is_reported_with_its_fb_and_port() {
+        let errors = decl(
+            r#"{"fbs":{"CONV":{
+                "events_out":{"MOVED":{"with":["POSITION","GHOST"]}},
+                "data_out":{"POSITION":"FLOAT","MOVED":"INT","bad/name":"INT"}},
+               "9x":{}}}"#,
+        )
+        .validate()
+        .unwrap_err();
+        let text: Vec<String> = errors.iter().map(|e| e.to_string()).collect();
+        assert!(
+            text.iter()
+                .any(|t| t.contains("FB 9x") && t.contains("identifier")),
+            "{text:?}"
+        );
+        assert!(
+            text.iter()
+                .any(|t| t.contains("port POSITION") && t.contains("unknown type 'FLOAT'")),
+            "{text:?}"
+        );
+        assert!(
+            text.iter()
+                .any(|t| t.contains("port MOVED") && t.contains("declared twice")),
+            "{text:?}"
+        );
+        assert!(
+            text.iter()
+                .any(|t| t.contains("port MOVED") && t.contains("WITH GHOST")),
+            "{text:?}"
+        );
+        assert!(text.iter().any(|t| t.contains("port bad/name")), "{text:?}");
+    }
+
+    #[test]
+    fn unknown_fields_and_bad_json_are_refused() {
+        assert!(Declaration::from_json(br#"{"fbs":{},"extra":1}"#).is_err());
+        assert!(Declaration::from_json(b"{").is_err());
+    }
+}

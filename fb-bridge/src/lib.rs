@@ -1,0 +1,28 @@
+//! # fb-bridge: the FB side of fbbus
+//!
+//! IEC 61499 devices connect event and data outputs of function blocks on one device to
+//! inputs on another. This crate is the model both ends of that connection share:
+//!
+//! - [`types`] and [`value`]: the IEC 61131-3 elementary types, `ARRAY [n] OF` them, and
+//!   typed Rust values with their ranges;
+//! - [`interface`]: the FB interface a device declares at birth, validated with errors
+//!   that name the FB and the port;
+//! - [`topic`]: the typed topics (`fb/<device>/<fb>/<port>`) and fbbus's control topics;
+//! - [`codec`]: canonical JSON, DINASORE JSON and 4diac's `fbdk` bytes, all decoded to
+//!   and encoded from one [`codec::Message`].
+//!
+//! The broker uses this crate to check every publication on a typed topic; device
+//! software uses the same types through the client API. The device contract (topics,
+//! encodings, registry) is written down in this crate's README.
+
+pub mod codec;
+pub mod interface;
+pub mod topic;
+pub mod types;
+pub mod value;
+
+pub use codec::{CodecError, Encoding, EventMessage, Message};
+pub use interface::{Declaration, DeclarationError, Interface, OutputPort};
+pub use topic::TypedTopic;
+pub use types::{DataType, ElementaryType};
+pub use value::{TypeError, Value};

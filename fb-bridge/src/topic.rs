@@ -1,0 +1,106 @@
+//! The topics fbbus gives meaning to.
+//!
+//! | topic | who publishes | what |
+//! |---|---|---|
+//! | `fb/<device>/<fb>/<port>` | the device owning the output port | canonical JSON ([`crate::codec::json`]) |
+//! | `dinasore/<device>/<fb>/<port>` | same | DINASORE JSON |
+//! | `fbdk/<device>/<fb>/<port>` | same | 4diac `fbdk` bytes |
+//! | `fbbus/declare/<device>` | the device | its interface declaration (birth) |
+//! | `fbbus/diag/<device>` | the broker | answers to the declaration, rejected publications |
+//! | `fbbus/devices/<device>` | the broker, retained | the device's registry record |
+//! | `fbbus/lines/<line>/online` | the broker, retained | how many devices of the line are online |
+
+use crate::codec::Encoding;
+
+/// Control-topic prefixes.
+pub const DECLARE: &str = "fbbus/declare/";
+pub const DIAG: &str = "fbbus/diag/";
+pub const DEVICES: &str = "fbbus/devices/";
+pub const LINES: &str = "fbbus/lines/";
+/// Everything under `fbbus/` belongs to the broker, except declarations.
+pub const BROKER_NAMESPACE: &str = "fbbus/";
+
+/// A typed topic, parsed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TypedTopic<'a> {
+    pub encoding: Encoding,
+    pub device: &'a str,
+    pub fb: &'a str,
+    pub port: &'a str,
+}
+
+impl<'a> TypedTopic<'a> {
+    /// Parses `<namespace>/<device>/<fb>/<port>`; None for any other topic, including a
+    /// typed namespace with the wrong number of levels (see [`is_typed_namespace`]).
+    pub fn parse(topic: &'a str) -> Option<TypedTopic<'a>> {
+        let mut levels = topic.split('/');
+        let encoding = Encoding::from_namespace(levels.next()?)?;
+        let device = levels.next()?;
+        let fb = levels.next()?;
+        let port = levels.next()?;
+        if levels.next().is_some() || device.is_empty() || fb.is_empty() || port.is_empty() {
+            return None;
+        }
+        Some(TypedTopic {
+            encoding,
+            device,
+            fb,
+            port,
+        })
+    }
+
+    /// The same port's topic in another encoding.
+    pub fn in_encoding(&self, encoding: Encoding) -> String {
+        format!(
+            "{}/{}/{}/{}",
+            encoding.namespace(),
+            self.device,
+            self.fb,
+            self.port
+        )
+    }
+}
+
+/// Whether `topic` is in one of the typed namespaces (`fb/`, `dinasore/`, `fbdk/`).
+pub fn is_typed_namespace(topic: &str) -> bool {
+    topic
+        .split_once('/')
+        .is_some_and(|(ns, _)| Encoding::from_namespace(ns).is_some())
+}
+
+pub fn declare(device: &str) -> String {
+    format!("{DECLARE}{device}")
+}
+
+pub fn diag(device: &str) -> String {
+    format!("{DIAG}{device}")
+}
+
+pub fn device_record(device: &str) -> String {
+    format!("{DEVICES}{device}")
+}
+
+pub fn line_online(line: &str) -> String {
+    format!("{LINES}{line}/online")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn typed_topics_parse_in_every_namespace() {
+        let t = TypedTopic::parse("fbdk/conv-a/CONV/MOVED").unwrap();
+        assert_eq!(
+            (t.encoding, t.device, t.fb, t.port),
+            (Encoding::Fbdk, "conv-a", "CONV", "MOVED")
+        );
+        assert_eq!(t.in_encoding(Encoding::Json), "fb/conv-a/CONV/MOVED");
+        assert!(TypedTopic::parse("fb/a/b").is_none());
+        assert!(TypedTopic::parse("fb/a/b/c/d").is_none());
+        assert!(TypedTopic::parse("fb//b/c").is_none());
+        assert!(TypedTopic::parse("plant/a/b/c").is_none());
+        assert!(is_typed_namespace("fb/a/b"));
+        assert!(!is_typed_namespace("fbx/a/b/c"));
+    }
+}
