@@ -1,11 +1,13 @@
 //! The HTTP admin endpoint: `/metrics` (Prometheus text), `/healthz` (the process runs),
-//! `/readyz` (listeners are bound and the broker is not shutting down).
+//! `/readyz` (listeners are bound and the broker is not shutting down), and the device
+//! registry as JSON: `/api/v1/devices` (every device, by id; `?status=online` filters)
+//! and `/api/v1/devices/{id}` (one record, 404 if unknown).
 //! Bound to loopback by default; it exposes no secret and accepts no command.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use axum::extract::State;
+use axum::extract::{Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 use axum::routing::get;
@@ -13,11 +15,13 @@ use axum::Router;
 use tokio::net::TcpListener;
 
 use crate::metrics::Metrics;
+use crate::registry::Registry;
 
 #[derive(Clone)]
 pub struct AdminState {
     pub metrics: Arc<Metrics>,
     pub ready: Arc<AtomicBool>,
+    pub registry: Arc<Registry>,
 }
 
 pub fn routes(state: AdminState) -> Router {
@@ -25,6 +29,8 @@ pub fn routes(state: AdminState) -> Router {
         .route("/metrics", get(metrics))
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(readyz))
+        .route("/api/v1/devices", get(devices))
+        .route("/api/v1/devices/:id", get(device))
         .with_state(state)
 }
 
@@ -40,6 +46,36 @@ async fn readyz(State(state): State<AdminState>) -> impl IntoResponse {
         (StatusCode::OK, "ready\n")
     } else {
         (StatusCode::SERVICE_UNAVAILABLE, "not ready\n")
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct DeviceFilter {
+    status: Option<String>,
+}
+
+async fn devices(
+    State(state): State<AdminState>,
+    Query(filter): Query<DeviceFilter>,
+) -> impl IntoResponse {
+    let mut devices = state.registry.list();
+    if let Some(status) = &filter.status {
+        devices.retain(|d| d.status.label() == status);
+    }
+    axum::Json(serde_json::json!({
+        "line": state.registry.line(),
+        "devices": devices,
+    }))
+}
+
+async fn device(State(state): State<AdminState>, Path(id): Path<String>) -> impl IntoResponse {
+    match state.registry.get(&id) {
+        Some(record) => axum::Json(record).into_response(),
+        None => (
+            StatusCode::NOT_FOUND,
+            axum::Json(serde_json::json!({"error": format!("no device {id} in the registry")})),
+        )
+            .into_response(),
     }
 }
 

@@ -56,6 +56,30 @@ pub struct Config {
     pub admin: AdminSection,
     #[serde(default)]
     pub log: LogSection,
+    #[serde(default)]
+    pub fb: FbSection,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FbSection {
+    /// Where the device registry is persisted (written atomically); relative to the
+    /// config file's directory, or to the working directory for the embedded default.
+    /// Empty: not persisted.
+    pub registry_file: PathBuf,
+    /// Typed-namespace topics (fb/, dinasore/, fbdk/) no device declared: "reject" them
+    /// (MQTT 5: 0x90), or "pass" them unchecked while migrating an untyped line.
+    /// Declared ports are checked in both modes.
+    pub undeclared: crate::fb_topics::Undeclared,
+}
+
+impl Default for FbSection {
+    fn default() -> Self {
+        FbSection {
+            registry_file: PathBuf::from("fbbus-registry.json"),
+            undeclared: Default::default(),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -265,6 +289,9 @@ impl Config {
         }
         if let Some(p) = self.auth.acl_file.as_mut() {
             fix(p)
+        }
+        if !self.fb.registry_file.as_os_str().is_empty() {
+            fix(&mut self.fb.registry_file);
         }
         for l in &mut self.listeners {
             if let Some(tls) = l.tls.as_mut() {

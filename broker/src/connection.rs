@@ -6,8 +6,9 @@
 //!    a session only exists for a client that passed, so every later step knows who it is;
 //! 2. **authorized** — PUBLISH topics and SUBSCRIBE filters against the ACL
 //!    (`Session::on_publish`, `Session::on_subscribe`); the will topic at CONNECT;
-//! 3. **checked** — the place typed FB topic checks plug in (next issue), between the
-//!    ACL and the router, so an ill-typed message is never routed;
+//! 3. **checked** — typed FB topics against the device's declared interface
+//!    (`fb_topics`), between the ACL and the router, so an ill-typed message is never
+//!    routed; declarations are consumed here;
 //! 4. **routed** — handed to rumqttd's router through the connection's `LinkTx`, one
 //!    batch per network read;
 //! 5. **metered** — counted in `Metrics` as it is accepted or refused.
@@ -44,7 +45,9 @@ use tokio::time::{timeout, Instant};
 
 use crate::ack_order::AckOrder;
 use crate::authenticator::{Authenticator, Outcome};
+use crate::broker_publisher::INTERNAL_CLIENT_ID;
 use crate::codec::{connack, ReadError, Version};
+use crate::fb_topics::{Check, FbSession, FbTopics, Refusal};
 use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
@@ -53,7 +56,7 @@ use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
 use crate::session_table::SessionTable;
 use crate::watched_file::WatchedFile;
-use crate::wills::{Will, Wills, INTERNAL_CLIENT_ID};
+use crate::wills::{Will, Wills};
 
 /// Everything connections share, built once by `server`.
 pub struct Context {
@@ -62,6 +65,7 @@ pub struct Context {
     /// None: no ACL file, every authenticated client may publish and subscribe anywhere.
     pub acl: Option<Arc<WatchedFile<AclRules>>>,
     pub wills: Arc<Wills>,
+    pub fb: FbTopics,
     pub sessions: SessionTable,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
@@ -216,6 +220,8 @@ struct Session {
     special_subscriptions: bool,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: HashSet<(&'static str, String)>,
+    /// Typed-topic state: the device's interface, event sequence numbers.
+    fb: FbSession,
 }
 
 const MAX_LOGGED_DENIALS: usize = 1024;
@@ -315,7 +321,9 @@ impl Session {
                     username: username.as_deref(),
                     client_id: &client_id,
                 };
+                // `fbbus/` is the broker's: a will there could forge registry records.
                 let allowed = security::acl::valid_topic(&topic)
+                    && !topic.starts_with(fb_bridge::topic::BROKER_NAMESPACE)
                     && ctx
                         .acl
                         .as_ref()
@@ -405,6 +413,19 @@ impl Session {
 
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
+        let mut fb = FbSession::new(
+            &accepted.client_id,
+            accepted.username.as_deref(),
+            accepted.session,
+            None,
+        );
+        if fb.identity_verified() {
+            fb.set_interface(
+                ctx.fb
+                    .registry
+                    .connected(&accepted.client_id, accepted.session),
+            );
+        }
         tracing::info!(
             %peer,
             listener = listener.name,
@@ -452,6 +473,7 @@ impl Session {
             subscriptions: HashMap::new(),
             special_subscriptions: false,
             logged_denials: HashSet::new(),
+            fb,
         })
     }
 
@@ -656,11 +678,23 @@ impl Session {
                 .with_label_values(&["publish"])
                 .inc();
             self.log_denial("publish", &topic);
-            self.refuse_publish(qos, pkid);
+            self.refuse_publish(qos, pkid, Refusal::NotAuthorized);
             return Ok(());
         }
 
-        // 3. Check: typed FB topics are validated here (next issue).
+        // 3. Check typed FB topics; declarations end here.
+        let routes = match self.fb.check(&self.ctx.fb, &topic, &publish.payload) {
+            Check::Pass => Vec::new(),
+            Check::Route(routes) => routes,
+            Check::Consumed => {
+                self.acknowledge_consumed(qos, pkid);
+                return Ok(());
+            }
+            Check::Refused(rejection) => {
+                self.refuse_publish(qos, pkid, rejection.refusal);
+                return Ok(());
+            }
+        };
 
         // 4. Route, 5. meter. The router gets the full topic, never an alias.
         if qos > 0 {
@@ -680,17 +714,60 @@ impl Session {
             publish.topic = topic.into();
         }
         let retain = publish.retain;
-        origin::mark(
-            &mut properties,
-            &Origin {
-                qos,
-                retain,
-                publisher: self.client_id.clone(),
-            },
-        );
+        let origin = Origin {
+            qos,
+            retain,
+            publisher: self.client_id.clone(),
+        };
         self.ctx.metrics.messages_in.inc();
+        let mut routes = routes.into_iter();
+        if let Some((topic, payload)) = routes.next() {
+            // A typed message: the canonical encoding travels at the publication's QoS and
+            // packet id (the router acknowledges it), the re-encodings as QoS 0 copies
+            // carrying the same origin, so subscribers get them at the same delivery QoS.
+            for (topic, payload) in routes {
+                let copy = crate::broker_publisher::publish_packet(
+                    topic.as_bytes(),
+                    &payload,
+                    0,
+                    retain,
+                    0,
+                );
+                let mut copy_properties = properties.clone();
+                origin::mark(&mut copy_properties, &origin);
+                self.to_router.push(Packet::Publish(copy, copy_properties));
+            }
+            publish.topic = topic.into();
+            publish.payload = payload;
+        }
+        origin::mark(&mut properties, &origin);
         self.to_router.push(Packet::Publish(publish, properties));
         Ok(())
+    }
+
+    /// Acknowledges a publication the broker consumed (a declaration).
+    fn acknowledge_consumed(&mut self, qos: u8, pkid: u16) {
+        match qos {
+            1 => self.io.queue(Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: PubAckReason::Success,
+                },
+                None,
+            )),
+            2 => {
+                self.io.queue(Packet::PubRec(
+                    PubRec {
+                        pkid,
+                        reason: PubRecReason::Success,
+                    },
+                    None,
+                ));
+                // The PUBREL is answered here, like a refused one's: the router never saw it.
+                self.refused_qos2.insert(pkid);
+            }
+            _ => {}
+        }
     }
 
     /// The topic a PUBLISH goes to, following MQTT 5 topic aliases.
@@ -728,32 +805,29 @@ impl Session {
     /// Answers a refused publication. MQTT 5 says "not authorized"; MQTT 3.1.1 has no way
     /// to refuse a PUBLISH, so like Mosquitto it is acknowledged and dropped — otherwise
     /// the device's in-flight window would fill with retries that can never succeed.
-    fn refuse_publish(&mut self, qos: u8, pkid: u16) {
+    fn refuse_publish(&mut self, qos: u8, pkid: u16, refusal: Refusal) {
         let v5 = self.version == Version::V5;
+        let (ack, rec) = match (v5, refusal) {
+            (false, _) => (PubAckReason::Success, PubRecReason::Success),
+            (true, Refusal::NotAuthorized) => {
+                (PubAckReason::NotAuthorized, PubRecReason::NotAuthorized)
+            }
+            (true, Refusal::TopicNameInvalid) => (
+                PubAckReason::TopicNameInvalid,
+                PubRecReason::TopicNameInvalid,
+            ),
+            (true, Refusal::PayloadFormatInvalid) => (
+                PubAckReason::PayloadFormatInvalid,
+                PubRecReason::PayloadFormatInvalid,
+            ),
+        };
         match qos {
-            1 => self.io.queue(Packet::PubAck(
-                PubAck {
-                    pkid,
-                    reason: if v5 {
-                        PubAckReason::NotAuthorized
-                    } else {
-                        PubAckReason::Success
-                    },
-                },
-                None,
-            )),
+            1 => self
+                .io
+                .queue(Packet::PubAck(PubAck { pkid, reason: ack }, None)),
             2 => {
-                self.io.queue(Packet::PubRec(
-                    PubRec {
-                        pkid,
-                        reason: if v5 {
-                            PubRecReason::NotAuthorized
-                        } else {
-                            PubRecReason::Success
-                        },
-                    },
-                    None,
-                ));
+                self.io
+                    .queue(Packet::PubRec(PubRec { pkid, reason: rec }, None));
                 // MQTT 5 clients should not send PUBREL after a refusing PUBREC; some
                 // (paho 2.2) do, so the id is remembered for both versions.
                 self.refused_qos2.insert(pkid);
@@ -804,7 +878,11 @@ impl Session {
             .zip(&refused)
             .filter(|(_, r)| r.is_none())
             .map(|(f, _)| f);
-        self.remember_subscriptions(granted, &[]);
+        let granted: Vec<&Filter> = granted.collect();
+        for filter in &granted {
+            self.ctx.fb.subscribed(&filter.path);
+        }
+        self.remember_subscriptions(granted.into_iter(), &[]);
         if refused.iter().all(Option::is_none) {
             self.to_router
                 .push(Packet::Subscribe(subscribe, properties));
@@ -1040,7 +1118,8 @@ impl Session {
         if may_lower && qos < routed_qos {
             self.io.write.truncate(before);
             let lower_pkid = if qos == 0 { 0 } else { pkid };
-            let lower = crate::wills::publish_packet(&topic, &payload, qos, retain, lower_pkid);
+            let lower =
+                crate::broker_publisher::publish_packet(&topic, &payload, qos, retain, lower_pkid);
             self.io.queue(Packet::Publish(lower, kept_properties));
             if qos == 0 {
                 self.ack_for_client(routed_qos, pkid);
@@ -1178,9 +1257,29 @@ impl Session {
         }
         let will = self.will.take().filter(|_| end.fires_will());
         if let Some(will) = will {
-            self.ctx.wills.fire(&self.client_id, will);
+            // A will on a typed topic is a publication like any other: checked against
+            // the declaration now, and re-encoded like one (the reference line's CONNECT
+            // FB sets a BOOL output to FALSE this way).
+            let topic = String::from_utf8_lossy(&will.topic).into_owned();
+            match self.fb.check(&self.ctx.fb, &topic, &will.payload) {
+                Check::Pass => self.ctx.wills.fire(&self.client_id, self.session, will),
+                Check::Route(routes) => {
+                    for (topic, payload) in routes {
+                        let mut copy = will.clone();
+                        copy.topic = topic.into();
+                        copy.payload = payload;
+                        self.ctx.wills.fire(&self.client_id, self.session, copy);
+                    }
+                }
+                Check::Consumed | Check::Refused(_) => {}
+            }
         }
         self.ctx.sessions.close(&self.client_id, self.session);
+        self.ctx.fb.registry.disconnected(
+            &self.client_id,
+            self.session,
+            end.reason().description(),
+        );
         if let Some(after) = self.lifetime.expires_after {
             let (ctx, client_id, session) =
                 (Arc::clone(&self.ctx), self.client_id.clone(), self.session);

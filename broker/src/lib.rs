@@ -8,7 +8,7 @@
 //!   TCP/TLS ─► listener ─► connection (the packet path) ──LinkTx──► rumqttd router
 //!                          1 authenticate (CONNECT)                      │
 //!                          2 authorize (ACL)                             │
-//!                          3 check (typed FB topics, next issue)         │
+//!                          3 check (typed FB topics, declarations)       │
 //!                          4 route ───────────────────────────────────────┘
 //!                          5 meter (Prometheus)     ◄──LinkRx── deliveries, acks
 //! ```
@@ -21,6 +21,11 @@
 //! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
 //! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
 //!   MQTT 5 will delay), never after a clean DISCONNECT.
+//! - [`fb_topics`] and [`registry`]: typed FB topics checked against each device's
+//!   declared interface (`fb-bridge` crate), and the device registry (online/offline by
+//!   session number, persisted, published retained, served on `/api/v1/devices`).
+//! - [`broker_publisher`]: the one queue through which the broker publishes its own
+//!   messages (wills, registry records, diagnostics).
 //! - [`config`]: the TOML file, its embedded default and the secure-by-default rules.
 //! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
 //! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`.
@@ -30,15 +35,18 @@
 pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
+pub mod broker_publisher;
 pub mod codec;
 pub mod config;
 pub mod connection;
+pub mod fb_topics;
 pub mod frame;
 pub mod framed;
 pub mod listener;
 pub mod logging;
 pub mod metrics;
 pub mod origin;
+pub mod registry;
 pub mod router;
 pub mod server;
 pub mod session_lifetime;

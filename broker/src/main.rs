@@ -9,6 +9,8 @@ use broker::{Broker, Config};
 use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
+mod devices_command;
+
 #[derive(Parser)]
 #[command(
     name = "fbbus",
@@ -33,6 +35,23 @@ enum Command {
     CheckConfig { config: PathBuf },
     /// Manage an argon2id password file, like mosquitto_passwd.
     Passwd(PasswdArgs),
+    /// Show the device registry of a running broker (from its admin endpoint).
+    Devices {
+        /// One device's record instead of the list.
+        id: Option<String>,
+        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+        #[arg(long)]
+        admin: Option<std::net::SocketAddr>,
+        /// Take the admin endpoint from this configuration file.
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Redraw every second until interrupted.
+        #[arg(long)]
+        watch: bool,
+    },
 }
 
 #[derive(Args)]
@@ -78,6 +97,13 @@ fn main() -> std::process::ExitCode {
         Command::Serve { config } => serve(config),
         Command::CheckConfig { config } => check_config(&config),
         Command::Passwd(args) => passwd(args),
+        Command::Devices {
+            id,
+            admin,
+            config,
+            json,
+            watch,
+        } => devices(id, admin, config, json, watch),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -86,6 +112,26 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+fn devices(
+    id: Option<String>,
+    admin: Option<std::net::SocketAddr>,
+    config: Option<PathBuf>,
+    json: bool,
+    watch: bool,
+) -> Result<()> {
+    let admin = match (admin, config) {
+        (Some(a), _) => a,
+        (None, Some(path)) => Config::load(&path)?.admin.bind,
+        (None, None) => Config::embedded_default().admin.bind,
+    };
+    devices_command::run(devices_command::Options {
+        admin,
+        json,
+        watch: watch.then_some(Duration::from_secs(1)),
+        id,
+    })
 }
 
 /// Validates the file and loads everything it names (password file, ACL, TLS files).

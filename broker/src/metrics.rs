@@ -5,8 +5,8 @@
 //! and a metric must never carry a secret. Per-client detail goes to the log, once.
 
 use prometheus::{
-    Encoder, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts, Registry,
-    TextEncoder,
+    Encoder, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, IntGaugeVec, Opts,
+    Registry, TextEncoder,
 };
 
 /// Why a connection ended; the `reason` label of `fbbus_disconnects_total`.
@@ -49,6 +49,22 @@ impl DisconnectReason {
             DisconnectReason::Shutdown => "shutdown",
         }
     }
+
+    /// Words for people: the device registry's `last_will_reason`.
+    pub fn description(self) -> &'static str {
+        match self {
+            DisconnectReason::Client => "clean disconnect",
+            DisconnectReason::ClientWithWill => "disconnect with will",
+            DisconnectReason::Abrupt => "connection lost",
+            DisconnectReason::KeepAlive => "keep-alive expired",
+            DisconnectReason::Takeover => "taken over by a new connection",
+            DisconnectReason::Malformed => "malformed packet",
+            DisconnectReason::Oversized => "packet too large",
+            DisconnectReason::ProtocolError => "protocol error",
+            DisconnectReason::Router => "dropped by the router",
+            DisconnectReason::Shutdown => "broker shutdown",
+        }
+    }
 }
 
 /// Every metric the broker exports.
@@ -73,6 +89,11 @@ pub struct Metrics {
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
     pub reloads: IntCounterVec,
+    pub typed_accepted: IntCounter,
+    pub typed_rejected: IntCounterVec,
+    pub declarations: IntCounterVec,
+    pub registry_devices: IntGaugeVec,
+    pub registry_stale_ends: IntCounter,
 }
 
 impl Metrics {
@@ -111,8 +132,39 @@ impl Metrics {
             .register(Box::new(auth_verify_seconds.clone()))
             .expect("unique metric");
 
+        let registry_devices = IntGaugeVec::new(
+            Opts::new(
+                "fbbus_registry_devices",
+                "Devices in the registry, by status",
+            ),
+            &["status"],
+        )
+        .expect("valid");
+        registry
+            .register(Box::new(registry_devices.clone()))
+            .expect("unique metric");
+
         Metrics {
             connections,
+            typed_accepted: counter(
+                "fbbus_typed_messages_accepted_total",
+                "Publications on typed FB topics that matched their declaration and were routed",
+            ),
+            typed_rejected: counter_vec(
+                "fbbus_typed_messages_rejected_total",
+                "Publications on typed FB topics refused, by device, port (fb.port) and reason",
+                &["device", "port", "reason"],
+            ),
+            declarations: counter_vec(
+                "fbbus_declarations_total",
+                "Interface declarations, by result (accepted, refused)",
+                &["result"],
+            ),
+            registry_devices,
+            registry_stale_ends: counter(
+                "fbbus_registry_stale_ends_total",
+                "Connection ends ignored by the registry because the device is on a newer session",
+            ),
             connects: counter("fbbus_connects_total", "CONNECTs accepted"),
             connects_refused: counter_vec(
                 "fbbus_connects_refused_total",

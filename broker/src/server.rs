@@ -14,13 +14,17 @@ use tokio_rustls::TlsAcceptor;
 
 use crate::admin::{self, AdminState};
 use crate::authenticator::Authenticator;
+use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
 use crate::connection::{Context, ListenerPolicy};
+use crate::fb_topics::FbTopics;
 use crate::listener::Listener;
 use crate::metrics::Metrics;
+use crate::registry::Registry;
 use crate::router::RouterHandle;
+use crate::session_table::SessionTable;
 use crate::watched_file::WatchedFile;
-use crate::wills::{Wills, INTERNAL_CLIENT_ID};
+use crate::wills::Wills;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
@@ -54,6 +58,7 @@ pub struct Broker {
     shutdown: watch::Sender<bool>,
     ready: Arc<AtomicBool>,
     tasks: Vec<JoinHandle<()>>,
+    registry: Arc<Registry>,
 }
 
 impl Broker {
@@ -76,7 +81,26 @@ impl Broker {
         let router = RouterHandle::spawn(&config.broker);
         let internal = tokio::task::block_in_place(|| router.link(INTERNAL_CLIENT_ID, true, 0))
             .map_err(|e| StartError::Router(e.to_string()))?;
-        let wills = Wills::new((internal.0, internal.1), Arc::clone(&metrics));
+        let publisher = BrokerPublisher::start((internal.0, internal.1));
+        let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics));
+        let registry_file = &config.fb.registry_file;
+        let registry = Registry::open(
+            &config.broker.line,
+            (!registry_file.as_os_str().is_empty()).then_some(registry_file.as_path()),
+            Arc::clone(&publisher),
+            Arc::clone(&metrics),
+        )
+        .map_err(|e| StartError::File {
+            kind: "device registry",
+            path: e.path.clone(),
+            message: e.message,
+        })?;
+        // Session numbers continue from the persisted registry, so a device's first
+        // connection after a restart is newer than anything the registry remembers.
+        let sessions = SessionTable::default();
+        for (device, session) in registry.sessions() {
+            sessions.seed(&device, session);
+        }
 
         let (shutdown, shutdown_rx) = watch::channel(false);
         let ctx = Arc::new(Context {
@@ -84,7 +108,13 @@ impl Broker {
             authenticator,
             acl: acl.clone(),
             wills,
-            sessions: Default::default(),
+            fb: FbTopics::new(
+                Arc::clone(&registry),
+                config.fb.undeclared,
+                publisher,
+                Arc::clone(&metrics),
+            ),
+            sessions,
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -134,12 +164,13 @@ impl Broker {
             AdminState {
                 metrics: Arc::clone(&metrics),
                 ready: Arc::clone(&ready),
+                registry: Arc::clone(&registry),
             },
             async move {
                 let _ = admin_shutdown.changed().await;
             },
         )));
-        tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz");
+        tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
 
         tasks.push(tokio::spawn(watch_files(
             passwords,
@@ -157,6 +188,7 @@ impl Broker {
             shutdown,
             ready,
             tasks,
+            registry,
         })
     }
 
@@ -172,6 +204,7 @@ impl Broker {
         for task in self.tasks {
             task.abort();
         }
+        self.registry.flush();
         tracing::info!("broker stopped");
     }
 }

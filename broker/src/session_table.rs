@@ -30,6 +30,13 @@ impl SessionTable {
         entry.0
     }
 
+    /// Continues `client_id`'s numbering after `session` (from the persisted registry).
+    pub fn seed(&self, client_id: &str, session: u64) {
+        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
+        entry.0 = entry.0.max(session);
+    }
+
     /// Whether `session` is still the newest session of `client_id`.
     pub fn is_current(&self, client_id: &str, session: u64) -> bool {
         self.sessions

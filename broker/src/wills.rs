@@ -16,15 +16,16 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use bytes::{BufMut, Bytes, BytesMut};
-use rumqttd::local::{LinkRx, LinkTx};
-use rumqttd::protocol::{LastWill, LastWillProperties, Packet, Publish, PublishProperties};
+use bytes::Bytes;
+use rumqttd::protocol::{LastWill, LastWillProperties, PublishProperties};
 use tokio::task::JoinHandle;
 
+use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::metrics::Metrics;
 
-/// The client id of the broker's own router link; clients may not use it.
-pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
+/// The MQTT 5 user property a will carries with its connection's session number, so a
+/// consumer can tell a late will from an old session (Sparkplug's `bdSeq`).
+pub const SESSION_PROPERTY: &str = "fbbus-session";
 
 /// A will as the connection holds it.
 #[derive(Debug, Clone)]
@@ -60,27 +61,17 @@ impl Will {
     }
 }
 
-/// Publishes wills into the router and keeps the delayed ones until they are due.
+/// Publishes wills and keeps the delayed ones until they are due.
 pub struct Wills {
-    link: tokio::sync::Mutex<(LinkTx, u16)>,
-    delayed: Mutex<HashMap<String, JoinHandle<()>>>,
+    publisher: Arc<BrokerPublisher>,
+    delayed: Mutex<HashMap<String, Vec<JoinHandle<()>>>>,
     metrics: Arc<Metrics>,
 }
 
 impl Wills {
-    /// `link` is the broker's internal router link; its acknowledgements are drained here.
-    pub fn new(link: (LinkTx, LinkRx), metrics: Arc<Metrics>) -> Arc<Wills> {
-        let (tx, mut rx) = link;
-        tokio::spawn(async move {
-            // The router acknowledges QoS 1 wills to this link; nothing waits for them.
-            while let Ok(notification) = rx.next().await {
-                if matches!(notification, Some(rumqttd::Notification::Unschedule)) {
-                    let _ = rx.wake().await;
-                }
-            }
-        });
+    pub fn new(publisher: Arc<BrokerPublisher>, metrics: Arc<Metrics>) -> Arc<Wills> {
         Arc::new(Wills {
-            link: tokio::sync::Mutex::new((tx, 0)),
+            publisher,
             delayed: Mutex::new(HashMap::new()),
             metrics,
         })
@@ -88,23 +79,22 @@ impl Wills {
 
     /// A client with this id connected: a will still waiting for its delay is dropped.
     pub fn cancel_delayed(&self, client_id: &str) {
-        if let Some(task) = self
+        if let Some(tasks) = self
             .delayed
             .lock()
             .expect("lock poisoned")
             .remove(client_id)
         {
-            task.abort();
+            tasks.iter().for_each(JoinHandle::abort);
             tracing::debug!(client_id, "delayed will cancelled by reconnect");
         }
     }
 
-    /// Publishes `will` now, or after its delay unless the client comes back first.
-    pub fn fire(self: &Arc<Self>, client_id: &str, will: Will) {
+    /// Publishes `will` of `client_id`'s session `session` now, or after its delay unless
+    /// the client comes back first.
+    pub fn fire(self: &Arc<Self>, client_id: &str, session: u64, will: Will) {
         if will.delay.is_zero() {
-            let this = Arc::clone(self);
-            let client_id = client_id.to_owned();
-            tokio::spawn(async move { this.publish(&client_id, will).await });
+            self.publish(client_id, session, will);
             return;
         }
         let this = Arc::clone(self);
@@ -112,61 +102,45 @@ impl Wills {
         let task = tokio::spawn(async move {
             tokio::time::sleep(will.delay).await;
             this.delayed.lock().expect("lock poisoned").remove(&id);
-            this.publish(&id, will).await;
+            this.publish(&id, session, will);
         });
-        if let Some(old) = self
-            .delayed
+        // Several when a typed will is published in several encodings.
+        self.delayed
             .lock()
             .expect("lock poisoned")
-            .insert(client_id.to_owned(), task)
-        {
-            old.abort();
-        }
+            .entry(client_id.to_owned())
+            .or_default()
+            .push(task);
     }
 
-    async fn publish(&self, client_id: &str, will: Will) {
-        let mut link = self.link.lock().await;
-        // QoS 2 would need a PUBREL exchange on the internal link; QoS 1 already gives
-        // subscribers at-least-once delivery of the will, which is what a will needs.
-        let qos = will.qos.min(1);
-        link.1 = link.1 % u16::MAX + 1;
-        let publish = publish_packet(&will.topic, &will.payload, qos, will.retain, link.1);
-        let mut properties = will.properties.map(|p| PublishProperties {
-            payload_format_indicator: p.payload_format_indicator,
-            message_expiry_interval: p.message_expiry_interval,
-            topic_alias: None,
-            response_topic: p.response_topic,
-            correlation_data: p.correlation_data,
-            user_properties: p.user_properties,
-            subscription_identifiers: Vec::new(),
-            content_type: p.content_type,
+    fn publish(&self, client_id: &str, session: u64, will: Will) {
+        let mut properties = will
+            .properties
+            .map(|p| PublishProperties {
+                payload_format_indicator: p.payload_format_indicator,
+                message_expiry_interval: p.message_expiry_interval,
+                topic_alias: None,
+                response_topic: p.response_topic,
+                correlation_data: p.correlation_data,
+                user_properties: p.user_properties,
+                subscription_identifiers: Vec::new(),
+                content_type: p.content_type,
+            })
+            .unwrap_or_default();
+        properties
+            .user_properties
+            .push((SESSION_PROPERTY.to_owned(), session.to_string()));
+        tracing::info!(client_id, session, topic = %String::from_utf8_lossy(&will.topic), "will published");
+        self.metrics.wills_published.inc();
+        self.publisher.publish(Message {
+            topic: will.topic,
+            payload: will.payload,
+            // QoS 2 would need a PUBREL exchange on the internal link; QoS 1 already gives
+            // subscribers at-least-once delivery of the will, which is what a will needs.
+            qos: will.qos.min(1),
+            retain: will.retain,
+            properties: Some(properties),
+            publisher: client_id.to_owned(),
         });
-        crate::origin::mark(
-            &mut properties,
-            &crate::origin::Origin {
-                qos,
-                retain: will.retain,
-                publisher: client_id.to_owned(),
-            },
-        );
-        match link.0.send(Packet::Publish(publish, properties)).await {
-            Ok(_) => {
-                self.metrics.wills_published.inc();
-                tracing::info!(client_id, topic = %String::from_utf8_lossy(&will.topic), "will published");
-            }
-            Err(e) => tracing::error!(client_id, error = %e, "could not publish will: router gone"),
-        }
     }
-}
-
-/// Builds a `Publish` with a QoS and packet id. rumqttd keeps those fields crate-private;
-/// its public, stable serialisation format is the way to set them.
-pub fn publish_packet(topic: &[u8], payload: &[u8], qos: u8, retain: bool, pkid: u16) -> Publish {
-    let mut raw = BytesMut::with_capacity(5 + topic.len() + payload.len());
-    raw.put_u8(0b0011_0000 | (qos << 1) | retain as u8);
-    raw.put_u16(pkid);
-    raw.put_u16(topic.len() as u16);
-    raw.extend_from_slice(topic);
-    raw.extend_from_slice(payload);
-    Publish::deserialize(raw.freeze())
 }

@@ -12,8 +12,8 @@ use rumqttc::v5::mqttbytes::QoS as QoS5;
 
 /// A line: devices publish under their own namespace and read all FB topics.
 const ACL: &str = "\
-pattern write fb/%c/#
-pattern read fb/#
+pattern write plant/%c/#
+pattern read plant/#
 user monitor
 topic read #
 ";
@@ -56,7 +56,7 @@ async fn v311_subscribe_and_publish_are_authorized() {
         [rumqttc::SubscribeReasonCode::Failure]
     );
     assert_eq!(
-        dev1.subscribe("fb/#").await,
+        dev1.subscribe("plant/#").await,
         [rumqttc::SubscribeReasonCode::Success(
             rumqttc::QoS::AtLeastOnce
         )]
@@ -64,11 +64,11 @@ async fn v311_subscribe_and_publish_are_authorized() {
 
     // Foreign namespace: acknowledged (3.1.1 cannot refuse) but never routed.
     dev1.client
-        .publish("fb/dev2/x", rumqttc::QoS::AtLeastOnce, false, "forged")
+        .publish("plant/dev2/x", rumqttc::QoS::AtLeastOnce, false, "forged")
         .await
         .unwrap();
     dev1.client
-        .publish("fb/dev1/x", rumqttc::QoS::AtLeastOnce, false, "own")
+        .publish("plant/dev1/x", rumqttc::QoS::AtLeastOnce, false, "own")
         .await
         .unwrap();
     let got = monitor
@@ -77,7 +77,7 @@ async fn v311_subscribe_and_publish_are_authorized() {
         .expect("the allowed message");
     assert_eq!(
         (got.topic.as_str(), &got.payload[..]),
-        ("fb/dev1/x", &b"own"[..])
+        ("plant/dev1/x", &b"own"[..])
     );
     assert!(monitor
         .next_publish(Duration::from_millis(500))
@@ -111,7 +111,7 @@ async fn v5_refusals_carry_not_authorized_reason_codes() {
     let mut monitor = V5::connect(port, "monitor", Some(("monitor", "pw")))
         .await
         .unwrap();
-    monitor.subscribe("fb/#").await;
+    monitor.subscribe("plant/#").await;
 
     // rumqttc ends its v5 connection on a refusal and reports the reason code.
     let dev1 = V5::connect(port, "dev1", Some(("dev1", "pw")))
@@ -129,7 +129,7 @@ async fn v5_refusals_carry_not_authorized_reason_codes() {
         .await
         .unwrap();
     dev1.client
-        .publish("fb/dev2/x", QoS5::AtLeastOnce, false, "forged")
+        .publish("plant/dev2/x", QoS5::AtLeastOnce, false, "forged")
         .await
         .unwrap();
     let e = dev1.error(WAIT).await.expect("PUBACK refusal");
@@ -142,7 +142,7 @@ async fn v5_refusals_carry_not_authorized_reason_codes() {
         .await
         .unwrap();
     dev1.client
-        .publish("fb/dev2/y", QoS5::ExactlyOnce, false, "forged")
+        .publish("plant/dev2/y", QoS5::ExactlyOnce, false, "forged")
         .await
         .unwrap();
     let e = dev1.error(WAIT).await.expect("PUBREC refusal");
@@ -159,7 +159,7 @@ async fn v5_refusals_carry_not_authorized_reason_codes() {
         .await
         .unwrap();
     dev1.client
-        .publish("fb/dev1/ok", QoS5::AtLeastOnce, false, "own")
+        .publish("plant/dev1/ok", QoS5::AtLeastOnce, false, "own")
         .await
         .unwrap();
     assert_eq!(
@@ -175,7 +175,13 @@ async fn v5_refusals_carry_not_authorized_reason_codes() {
 #[test]
 fn one_subscribe_with_allowed_and_denied_filters_gets_a_code_per_filter() {
     let broker = line_broker();
-    let filters = ["fb/dev2/#", "secret/a", "fb/+/x", "$SYS/#", "bad/#/filter"];
+    let filters = [
+        "plant/dev2/#",
+        "secret/a",
+        "plant/+/x",
+        "$SYS/#",
+        "bad/#/filter",
+    ];
     for (version, expected) in [
         (4u8, vec![0x00, 0x80, 0x00, 0x80, 0x80]),
         (5u8, vec![0x00, 0x87, 0x00, 0x87, 0x8F]),

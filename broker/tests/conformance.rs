@@ -13,7 +13,7 @@ use common::Broker;
 async fn client_topic_aliases_are_resolved_before_routing() {
     let broker = Broker::start();
     let mut sub = V4::connect(broker.port(), "sub", None).await.unwrap();
-    sub.subscribe("fb/plc-1/#").await;
+    sub.subscribe("plant/plc-1/#").await;
     let mut c = RawClient::connect(broker.port());
     assert_eq!(
         c.handshake(&raw::Connect {
@@ -23,13 +23,19 @@ async fn client_topic_aliases_are_resolved_before_routing() {
         }),
         0
     );
-    c.send(&raw::publish_v5("fb/plc-1/speed", Some(7), 0, 0, b"first"));
+    c.send(&raw::publish_v5(
+        "plant/plc-1/speed",
+        Some(7),
+        0,
+        0,
+        b"first",
+    ));
     c.send(&raw::publish_v5("", Some(7), 1, 1, b"second"));
     for expected in ["first", "second"] {
         let m = sub.next_publish(WAIT).await.expect("delivery");
         assert_eq!(
             (m.topic.as_str(), &m.payload[..]),
-            ("fb/plc-1/speed", expected.as_bytes())
+            ("plant/plc-1/speed", expected.as_bytes())
         );
     }
     // An alias never set is a protocol error (DISCONNECT 0x94).

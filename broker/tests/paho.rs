@@ -105,11 +105,11 @@ fn auth_broker(acl: Option<&str>) -> Broker {
     )
 }
 
-/// dev1 may publish only under fb/dev1/ and read all of fb/.
+/// dev1 may publish only under plant/dev1/ and read all of plant/.
 const DEV1_ACL: &str = "\
 user dev1
-topic write fb/dev1/#
-topic read fb/#
+topic write plant/dev1/#
+topic read plant/#
 ";
 
 // ---------------------------------------------------------------- pubsub
@@ -238,7 +238,7 @@ fn acl(protocol: &str) {
         protocol,
         &["--user", "dev1", "--password", "pw1"],
     );
-    // The QoS 1 and QoS 0 publications to fb/dev2/.
+    // The QoS 1 and QoS 0 publications to plant/dev2/.
     assert_metric_at_least(&broker, r#"fbbus_acl_denied_total{action="publish"}"#, 2.0);
     // secret/# and secret/a.
     assert_metric_at_least(
@@ -246,7 +246,7 @@ fn acl(protocol: &str) {
         r#"fbbus_acl_denied_total{action="subscribe"}"#,
         2.0,
     );
-    // Only fb/dev1/x and fb/dev1/after were routed.
+    // Only plant/dev1/x and plant/dev1/after were routed.
     assert_eq!(broker.metric("fbbus_messages_received_total"), 2.0);
 }
 

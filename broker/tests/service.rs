@@ -378,7 +378,7 @@ fn deploy_example_config_passes_check_config() {
     assert!(out.contains(": ok"), "{out}");
 
     // check-config parses the named files: a broken ACL fails it.
-    std::fs::write(d.join("acl"), "topic sometimes fb/#\n").unwrap();
+    std::fs::write(d.join("acl"), "topic sometimes plant/#\n").unwrap();
     let (ok, _, err) = common::run(
         Command::new(common::fbbus_bin()).args(["check-config", config.to_str().unwrap()]),
         Duration::from_secs(10),

@@ -516,7 +516,7 @@ fn will_topic_outside_acl_refuses_connect() {
         },
         |dir| {
             common::add_user(&dir.join("passwd"), "dev1", "pw");
-            std::fs::write(dir.join("acl"), "user dev1\ntopic write fb/dev1/#\n").unwrap();
+            std::fs::write(dir.join("acl"), "user dev1\ntopic write plant/dev1/#\n").unwrap();
         },
     );
     let denied = "fbbus_acl_denied_total{action=\"will\"}";
@@ -526,7 +526,7 @@ fn will_topic_outside_acl_refuses_connect() {
     let code = client.handshake(&raw::Connect {
         client_id: "dev1-a",
         login: Some(("dev1", "pw")),
-        will: Some(("fb/dev2/x", b"forged")),
+        will: Some(("plant/dev2/x", b"forged")),
         ..Default::default()
     });
     assert_eq!(code, 5, "will outside the ACL; log: {}", broker.log_text());
@@ -539,7 +539,7 @@ fn will_topic_outside_acl_refuses_connect() {
         version: 5,
         client_id: "dev1-b",
         login: Some(("dev1", "pw")),
-        will: Some(("fb/dev2/x", b"forged")),
+        will: Some(("plant/dev2/x", b"forged")),
         ..Default::default()
     });
     assert_eq!(
@@ -558,7 +558,7 @@ fn will_topic_outside_acl_refuses_connect() {
             version,
             client_id: if version == 4 { "dev1-c" } else { "dev1-d" },
             login: Some(("dev1", "pw")),
-            will: Some(("fb/dev1/status", b"offline")),
+            will: Some(("plant/dev1/status", b"offline")),
             ..Default::default()
         });
         assert_eq!(

@@ -374,7 +374,7 @@ def scenario_bad_password(args, seen):
 
 
 def scenario_acl(args, seen):
-    """User dev1 may write fb/dev1/# and read fb/#; nothing else."""
+    """User dev1 may write plant/dev1/# and read plant/#; nothing else."""
     check(args.user is not None and args.password is not None, "acl needs --user and --password")
     c = Client(args, f"{args.user}-paho-{args.protocol}", args.user, args.password)
     mixed = Client(args, f"{args.user}-mixed-{args.protocol}", args.user, args.password)
@@ -386,44 +386,44 @@ def scenario_acl(args, seen):
         seen["suback_secret"] = codes
         check(codes == [refused], f"SUBACK for secret/# was {codes}, expected [{refused}]")
 
-        codes = c.subscribe([("fb/#", 1)])
+        codes = c.subscribe([("plant/#", 1)])
         seen["suback_fb"] = codes
-        check(codes == [1], f"SUBACK for fb/# was {codes}, expected [1] (granted QoS 1)")
+        check(codes == [1], f"SUBACK for plant/# was {codes}, expected [1] (granted QoS 1)")
 
         # One SUBACK with one code per filter, in order, when only some filters are allowed.
         seen["mixed_connack"] = mixed.connect()
-        codes = mixed.subscribe([("secret/a", 1), ("fb/dev1/#", 0), ("fb/+/y", 1)])
+        codes = mixed.subscribe([("secret/a", 1), ("plant/dev1/#", 0), ("plant/+/y", 1)])
         seen["suback_mixed"] = codes
-        check(codes == [refused, 0, 1], f"SUBACK for [secret/a, fb/dev1/#, fb/+/y] was {codes}, expected [{refused}, 0, 1]")
+        check(codes == [refused, 0, 1], f"SUBACK for [secret/a, plant/dev1/#, plant/+/y] was {codes}, expected [{refused}, 0, 1]")
         mixed.disconnect()
 
         # Foreign topic, QoS 1: refused (5: PUBACK 0x87; 3.1.1: acknowledged, dropped).
-        mid = c.publish("fb/dev2/x", b"foreign-q1", 1)
+        mid = c.publish("plant/dev2/x", b"foreign-q1", 1)
         seen["puback_foreign"] = rc = c.acked(mid)
         expected = 0x87 if c.v5 else 0
-        check(rc == expected, f"PUBACK for fb/dev2/x was {rc}, expected {expected}")
+        check(rc == expected, f"PUBACK for plant/dev2/x was {rc}, expected {expected}")
 
         # Foreign topic, QoS 0: silently dropped.
-        c.publish("fb/dev2/z", b"foreign-q0", 0)
+        c.publish("plant/dev2/z", b"foreign-q0", 0)
 
         # Own topic: delivered.
-        mid = c.publish("fb/dev1/x", b"own", 1)
+        mid = c.publish("plant/dev1/x", b"own", 1)
         seen["puback_own"] = rc = c.acked(mid)
-        check(rc == 0, f"PUBACK for fb/dev1/x was {rc}, expected 0")
+        check(rc == 0, f"PUBACK for plant/dev1/x was {rc}, expected 0")
 
         got = c.drain(1.5)
         seen["received"] = [message_summary(m) for m in got]
-        foreign = [m for m in got if m["topic"].startswith("fb/dev2/")]
+        foreign = [m for m in got if m["topic"].startswith("plant/dev2/")]
         check(not foreign, f"refused publications were delivered: {[message_summary(m) for m in foreign]}")
-        own = [m for m in got if m["topic"] == "fb/dev1/x"]
-        check(len(own) == 1 and own[0]["payload"] == b"own", f"fb/dev1/x delivered {len(own)} times, expected once")
+        own = [m for m in got if m["topic"] == "plant/dev1/x"]
+        check(len(own) == 1 and own[0]["payload"] == b"own", f"plant/dev1/x delivered {len(own)} times, expected once")
 
         # The connection is still usable after the refusals.
-        mid = c.publish("fb/dev1/after", b"after", 1)
+        mid = c.publish("plant/dev1/after", b"after", 1)
         check(c.acked(mid) == 0, "publication after the refusals not acknowledged")
         m = c.next_message()
         seen["after"] = message_summary(m) if m else None
-        check(m is not None and m["topic"] == "fb/dev1/after", f"fb/dev1/after not delivered: {seen['after']}")
+        check(m is not None and m["topic"] == "plant/dev1/after", f"plant/dev1/after not delivered: {seen['after']}")
         c.disconnect()
     finally:
         c.stop()
@@ -443,11 +443,11 @@ def scenario_acl_qos2(args, seen):
     c = Client(args, f"{args.user}-q2-{args.protocol}", args.user, args.password)
     try:
         seen["connack"] = c.connect()
-        codes = c.subscribe([("fb/#", 2)])
+        codes = c.subscribe([("plant/#", 2)])
         seen["suback_fb"] = codes
-        check(codes == [2], f"SUBACK for fb/# at QoS 2 was {codes}, expected [2]")
+        check(codes == [2], f"SUBACK for plant/# at QoS 2 was {codes}, expected [2]")
 
-        mid = c.publish("fb/dev2/y", b"foreign-q2", 2)
+        mid = c.publish("plant/dev2/y", b"foreign-q2", 2)
         try:
             seen["pubcomp_foreign"] = rc = c.acked(mid)
         finally:
@@ -463,17 +463,17 @@ def scenario_acl_qos2(args, seen):
             check(seen["pubrec_foreign"] in (None, 0x87), f"PUBREC reason {seen['pubrec_foreign']}, expected 135 (0x87)")
             check(rc in (0, 0x92), f"PUBCOMP reason {rc}, expected 0 or 146 (0x92)")
         else:
-            check(rc == 0, f"QoS 2 publication to fb/dev2/y completed with {rc}, expected 0")
+            check(rc == 0, f"QoS 2 publication to plant/dev2/y completed with {rc}, expected 0")
 
-        mid = c.publish("fb/dev1/y", b"own-q2", 2)
+        mid = c.publish("plant/dev1/y", b"own-q2", 2)
         seen["pubcomp_own"] = rc = c.acked(mid)
         seen["pubrec_own"] = c.pubrecs.get(mid)
         check(rc == 0, f"own QoS 2 publication completed with {rc}, expected 0")
 
         got = c.drain(1.5)
         seen["received"] = [message_summary(m) for m in got]
-        check([(m["topic"], m["payload"], m["qos"]) for m in got] == [("fb/dev1/y", b"own-q2", 2)],
-              f"expected exactly fb/dev1/y at QoS 2, got {seen['received']}")
+        check([(m["topic"], m["payload"], m["qos"]) for m in got] == [("plant/dev1/y", b"own-q2", 2)],
+              f"expected exactly plant/dev1/y at QoS 2, got {seen['received']}")
         c.disconnect()
     finally:
         c.stop()

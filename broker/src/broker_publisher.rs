@@ -1,0 +1,109 @@
+//! The broker's own publications: wills, registry records, diagnostics.
+//!
+//! Everything fbbus publishes itself goes through one internal router link
+//! (`fbbus:internal`), fed by one task from a queue. One queue keeps the broker's messages
+//! in the order they were decided — a device's retained registry record must never be
+//! overwritten by an older one — and lets any code publish without awaiting the router.
+
+use std::sync::Arc;
+
+use bytes::{BufMut, Bytes, BytesMut};
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{Packet, Publish, PublishProperties};
+use tokio::sync::mpsc;
+
+use crate::origin::{self, Origin};
+
+/// The client id of the broker's own router link; clients may not use it.
+pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
+
+/// One message the broker publishes.
+#[derive(Debug)]
+pub struct Message {
+    pub topic: Bytes,
+    pub payload: Bytes,
+    /// 0 or 1: QoS 2 would need a PUBREL exchange on the internal link for no gain.
+    pub qos: u8,
+    pub retain: bool,
+    pub properties: Option<PublishProperties>,
+    /// The client the message is published for (a will's owner), or the broker itself.
+    pub publisher: String,
+}
+
+impl Message {
+    /// A message from the broker itself, at QoS 1.
+    pub fn broker(topic: impl Into<Bytes>, payload: impl Into<Bytes>, retain: bool) -> Message {
+        Message {
+            topic: topic.into(),
+            payload: payload.into(),
+            qos: 1,
+            retain,
+            properties: None,
+            publisher: INTERNAL_CLIENT_ID.to_owned(),
+        }
+    }
+}
+
+/// Hands messages to the internal link's task.
+#[derive(Clone)]
+pub struct BrokerPublisher {
+    queue: mpsc::UnboundedSender<Message>,
+}
+
+impl BrokerPublisher {
+    /// Starts the task that owns the internal link `(tx, rx)`.
+    pub fn start(link: (LinkTx, LinkRx)) -> Arc<BrokerPublisher> {
+        let (mut tx, mut rx) = link;
+        let (queue, mut messages) = mpsc::unbounded_channel::<Message>();
+        tokio::spawn(async move {
+            // The router acknowledges QoS 1 messages to this link; nothing waits for them.
+            while let Ok(notification) = rx.next().await {
+                if matches!(notification, Some(rumqttd::Notification::Unschedule)) {
+                    let _ = rx.wake().await;
+                }
+            }
+        });
+        tokio::spawn(async move {
+            let mut pkid: u16 = 0;
+            while let Some(message) = messages.recv().await {
+                pkid = pkid % u16::MAX + 1;
+                let topic = String::from_utf8_lossy(&message.topic).into_owned();
+                let qos = message.qos.min(1);
+                let publish =
+                    publish_packet(&message.topic, &message.payload, qos, message.retain, pkid);
+                let mut properties = message.properties;
+                origin::mark(
+                    &mut properties,
+                    &Origin {
+                        qos,
+                        retain: message.retain,
+                        publisher: message.publisher,
+                    },
+                );
+                if let Err(e) = tx.send(Packet::Publish(publish, properties)).await {
+                    tracing::error!(topic, error = %e, "router gone: broker message not published");
+                    return;
+                }
+            }
+        });
+        Arc::new(BrokerPublisher { queue })
+    }
+
+    /// Queues `message`; it is published after every message queued before it.
+    pub fn publish(&self, message: Message) {
+        // Fails only once the task ended with the router, when nothing can be published.
+        let _ = self.queue.send(message);
+    }
+}
+
+/// Builds a `Publish` with a QoS and packet id. rumqttd keeps those fields crate-private;
+/// its public, stable serialisation format is the way to set them.
+pub fn publish_packet(topic: &[u8], payload: &[u8], qos: u8, retain: bool, pkid: u16) -> Publish {
+    let mut raw = BytesMut::with_capacity(5 + topic.len() + payload.len());
+    raw.put_u8(0b0011_0000 | (qos << 1) | retain as u8);
+    raw.put_u16(pkid);
+    raw.put_u16(topic.len() as u16);
+    raw.extend_from_slice(topic);
+    raw.extend_from_slice(payload);
+    Publish::deserialize(raw.freeze())
+}

@@ -1,0 +1,160 @@
+//! `fbbus devices`: the device registry in a terminal, read from the admin endpoint.
+//!
+//! The admin endpoint is plain HTTP on loopback and fbbus's own, so a dozen lines of
+//! HTTP/1.1 here replace an HTTP client crate and its TLS stack.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::Duration;
+
+use anyhow::{bail, Context as _, Result};
+use serde_json::Value;
+
+pub struct Options {
+    pub admin: SocketAddr,
+    pub json: bool,
+    pub watch: Option<Duration>,
+    pub id: Option<String>,
+}
+
+pub fn run(options: Options) -> Result<()> {
+    loop {
+        let path = match &options.id {
+            Some(id) => format!("/api/v1/devices/{id}"),
+            None => "/api/v1/devices".to_owned(),
+        };
+        let body = get(options.admin, &path)?;
+        let out = if options.json {
+            format!("{}\n", serde_json::to_string_pretty(&body)?)
+        } else {
+            table(&body)
+        };
+        match options.watch {
+            None => {
+                print!("{out}");
+                return Ok(());
+            }
+            Some(interval) => {
+                // Clear the screen, then redraw: `watch`-style.
+                print!("\x1b[2J\x1b[H{out}");
+                std::io::stdout().flush()?;
+                std::thread::sleep(interval);
+            }
+        }
+    }
+}
+
+/// The registry as an aligned table.
+fn table(body: &Value) -> String {
+    let devices: Vec<&Value> = match body.get("devices").and_then(Value::as_array) {
+        Some(list) => list.iter().collect(),
+        None => vec![body],
+    };
+    let header = [
+        "ID",
+        "LINE",
+        "STATUS",
+        "SESSION",
+        "SINCE",
+        "FBS",
+        "LAST WILL REASON",
+    ];
+    let mut rows: Vec<[String; 7]> = vec![header.map(str::to_owned)];
+    for d in &devices {
+        let text = |key: &str| match d.get(key) {
+            Some(Value::String(s)) => s.clone(),
+            Some(Value::Null) | None => "-".into(),
+            Some(v) => v.to_string(),
+        };
+        let fbs = d
+            .pointer("/interface/fbs")
+            .and_then(Value::as_object)
+            .map_or(0, |m| m.len());
+        rows.push([
+            text("id"),
+            text("line"),
+            text("status"),
+            text("session"),
+            text("since"),
+            fbs.to_string(),
+            text("last_will_reason"),
+        ]);
+    }
+    let widths: Vec<usize> = (0..7)
+        .map(|c| rows.iter().map(|r| r[c].chars().count()).max().unwrap_or(0))
+        .collect();
+    let mut out = String::new();
+    for row in &rows {
+        let line: Vec<String> = row
+            .iter()
+            .zip(&widths)
+            .map(|(cell, w)| format!("{cell:<w$}"))
+            .collect();
+        out.push_str(line.join("  ").trim_end());
+        out.push('\n');
+    }
+    let online = devices
+        .iter()
+        .filter(|d| d.get("status").and_then(Value::as_str) == Some("online"))
+        .count();
+    out.push_str(&format!("{} devices, {online} online\n", devices.len()));
+    out
+}
+
+/// GETs `path` from the admin endpoint and parses the JSON body.
+fn get(admin: SocketAddr, path: &str) -> Result<Value> {
+    let mut stream = TcpStream::connect_timeout(&admin, Duration::from_secs(3)).with_context(
+        || format!("cannot reach the broker's admin endpoint at {admin} (is fbbus running? use --admin or --config)"),
+    )?;
+    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {admin}\r\nAccept: application/json\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response)?;
+    let split = response
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .context("the admin endpoint sent no HTTP response")?;
+    let head = String::from_utf8_lossy(&response[..split]);
+    let body = &response[split + 4..];
+    let status = head.split_whitespace().nth(1).unwrap_or("");
+    if head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        bail!("the admin endpoint sent a chunked response, which this command does not read");
+    }
+    let json: Value =
+        serde_json::from_slice(body).context("the admin endpoint sent invalid JSON")?;
+    match status {
+        "200" => Ok(json),
+        _ => bail!(
+            "{}",
+            json.get("error")
+                .and_then(Value::as_str)
+                .unwrap_or("request failed")
+        ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_table_has_a_row_per_device_and_a_summary() {
+        let body = serde_json::json!({"line": "line-1", "devices": [
+            {"id": "conv-a", "line": "line-1", "status": "online", "session": 3, "since": "2026-11-22T08:00:00.000Z", "last_will_reason": null, "interface": {"fbs": {"CONV": {}}}},
+            {"id": "conv-b", "line": "line-1", "status": "offline", "session": 1, "since": "2026-11-22T08:01:00.000Z", "last_will_reason": "keep-alive expired", "interface": {"fbs": {}}},
+        ]});
+        let t = table(&body);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 4, "{t}");
+        assert!(lines[0].starts_with("ID"));
+        assert!(lines[1].contains("conv-a") && lines[1].contains("online"));
+        assert!(lines[2].contains("keep-alive expired"));
+        assert_eq!(lines[3], "2 devices, 1 online");
+    }
+}

@@ -1,0 +1,438 @@
+//! Step 3 of the packet path: typed FB topics, checked before anything is routed.
+//!
+//! A publication is one of:
+//!
+//! - **not fbbus's** (any topic outside `fb/`, `dinasore/`, `fbdk/`, `fbbus/`): routed as is;
+//! - **a declaration** on `fbbus/declare/<own id>`: validated, stored in the registry,
+//!   answered on `fbbus/diag/<id>`, never routed;
+//! - **typed**, on `<encoding>/<device>/<fb>/<port>`: only the device itself may publish
+//!   there, the port must be a declared output, and the payload must decode to values of
+//!   the declared types. Accepted messages are routed canonically on `fb/...` and, once
+//!   anyone has subscribed to them, re-encoded on `dinasore/...` and `fbdk/...`, so a
+//!   FORTE device and a DINASORE device read each other without knowing each other's
+//!   format. Refused ones are never routed: see [`Rejection`].
+//!
+//! In lenient mode (`[fb] undeclared = "pass"`, for migrating untyped lines) typed-namespace
+//! topics nobody declared pass through unchecked; declared ports are still checked, so an
+//! ill-typed message is never delivered in either mode.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::SystemTime;
+
+use bytes::Bytes;
+use fb_bridge::codec::{self, Encoding};
+use fb_bridge::topic::{self, TypedTopic};
+use fb_bridge::{Declaration, Interface, Message};
+use serde::Deserialize;
+use serde_json::json;
+
+use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
+use crate::metrics::Metrics;
+use crate::registry::Registry;
+
+/// What to do with typed-namespace topics no device declared.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Undeclared {
+    /// Refuse them (MQTT 5: 0x90 topic name invalid).
+    #[default]
+    Reject,
+    /// Route them unchecked.
+    Pass,
+}
+
+/// Why a publication was refused; each maps to one MQTT 5 PUBACK/PUBREC reason code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Refusal {
+    /// 0x87: another device's topic, or the broker's own namespace.
+    NotAuthorized,
+    /// 0x90: no such declared port, or not a typed topic shape.
+    TopicNameInvalid,
+    /// 0x99: the payload does not decode to the declared types.
+    PayloadFormatInvalid,
+}
+
+impl Refusal {
+    pub fn label(self) -> &'static str {
+        match self {
+            Refusal::NotAuthorized => "not_authorized",
+            Refusal::TopicNameInvalid => "topic_name_invalid",
+            Refusal::PayloadFormatInvalid => "payload_format_invalid",
+        }
+    }
+
+    pub fn code(self) -> u8 {
+        match self {
+            Refusal::NotAuthorized => 0x87,
+            Refusal::TopicNameInvalid => 0x90,
+            Refusal::PayloadFormatInvalid => 0x99,
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct Rejection {
+    pub refusal: Refusal,
+    pub detail: String,
+}
+
+/// The outcome of the check.
+#[derive(Debug)]
+pub enum Check {
+    /// Not a topic fbbus gives meaning to: route it unchanged.
+    Pass,
+    /// Route these (topic, payload) pairs: the first at the publication's QoS and packet
+    /// id, the others (re-encodings) as copies of it.
+    Route(Vec<(String, Bytes)>),
+    /// Handled by the broker (a declaration): acknowledge, do not route.
+    Consumed,
+    Refused(Rejection),
+}
+
+/// Shared by all connections.
+pub struct FbTopics {
+    pub registry: Arc<Registry>,
+    pub undeclared: Undeclared,
+    publisher: Arc<BrokerPublisher>,
+    metrics: Arc<Metrics>,
+    /// Per encoding: someone subscribed to a filter that can match its namespace, so
+    /// publications are re-encoded into it. Set once, never cleared.
+    mirrors: [AtomicBool; 3],
+}
+
+impl FbTopics {
+    pub fn new(
+        registry: Arc<Registry>,
+        undeclared: Undeclared,
+        publisher: Arc<BrokerPublisher>,
+        metrics: Arc<Metrics>,
+    ) -> FbTopics {
+        FbTopics {
+            registry,
+            undeclared,
+            publisher,
+            metrics,
+            mirrors: Default::default(),
+        }
+    }
+
+    /// A subscription was granted: start re-encoding into the namespaces it can match.
+    pub fn subscribed(&self, filter: &str) {
+        let filter = match filter.strip_prefix("$share/") {
+            Some(rest) => rest.split_once('/').map_or("", |(_, f)| f),
+            None => filter,
+        };
+        let first = filter.split('/').next().unwrap_or("");
+        for (i, encoding) in Encoding::ALL.into_iter().enumerate() {
+            let matches = first == encoding.namespace() || matches!(first, "#" | "+");
+            if matches
+                && !self.mirrors[i].swap(true, Ordering::Relaxed)
+                && encoding != Encoding::Json
+            {
+                tracing::info!(
+                    namespace = encoding.namespace(),
+                    "first subscriber: typed messages are now also published in this encoding"
+                );
+            }
+        }
+    }
+
+    fn mirrored(&self, encoding: Encoding) -> bool {
+        encoding == Encoding::Json
+            || self.mirrors[Encoding::ALL
+                .iter()
+                .position(|e| *e == encoding)
+                .unwrap_or(0)]
+            .load(Ordering::Relaxed)
+    }
+}
+
+/// Diagnostics one connection may publish per second, beyond a burst of [`DIAG_BURST`]:
+/// a device looping on a bad message gets its explanation, not a flood.
+const DIAG_PER_SECOND: f64 = 5.0;
+const DIAG_BURST: f64 = 20.0;
+
+/// One connection's typed-topic state.
+pub struct FbSession {
+    device: String,
+    username: Option<String>,
+    session: u64,
+    /// The device's declared interface, once it has one.
+    interface: Option<Arc<Interface>>,
+    /// Event sequence numbers stamped for publishers that send none, per (fb, port).
+    seq: HashMap<(String, String), u64>,
+    logged: HashSet<(String, Refusal)>,
+    diag_budget: f64,
+    diag_refill: std::time::Instant,
+}
+
+impl FbSession {
+    pub fn new(
+        device: &str,
+        username: Option<&str>,
+        session: u64,
+        interface: Option<Arc<Interface>>,
+    ) -> FbSession {
+        FbSession {
+            device: device.to_owned(),
+            username: username.map(str::to_owned),
+            session,
+            interface,
+            seq: HashMap::new(),
+            logged: HashSet::new(),
+            diag_budget: DIAG_BURST,
+            diag_refill: std::time::Instant::now(),
+        }
+    }
+
+    /// The interface the registry had for this device when it connected.
+    pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
+        self.interface = interface;
+    }
+
+    /// Whether this connection speaks for the device its client id names. Client ids are
+    /// chosen by clients; on a listener with passwords, the username is what was verified,
+    /// so a device is only itself when both are the same. On an anonymous (loopback)
+    /// listener the client id is all there is.
+    pub fn identity_verified(&self) -> bool {
+        self.username.as_deref().is_none_or(|u| u == self.device)
+    }
+
+    /// Checks one publication (ACL already passed) and says what to route.
+    pub fn check(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
+        let check = self.decide(fb, topic, payload);
+        if let Check::Refused(rejection) = &check {
+            self.rejected(fb, topic, rejection);
+        }
+        check
+    }
+
+    fn decide(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
+        if let Some(rest) = topic.strip_prefix(topic::BROKER_NAMESPACE) {
+            if rest.strip_prefix("declare/") == Some(self.device.as_str()) {
+                return self.declare(fb, payload);
+            }
+            return refuse(
+                Refusal::NotAuthorized,
+                "fbbus/ topics are published by the broker, except fbbus/declare/<your client id>",
+            );
+        }
+        let Some(typed) = TypedTopic::parse(topic) else {
+            if topic::is_typed_namespace(topic) && fb.undeclared == Undeclared::Reject {
+                return refuse(
+                    Refusal::TopicNameInvalid,
+                    "typed topics have four levels: <fb|dinasore|fbdk>/<device>/<fb>/<port>",
+                );
+            }
+            return Check::Pass;
+        };
+        if typed.device != self.device || !self.identity_verified() {
+            return refuse(
+                Refusal::NotAuthorized,
+                format!(
+                    "only device {} publishes under {}/{}/",
+                    typed.device,
+                    typed.encoding.namespace(),
+                    typed.device
+                ),
+            );
+        }
+        let Some(interface) = self.interface.clone() else {
+            return match fb.undeclared {
+                Undeclared::Pass => Check::Pass,
+                Undeclared::Reject => refuse(
+                    Refusal::TopicNameInvalid,
+                    format!(
+                        "device {} has not declared its interface (publish it on fbbus/declare/{})",
+                        self.device, self.device
+                    ),
+                ),
+            };
+        };
+        let Some(port) = interface.output(typed.fb, typed.port) else {
+            return match fb.undeclared {
+                Undeclared::Pass => Check::Pass,
+                Undeclared::Reject => refuse(
+                    Refusal::TopicNameInvalid,
+                    format!(
+                        "{}.{} is not a declared output of device {}",
+                        typed.fb, typed.port, self.device
+                    ),
+                ),
+            };
+        };
+        let mut message = match codec::decode(typed.encoding, payload, typed.port, &port) {
+            Ok(m) => m,
+            Err(e) => {
+                return refuse(
+                    Refusal::PayloadFormatInvalid,
+                    format!("{}.{}: {e}", typed.fb, typed.port),
+                )
+            }
+        };
+        let stamped = self.stamp(&typed, &mut message);
+        let routes = Encoding::ALL
+            .into_iter()
+            .filter(|e| fb.mirrored(*e))
+            .map(|e| {
+                let bytes = if e == typed.encoding && !(stamped && e == Encoding::Json) {
+                    payload.clone()
+                } else {
+                    Bytes::from(codec::encode(e, &message, typed.port, &port))
+                };
+                (typed.in_encoding(e), bytes)
+            })
+            .collect();
+        fb.metrics.typed_accepted.inc();
+        Check::Route(routes)
+    }
+
+    /// Gives an event the sequence number and timestamp its publisher left out.
+    /// Returns whether anything was added.
+    fn stamp(&mut self, typed: &TypedTopic<'_>, message: &mut Message) -> bool {
+        let Message::Event(event) = message else {
+            return false;
+        };
+        let seq = self
+            .seq
+            .entry((typed.fb.to_owned(), typed.port.to_owned()))
+            .or_insert(0);
+        let mut stamped = false;
+        match event.seq {
+            Some(s) => *seq = s,
+            None => {
+                *seq += 1;
+                event.seq = Some(*seq);
+                stamped = true;
+            }
+        }
+        if event.ts_us.is_none() {
+            event.ts_us = Some(now_us());
+            stamped = true;
+        }
+        stamped
+    }
+
+    fn declare(&mut self, fb: &FbTopics, payload: &Bytes) -> Check {
+        if !self.identity_verified() {
+            return refuse(
+                Refusal::NotAuthorized,
+                "a device connects with its id as both client id and username",
+            );
+        }
+        let validated = Declaration::from_json(payload)
+            .map_err(|e| vec![e])
+            .and_then(Declaration::validate);
+        match validated {
+            Ok(interface) => {
+                let fbs = interface.fbs.len();
+                self.interface = Some(fb.registry.declare(&self.device, self.session, interface));
+                fb.metrics
+                    .declarations
+                    .with_label_values(&["accepted"])
+                    .inc();
+                tracing::info!(
+                    device = self.device,
+                    session = self.session,
+                    fbs,
+                    "interface declared"
+                );
+                fb.publisher.publish(BrokerMessage::broker(
+                    topic::diag(&self.device),
+                    json!({"kind": "declaration", "ok": true, "session": self.session, "line": fb.registry.line()}).to_string(),
+                    false,
+                ));
+                Check::Consumed
+            }
+            Err(errors) => {
+                fb.metrics
+                    .declarations
+                    .with_label_values(&["refused"])
+                    .inc();
+                tracing::warn!(device = self.device, errors = errors.len(), first = %errors[0], "interface declaration refused");
+                fb.publisher.publish(BrokerMessage::broker(
+                    topic::diag(&self.device),
+                    json!({"kind": "declaration", "ok": false, "errors": errors}).to_string(),
+                    false,
+                ));
+                // Counted and answered here; `rejected` must not describe it a second time.
+                Check::Refused(Rejection {
+                    refusal: Refusal::PayloadFormatInvalid,
+                    detail: String::new(),
+                })
+            }
+        }
+    }
+
+    /// Counts, logs (once per topic and reason) and describes a refused publication.
+    fn rejected(&mut self, fb: &FbTopics, topic: &str, rejection: &Rejection) {
+        if rejection.detail.is_empty() {
+            return;
+        }
+        // Labels stay bounded: a port only when declared, a device only when registered.
+        let port = TypedTopic::parse(topic)
+            .filter(|t| {
+                self.interface
+                    .as_ref()
+                    .is_some_and(|i| i.output(t.fb, t.port).is_some())
+            })
+            .map_or_else(
+                || "undeclared".to_owned(),
+                |t| format!("{}.{}", t.fb, t.port),
+            );
+        let device = if self.interface.is_some() {
+            self.device.as_str()
+        } else {
+            "undeclared"
+        };
+        fb.metrics
+            .typed_rejected
+            .with_label_values(&[device, &port, rejection.refusal.label()])
+            .inc();
+        if self.logged.len() < 1024 && self.logged.insert((topic.to_owned(), rejection.refusal)) {
+            tracing::warn!(
+                device = self.device,
+                topic,
+                reason = rejection.refusal.label(),
+                detail = rejection.detail,
+                "typed publication refused (logged once per topic and reason)"
+            );
+        }
+        let now = std::time::Instant::now();
+        self.diag_budget = (self.diag_budget
+            + now.duration_since(self.diag_refill).as_secs_f64() * DIAG_PER_SECOND)
+            .min(DIAG_BURST);
+        self.diag_refill = now;
+        if self.diag_budget >= 1.0 {
+            self.diag_budget -= 1.0;
+            fb.publisher.publish(BrokerMessage::broker(
+                topic::diag(&self.device),
+                json!({
+                    "kind": "rejected",
+                    "topic": topic,
+                    "reason": rejection.refusal.label(),
+                    "code": rejection.refusal.code(),
+                    "detail": rejection.detail,
+                })
+                .to_string(),
+                false,
+            ));
+        }
+    }
+}
+
+fn refuse(refusal: Refusal, detail: impl Into<String>) -> Check {
+    Check::Refused(Rejection {
+        refusal,
+        detail: detail.into(),
+    })
+}
+
+fn now_us() -> u64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .unwrap_or(0)
+}
