@@ -67,6 +67,8 @@ pub struct AuthFiles {
 pub struct Running {
     pub kind: BrokerKind,
     pub addr: SocketAddr,
+    /// fbbus's admin endpoint (HTTP).
+    pub admin: Option<SocketAddr>,
     child: Child,
     /// Held open so that `serve-rumqttd` exits by itself if the bench dies.
     _stdin: Option<ChildStdin>,
@@ -156,7 +158,7 @@ pub async fn start(
         BrokerKind::Fbbus => {
             let admin_addr = SocketAddr::from(([127, 0, 0, 1], free_port()?));
             admin = Some(admin_addr);
-            let mut config = String::from("[broker]\nmax_connections = 10010\n");
+            let mut config = String::from("[broker]\nmax_connections = 10100\n");
             for option in &programs.fbbus_broker_options {
                 config.push_str(option);
                 config.push('\n');
@@ -246,6 +248,7 @@ pub async fn start(
     let mut running = Running {
         kind,
         addr,
+        admin,
         child,
         _stdin: stdin,
         log,
@@ -273,20 +276,32 @@ pub async fn start(
 
 /// `GET /readyz` answered 200.
 async fn readyz(admin: SocketAddr) -> bool {
+    matches!(http_get(admin, "/readyz").await, Some((200, _)))
+}
+
+/// One HTTP/1.0 GET to fbbus's admin endpoint: (status, body), None on any failure or
+/// after 10 s.
+pub async fn http_get(admin: SocketAddr, path: &str) -> Option<(u16, Vec<u8>)> {
     let attempt = async {
         let mut s = tokio::net::TcpStream::connect(admin).await.ok()?;
-        s.write_all(b"GET /readyz HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+        s.write_all(format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").as_bytes())
             .await
             .ok()?;
         let mut response = Vec::new();
         s.read_to_end(&mut response).await.ok()?;
-        Some(response.starts_with(b"HTTP/1.0 200") || response.starts_with(b"HTTP/1.1 200"))
+        let split = response.windows(4).position(|w| w == b"\r\n\r\n")?;
+        let status = std::str::from_utf8(&response[..split])
+            .ok()?
+            .split_whitespace()
+            .nth(1)?
+            .parse()
+            .ok()?;
+        Some((status, response[split + 4..].to_vec()))
     };
-    tokio::time::timeout(Duration::from_secs(2), attempt)
+    tokio::time::timeout(Duration::from_secs(10), attempt)
         .await
         .ok()
         .flatten()
-        .unwrap_or(false)
 }
 
 /// An MQTT CONNECT gets a successful CONNACK; the probe then disconnects cleanly.

@@ -7,6 +7,7 @@
 //! MQTT 3.1.1 client on this process's multi-thread tokio runtime.
 
 mod brokers;
+mod fb;
 mod mqtt;
 mod scenarios;
 
@@ -44,6 +45,19 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// fbbus only: typed-topic validation cost (typed vs untyped burst, A B A B), device
+    /// births per second, and registry HTTP query latency with 10,000 devices.
+    Fb {
+        /// Small sizes (a smoke test, not a measurement).
+        #[arg(long)]
+        quick: bool,
+        /// Devices registered for the births and query measurements (default 10000).
+        #[arg(long, value_name = "N")]
+        devices: Option<usize>,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+    },
     /// Internal: run raw rumqttd 0.20 on 127.0.0.1:PORT until killed.
     #[command(hide = true)]
     ServeRumqttd {
@@ -99,6 +113,15 @@ fn main() -> ExitCode {
             auth_file,
             exit_on_stdin_eof,
         }) => brokers::serve_rumqttd(port, auth_file.as_deref(), exit_on_stdin_eof),
+        Some(Command::Fb {
+            quick,
+            devices,
+            fbbus,
+        }) => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .context("starting the tokio runtime")
+            .and_then(|rt| rt.block_on(run_fb(quick, devices, fbbus))),
         None => tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()
@@ -112,6 +135,33 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+async fn run_fb(quick: bool, devices: Option<usize>, fbbus: Option<PathBuf>) -> Result<()> {
+    let bench = std::env::current_exe().context("locating this binary")?;
+    let fbbus = fbbus.unwrap_or_else(|| bench.with_file_name("fbbus"));
+    if !fbbus.is_file() {
+        bail!(
+            "the fbbus binary is not at {}: build it with `cargo build --release -p broker -p fbbus-bench` or pass --fbbus PATH",
+            fbbus.display()
+        );
+    }
+    let mut params = if quick {
+        fb::FbParams::quick()
+    } else {
+        fb::FbParams::full()
+    };
+    if let Some(n) = devices {
+        params.devices = n.max(1);
+    }
+    let programs = Programs {
+        fbbus,
+        fbbus_broker_options: Vec::new(),
+        mosquitto: None,
+        mosquitto_passwd: None,
+        bench,
+    };
+    fb::run(&programs, &params).await
 }
 
 /// rumqttd's version as resolved in the workspace's Cargo.lock.

@@ -161,8 +161,8 @@ pub struct FbSession {
     session: u64,
     /// The device's declared interface, once it has one.
     interface: Option<Arc<Interface>>,
-    /// Event sequence numbers stamped for publishers that send none, per (fb, port).
-    seq: HashMap<(String, String), u64>,
+    /// Event sequence numbers stamped for publishers that send none, per fb and port.
+    seq: HashMap<String, HashMap<String, u64>>,
     logged: HashSet<(String, Refusal)>,
     diag_budget: f64,
     diag_refill: std::time::Instant,
@@ -273,9 +273,18 @@ impl FbSession {
             }
         };
         let stamped = self.stamp(&typed, &mut message);
-        let routes = Encoding::ALL
+        fb.metrics.typed_accepted.inc();
+        // The common case, canonical JSON in with nothing stamped and nobody reading other
+        // encodings, routes the publication exactly as it came.
+        let unchanged = typed.encoding == Encoding::Json && !stamped;
+        let mirrors = Encoding::ALL
             .into_iter()
-            .filter(|e| fb.mirrored(*e))
+            .filter(|e| *e != Encoding::Json && fb.mirrored(*e));
+        if unchanged && mirrors.clone().next().is_none() {
+            return Check::Pass;
+        }
+        let routes = std::iter::once(Encoding::Json)
+            .chain(mirrors)
             .map(|e| {
                 let bytes = if e == typed.encoding && !(stamped && e == Encoding::Json) {
                     payload.clone()
@@ -285,7 +294,6 @@ impl FbSession {
                 (typed.in_encoding(e), bytes)
             })
             .collect();
-        fb.metrics.typed_accepted.inc();
         Check::Route(routes)
     }
 
@@ -295,18 +303,16 @@ impl FbSession {
         let Message::Event(event) = message else {
             return false;
         };
-        let seq = self
-            .seq
-            .entry((typed.fb.to_owned(), typed.port.to_owned()))
-            .or_insert(0);
         let mut stamped = false;
-        match event.seq {
-            Some(s) => *seq = s,
-            None => {
-                *seq += 1;
-                event.seq = Some(*seq);
-                stamped = true;
-            }
+        if event.seq.is_none() {
+            let counters = self.seq.entry(typed.fb.to_owned()).or_default();
+            let counter = match counters.get_mut(typed.port) {
+                Some(c) => c,
+                None => counters.entry(typed.port.to_owned()).or_insert(0),
+            };
+            *counter += 1;
+            event.seq = Some(*counter);
+            stamped = true;
         }
         if event.ts_us.is_none() {
             event.ts_us = Some(now_us());

@@ -1,0 +1,328 @@
+//! `fbbus-bench fb`: what fbbus's typed FB topics and device registry cost, on fbbus alone.
+//!
+//! 1. **Validation cost.** Ten devices declare a conveyor interface, then burst the same
+//!    event message into one subscriber, alternately on an untyped topic
+//!    (`plant/<dev>/CONV/STATE`, routed as is) and on the typed topic
+//!    (`fb/<dev>/CONV/STATE`, decoded and checked against the declaration), A B A B in
+//!    one broker process. Reported: each round's msg/s, the medians, typed/untyped.
+//! 2. **Births.** N devices (default 10,000) connect, then all declare at once; reported:
+//!    declarations per second until the registry shows every device online (polled on
+//!    `/metrics`), which includes each record's retained publication.
+//! 3. **Registry queries.** With those N devices registered: latency of
+//!    `GET /api/v1/devices/<id>` (1,000 sequential requests, random ids) and of the full
+//!    `GET /api/v1/devices` list (20 requests), p50/p99/max.
+//!
+//! Everything runs on 127.0.0.1 against an fbbus child process; every loop is bounded
+//! by a count and a deadline.
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _, Result};
+use hdrhistogram::Histogram;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+use crate::brokers::{self, BrokerKind, Programs, Running};
+use crate::mqtt::{self, PacketReader};
+
+pub struct FbParams {
+    pub devices: usize,
+    pub publishers: usize,
+    pub messages: usize,
+    pub rounds: usize,
+}
+
+impl FbParams {
+    pub fn full() -> FbParams {
+        FbParams {
+            devices: 10_000,
+            publishers: 10,
+            messages: 20_000,
+            rounds: 3,
+        }
+    }
+
+    pub fn quick() -> FbParams {
+        FbParams {
+            devices: 200,
+            publishers: 2,
+            messages: 500,
+            rounds: 1,
+        }
+    }
+}
+
+const DEADLINE: Duration = Duration::from_secs(120);
+
+/// The conveyor module interface of the reference line (one FB, one event with six data).
+const INTERFACE: &str = r#"{"fbs":{"CONV":{"type":"CONVEYOR",
+  "events_out":{"STATE":{"with":["ID","CONNECT","SENSOR_IN","SENSOR_OUT","POSITION","SWAP"]}},
+  "data_out":{"ID":"STRING","CONNECT":"BOOL","SENSOR_IN":"BOOL","SENSOR_OUT":"BOOL","POSITION":"INT","SWAP":"BOOL"}}}}"#;
+
+/// One STATE event, with sequence number and timestamp (so fbbus routes the bytes as sent).
+const EVENT: &str = r#"{"seq":1,"ts":1763800000000000,"data":{"ID":"conveyor-a","CONNECT":true,"SENSOR_IN":false,"SENSOR_OUT":true,"POSITION":2,"SWAP":false}}"#;
+
+pub async fn run(programs: &Programs, p: &FbParams) -> Result<()> {
+    let broker = brokers::start(BrokerKind::Fbbus, programs, None).await?;
+    let admin = broker.admin.context("fbbus runs with an admin endpoint")?;
+    println!(
+        "fbbus {} at {} (admin {admin}); {} publishers x {} messages, {} rounds; {} devices\n",
+        brokers::fbbus_version(&programs.fbbus),
+        broker.addr,
+        p.publishers,
+        p.messages,
+        p.rounds,
+        p.devices
+    );
+
+    validation_cost(&broker, admin, p).await?;
+    let _devices = births(&broker, admin, p).await?;
+    registry_queries(admin, p).await?;
+    if let Some(kib) = broker.rss_kib() {
+        println!(
+            "\nbroker resident memory with {} devices connected and registered: {:.1} MB",
+            p.devices + p.publishers,
+            kib as f64 / 1024.0
+        );
+    }
+    Ok(())
+}
+
+async fn validation_cost(broker: &Running, admin: SocketAddr, p: &FbParams) -> Result<()> {
+    let mut sub = mqtt::connect(broker.addr, "bench-sub", None).await?;
+    subscribe_all(&mut sub, &["fb/+/CONV/STATE", "plant/+/CONV/STATE"]).await?;
+    let mut reader = PacketReader::new(sub);
+    let mut pubs = Vec::new();
+    for i in 0..p.publishers {
+        let id = format!("bench-pub-{i}");
+        let mut s = mqtt::connect(broker.addr, &id, None).await?;
+        s.write_all(&mqtt::publish_packet(
+            &format!("fbbus/declare/{id}"),
+            INTERFACE.as_bytes(),
+        ))
+        .await?;
+        pubs.push((id, s));
+    }
+    wait_online(admin, p.publishers).await?;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    println!("1. validation cost: the same STATE event, untyped vs typed topic (QoS 0 burst, 1 subscriber)");
+    println!(
+        "   {:<7} {:>14} {:>14}",
+        "round", "untyped msg/s", "typed msg/s"
+    );
+    let (mut untyped, mut typed) = (Vec::new(), Vec::new());
+    for round in 1..=p.rounds {
+        let mut rates = [0.0; 2];
+        for (k, namespace) in ["plant", "fb"].into_iter().enumerate() {
+            let (rate, lost) = burst(&mut reader, &mut pubs, namespace, p.messages).await?;
+            if lost > 0 {
+                bail!("{namespace} round {round}: {lost} messages lost");
+            }
+            rates[k] = rate;
+        }
+        println!("   {round:<7} {:>14.0} {:>14.0}", rates[0], rates[1]);
+        untyped.push(rates[0]);
+        typed.push(rates[1]);
+    }
+    let (u, t) = (median(&mut untyped), median(&mut typed));
+    println!(
+        "   median  {u:>14.0} {t:>14.0}   typed/untyped = {:.3} (validation costs {:.1} %)\n",
+        t / u,
+        (1.0 - t / u) * 100.0
+    );
+    Ok(())
+}
+
+/// Every publisher sends `messages` PUBLISHes on `<namespace>/<id>/CONV/STATE` at once;
+/// returns the subscriber's receive rate and the messages that never arrived.
+async fn burst(
+    reader: &mut PacketReader,
+    pubs: &mut Vec<(String, TcpStream)>,
+    namespace: &str,
+    messages: usize,
+) -> Result<(f64, u64)> {
+    let expected = (pubs.len() * messages) as u64;
+    let start = Instant::now();
+    let mut tasks = Vec::new();
+    for (id, mut stream) in std::mem::take(pubs) {
+        let packet =
+            mqtt::publish_packet(&format!("{namespace}/{id}/CONV/STATE"), EVENT.as_bytes());
+        // 64 messages per write: the publishers are cheaper than the broker.
+        let batch: Vec<u8> = packet.repeat(64);
+        tasks.push(tokio::spawn(async move {
+            let mut left = messages;
+            while left > 0 {
+                let n = left.min(64);
+                stream.write_all(&batch[..packet.len() * n]).await?;
+                left -= n;
+            }
+            anyhow::Ok((id, stream))
+        }));
+    }
+    let mut received = 0u64;
+    let mut last = start;
+    let deadline = start + DEADLINE;
+    while received < expected && Instant::now() < deadline {
+        match tokio::time::timeout(Duration::from_secs(2), reader.read_more()).await {
+            Ok(Ok(0)) | Ok(Err(_)) => bail!("the subscriber's connection closed"),
+            Err(_) => break,
+            Ok(Ok(_)) => {
+                while let Some((header, body)) = reader.next_packet()? {
+                    if mqtt::publish_payload(header, body).is_some() {
+                        received += 1;
+                    }
+                }
+                last = Instant::now();
+            }
+        }
+    }
+    for t in tasks {
+        pubs.push(t.await??);
+    }
+    Ok((
+        received as f64 / last.duration_since(start).as_secs_f64(),
+        expected - received.min(expected),
+    ))
+}
+
+async fn births(broker: &Running, admin: SocketAddr, p: &FbParams) -> Result<Vec<TcpStream>> {
+    println!(
+        "2. births: {} devices connect, then declare at once",
+        p.devices
+    );
+    let connected = Arc::new(AtomicUsize::new(0));
+    let slots = Arc::new(tokio::sync::Semaphore::new(256));
+    let mut tasks = Vec::with_capacity(p.devices);
+    for i in 0..p.devices {
+        let (addr, slots, connected) = (broker.addr, Arc::clone(&slots), Arc::clone(&connected));
+        tasks.push(tokio::spawn(async move {
+            let _slot = slots.acquire().await;
+            let s = mqtt::connect(addr, &device_id(i), None).await?;
+            connected.fetch_add(1, Ordering::Relaxed);
+            anyhow::Ok(s)
+        }));
+    }
+    let mut streams = Vec::with_capacity(p.devices);
+    for t in tasks {
+        streams.push(t.await??);
+    }
+    let start = Instant::now();
+    for (i, s) in streams.iter_mut().enumerate() {
+        s.write_all(&mqtt::publish_packet(
+            &format!("fbbus/declare/{}", device_id(i)),
+            INTERFACE.as_bytes(),
+        ))
+        .await?;
+    }
+    let written = start.elapsed();
+    wait_online(admin, p.devices).await?;
+    let elapsed = start.elapsed();
+    println!(
+        "   {} declarations written in {:.3} s; all online in the registry after {:.3} s: {:.0} births/s\n",
+        p.devices,
+        written.as_secs_f64(),
+        elapsed.as_secs_f64(),
+        p.devices as f64 / elapsed.as_secs_f64()
+    );
+    Ok(streams)
+}
+
+async fn registry_queries(admin: SocketAddr, p: &FbParams) -> Result<()> {
+    println!(
+        "3. registry over HTTP with {} devices",
+        p.devices + p.publishers
+    );
+    let mut one = Histogram::<u64>::new(3)?;
+    let mut rng = 0x9E37_79B9_7F4A_7C15u64;
+    for _ in 0..1000 {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        let id = device_id((rng % p.devices as u64) as usize);
+        let t = Instant::now();
+        match brokers::http_get(admin, &format!("/api/v1/devices/{id}")).await {
+            Some((200, _)) => one.record(t.elapsed().as_micros() as u64)?,
+            other => bail!("GET /api/v1/devices/{id}: {:?}", other.map(|o| o.0)),
+        }
+    }
+    let mut all = Histogram::<u64>::new(3)?;
+    let mut size = 0;
+    for _ in 0..20 {
+        let t = Instant::now();
+        match brokers::http_get(admin, "/api/v1/devices").await {
+            Some((200, body)) => {
+                all.record(t.elapsed().as_micros() as u64)?;
+                size = body.len();
+            }
+            other => bail!("GET /api/v1/devices: {:?}", other.map(|o| o.0)),
+        }
+    }
+    let ms = |h: &Histogram<u64>, q: f64| h.value_at_quantile(q) as f64 / 1000.0;
+    println!(
+        "   GET /api/v1/devices/<id>  x1000: p50 {:.2} ms  p99 {:.2} ms  max {:.2} ms",
+        ms(&one, 0.5),
+        ms(&one, 0.99),
+        one.max() as f64 / 1000.0
+    );
+    println!(
+        "   GET /api/v1/devices       x20:   p50 {:.1} ms  p99 {:.1} ms  max {:.1} ms  ({:.1} MB of JSON)",
+        ms(&all, 0.5),
+        ms(&all, 0.99),
+        all.max() as f64 / 1000.0,
+        size as f64 / 1e6
+    );
+    Ok(())
+}
+
+fn device_id(i: usize) -> String {
+    format!("bench-dev-{i:05}")
+}
+
+/// Subscribes to every filter at QoS 0 on one connection.
+async fn subscribe_all(stream: &mut TcpStream, filters: &[&str]) -> Result<()> {
+    for (i, filter) in filters.iter().enumerate() {
+        stream
+            .write_all(&mqtt::subscribe_packet(i as u16 + 1, filter))
+            .await?;
+    }
+    let mut acks = vec![0u8; 5 * filters.len()];
+    tokio::time::timeout(Duration::from_secs(5), stream.read_exact(&mut acks))
+        .await
+        .context("no SUBACK")??;
+    if acks.chunks(5).any(|a| a[0] != 0x90 || a[4] == 0x80) {
+        bail!("a subscription was refused: {acks:02x?}");
+    }
+    Ok(())
+}
+
+/// Polls `/metrics` until the registry counts `n` devices online.
+async fn wait_online(admin: SocketAddr, n: usize) -> Result<()> {
+    let deadline = Instant::now() + DEADLINE;
+    loop {
+        let online = brokers::http_get(admin, "/metrics")
+            .await
+            .and_then(|(_, body)| {
+                String::from_utf8_lossy(&body).lines().find_map(|l| {
+                    l.strip_prefix("fbbus_registry_devices{status=\"online\"} ")
+                        .and_then(|v| v.trim().parse::<f64>().ok())
+                })
+            })
+            .unwrap_or(0.0);
+        if online as usize >= n {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            bail!("only {online} of {n} devices online after {DEADLINE:?}");
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
