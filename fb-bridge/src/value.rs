@@ -16,6 +16,9 @@ use crate::types::{DataType, ElementaryType};
 
 pub const MS_PER_DAY: u64 = 86_400_000;
 
+/// The last millisecond of 9999-12-31, the end of the IEC literal range (`DT#9999-...`).
+pub const MAX_DATE_AND_TIME_MS: u64 = 253_402_300_799_999;
+
 /// Longest STRING (bytes) or WSTRING (UTF-16 units): `fbdk` counts them in two bytes.
 pub const MAX_STRING_LEN: usize = 65_535;
 
@@ -165,6 +168,9 @@ impl Value {
                 out_of_range(format!("{ms} ms (not midnight)"))
             }
             Value::TimeOfDay(ms) if *ms >= MS_PER_DAY => out_of_range(format!("{ms} ms")),
+            Value::Date(ms) | Value::DateAndTime(ms) if *ms > MAX_DATE_AND_TIME_MS => {
+                out_of_range(format!("{ms} ms (after 9999-12-31)"))
+            }
             Value::Real(x) if !x.is_finite() => out_of_range(x.to_string()),
             Value::Lreal(x) if !x.is_finite() => out_of_range(x.to_string()),
             _ => Ok(()),

@@ -102,7 +102,7 @@ pub fn decode(
     port: &OutputPort<'_>,
 ) -> Result<Message, CodecError> {
     match encoding {
-        Encoding::Json => json::decode(payload, port),
+        Encoding::Json => json::decode_named(payload, port_name, port),
         Encoding::Dinasore => dinasore::decode(payload, port_name, port),
         Encoding::Fbdk => fbdk::decode(payload, port),
     }
