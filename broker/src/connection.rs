@@ -343,6 +343,9 @@ impl Session {
             // The session number is taken before the router link, because linking is what
             // ends an older connection with this id, and that one must see it is stale.
             let session = ctx.sessions.open(&client_id);
+            if username.as_deref().is_none_or(|u| u == client_id) {
+                ctx.fb.registry.session_started(&client_id, session);
+            }
             // Session lifetime. rumqttd keeps a link's session after it ends unless the link
             // is clean (the MQTT 3.1.1 rule). MQTT 5 separates the two: Clean Start discards
             // an existing session now, Session Expiry decides whether this one outlives the
@@ -408,6 +411,12 @@ impl Session {
         if io.flush().await.is_err() {
             let _ = unlink(accepted.link_tx).await;
             ctx.sessions.close(&accepted.client_id, accepted.session);
+            // It may have taken an online device's session over: that device is gone now.
+            ctx.fb.registry.disconnected(
+                &accepted.client_id,
+                accepted.session,
+                DisconnectReason::Abrupt.description(),
+            );
             return None;
         }
 

@@ -171,6 +171,16 @@ impl Registry {
         interface
     }
 
+    /// A connection of `id` took session number `session` and is about to end any older
+    /// connection of that id (takeover). Recording the number first is what makes the old
+    /// connection's end stale, whichever of the two finishes first.
+    pub fn session_started(&self, id: &str, session: u64) {
+        let mut devices = self.devices.lock().expect("lock poisoned");
+        if let Some(record) = devices.get_mut(id) {
+            record.session = record.session.max(session);
+        }
+    }
+
     /// A client connected with session `session`. A known device is online again (with
     /// its declared interface, returned) until it declares a new one.
     pub fn connected(&self, id: &str, session: u64) -> Option<Arc<Interface>> {
