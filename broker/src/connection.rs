@@ -343,7 +343,10 @@ impl Session {
             // The session number is taken before the router link, because linking is what
             // ends an older connection with this id, and that one must see it is stale.
             let session = ctx.sessions.open(&client_id);
-            if username.as_deref().is_none_or(|u| u == client_id) {
+            if match username.as_deref() {
+                Some(user) => user == client_id,
+                None => ctx.fb.anonymous_devices,
+            } {
                 ctx.fb.registry.session_started(&client_id, session);
             }
             // Session lifetime. rumqttd keeps a link's session after it ends unless the link
@@ -423,10 +426,10 @@ impl Session {
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
         let mut fb = FbSession::new(
+            &ctx.fb,
             &accepted.client_id,
             accepted.username.as_deref(),
             accepted.session,
-            None,
         );
         if fb.identity_verified() {
             fb.set_interface(

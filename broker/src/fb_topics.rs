@@ -95,6 +95,9 @@ pub enum Check {
 pub struct FbTopics {
     pub registry: Arc<Registry>,
     pub undeclared: Undeclared,
+    /// No password file: a client id alone identifies a device (see
+    /// [`FbSession::identity_verified`]).
+    pub anonymous_devices: bool,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
     /// Per encoding: someone subscribed to a filter that can match its namespace, so
@@ -106,12 +109,14 @@ impl FbTopics {
     pub fn new(
         registry: Arc<Registry>,
         undeclared: Undeclared,
+        anonymous_devices: bool,
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
     ) -> FbTopics {
         FbTopics {
             registry,
             undeclared,
+            anonymous_devices,
             publisher,
             metrics,
             mirrors: Default::default(),
@@ -157,6 +162,8 @@ const DIAG_BURST: f64 = 20.0;
 /// One connection's typed-topic state.
 pub struct FbSession {
     device: String,
+    /// No password file is configured: a client id alone identifies a device.
+    anonymous_devices: bool,
     username: Option<String>,
     session: u64,
     /// The device's declared interface, once it has one.
@@ -169,17 +176,13 @@ pub struct FbSession {
 }
 
 impl FbSession {
-    pub fn new(
-        device: &str,
-        username: Option<&str>,
-        session: u64,
-        interface: Option<Arc<Interface>>,
-    ) -> FbSession {
+    pub fn new(fb: &FbTopics, device: &str, username: Option<&str>, session: u64) -> FbSession {
         FbSession {
             device: device.to_owned(),
+            anonymous_devices: fb.anonymous_devices,
             username: username.map(str::to_owned),
             session,
-            interface,
+            interface: None,
             seq: HashMap::new(),
             logged: HashSet::new(),
             diag_budget: DIAG_BURST,
@@ -193,11 +196,15 @@ impl FbSession {
     }
 
     /// Whether this connection speaks for the device its client id names. Client ids are
-    /// chosen by clients; on a listener with passwords, the username is what was verified,
-    /// so a device is only itself when both are the same. On an anonymous (loopback)
-    /// listener the client id is all there is.
+    /// chosen by clients; the username is what was verified, so a device is only itself
+    /// when both are the same. Without a username the client id is trusted only on a
+    /// broker with no password file at all (a loopback test line): once passwords exist,
+    /// an anonymous client (a loopback listener with `allow_anonymous`) speaks for no device.
     pub fn identity_verified(&self) -> bool {
-        self.username.as_deref().is_none_or(|u| u == self.device)
+        match self.username.as_deref() {
+            Some(user) => user == self.device,
+            None => self.anonymous_devices,
+        }
     }
 
     /// Checks one publication (ACL already passed) and says what to route.
@@ -272,21 +279,18 @@ impl FbSession {
                 )
             }
         };
-        let stamped = self.stamp(&typed, &mut message);
+        self.stamp(&typed, &mut message);
         fb.metrics.typed_accepted.inc();
-        // The common case, canonical JSON in with nothing stamped and nobody reading other
-        // encodings, routes the publication exactly as it came.
-        let unchanged = typed.encoding == Encoding::Json && !stamped;
         let mirrors = Encoding::ALL
             .into_iter()
             .filter(|e| *e != Encoding::Json && fb.mirrored(*e));
-        if unchanged && mirrors.clone().next().is_none() {
-            return Check::Pass;
-        }
         let routes = std::iter::once(Encoding::Json)
             .chain(mirrors)
             .map(|e| {
-                let bytes = if e == typed.encoding && !(stamped && e == Encoding::Json) {
+                // Subscribers of fb/ always get canonical JSON, whatever accepted form
+                // (IEC literals, integers for TIME, ...) the publisher used; other
+                // encodings have one form, so their bytes are passed through.
+                let bytes = if e == typed.encoding && e != Encoding::Json {
                     payload.clone()
                 } else {
                     Bytes::from(codec::encode(e, &message, typed.port, &port))
@@ -298,12 +302,10 @@ impl FbSession {
     }
 
     /// Gives an event the sequence number and timestamp its publisher left out.
-    /// Returns whether anything was added.
-    fn stamp(&mut self, typed: &TypedTopic<'_>, message: &mut Message) -> bool {
+    fn stamp(&mut self, typed: &TypedTopic<'_>, message: &mut Message) {
         let Message::Event(event) = message else {
-            return false;
+            return;
         };
-        let mut stamped = false;
         if event.seq.is_none() {
             let counters = self.seq.entry(typed.fb.to_owned()).or_default();
             let counter = match counters.get_mut(typed.port) {
@@ -312,13 +314,10 @@ impl FbSession {
             };
             *counter += 1;
             event.seq = Some(*counter);
-            stamped = true;
         }
         if event.ts_us.is_none() {
             event.ts_us = Some(now_us());
-            stamped = true;
         }
-        stamped
     }
 
     fn declare(&mut self, fb: &FbTopics, payload: &Bytes) -> Check {

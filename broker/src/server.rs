@@ -111,6 +111,7 @@ impl Broker {
             fb: FbTopics::new(
                 Arc::clone(&registry),
                 config.fb.undeclared,
+                config.auth.password_file.is_none(),
                 publisher,
                 Arc::clone(&metrics),
             ),
