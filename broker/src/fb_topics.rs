@@ -279,18 +279,25 @@ impl FbSession {
                 )
             }
         };
-        self.stamp(&typed, &mut message);
+        let stamped = self.stamp(&typed, &mut message);
         fb.metrics.typed_accepted.inc();
-        let mirrors = Encoding::ALL
+        // Subscribers of fb/ always get canonical JSON. JSON that came in complete (nothing
+        // stamped) on a port whose types have one JSON form is canonical already and is
+        // routed as it came; other accepted forms (`"16#FF"`, `"TIME#1.5s"`, ...) are
+        // re-encoded. The other encodings have one form each: their bytes pass through.
+        let json_as_is = typed.encoding == Encoding::Json && !stamped && port.has_one_json_form();
+        let mut mirrors = Encoding::ALL
             .into_iter()
-            .filter(|e| *e != Encoding::Json && fb.mirrored(*e));
+            .filter(|e| *e != Encoding::Json && fb.mirrored(*e))
+            .peekable();
+        if json_as_is && mirrors.peek().is_none() {
+            return Check::Pass;
+        }
         let routes = std::iter::once(Encoding::Json)
             .chain(mirrors)
             .map(|e| {
-                // Subscribers of fb/ always get canonical JSON, whatever accepted form
-                // (IEC literals, integers for TIME, ...) the publisher used; other
-                // encodings have one form, so their bytes are passed through.
-                let bytes = if e == typed.encoding && e != Encoding::Json {
+                let as_is = e == typed.encoding && (e != Encoding::Json || json_as_is);
+                let bytes = if as_is {
                     payload.clone()
                 } else {
                     Bytes::from(codec::encode(e, &message, typed.port, &port))
@@ -302,10 +309,12 @@ impl FbSession {
     }
 
     /// Gives an event the sequence number and timestamp its publisher left out.
-    fn stamp(&mut self, typed: &TypedTopic<'_>, message: &mut Message) {
+    /// Returns whether it added any.
+    fn stamp(&mut self, typed: &TypedTopic<'_>, message: &mut Message) -> bool {
         let Message::Event(event) = message else {
-            return;
+            return false;
         };
+        let stamped = event.seq.is_none() || event.ts_us.is_none();
         if event.seq.is_none() {
             let counters = self.seq.entry(typed.fb.to_owned()).or_default();
             let counter = match counters.get_mut(typed.port) {
@@ -318,6 +327,7 @@ impl FbSession {
         if event.ts_us.is_none() {
             event.ts_us = Some(now_us());
         }
+        stamped
     }
 
     fn declare(&mut self, fb: &FbTopics, payload: &Bytes) -> Check {

@@ -216,6 +216,17 @@ pub enum OutputPort<'a> {
     Data(DataType),
 }
 
+impl OutputPort<'_> {
+    /// Every value on this port has a single JSON form (see
+    /// [`ElementaryType::has_one_json_form`](crate::types::ElementaryType::has_one_json_form)).
+    pub fn has_one_json_form(&self) -> bool {
+        match self {
+            OutputPort::Data(t) => t.has_one_json_form(),
+            OutputPort::Event(with) => with.iter().all(|(_, t)| t.has_one_json_form()),
+        }
+    }
+}
+
 impl Interface {
     /// The output port `fb.port`, if the interface declares one.
     pub fn output(&self, fb: &str, port: &str) -> Option<OutputPort<'_>> {

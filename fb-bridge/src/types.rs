@@ -94,6 +94,23 @@ impl ElementaryType {
         self as u8
     }
 
+    /// Whether canonical JSON has the only form the decoder accepts for this type, so an
+    /// accepted JSON value is already canonical. Not so for the bit strings (which also
+    /// accept `"16#FF"`) and the time types (several literal spellings).
+    pub fn has_one_json_form(self) -> bool {
+        !matches!(
+            self,
+            Self::Byte
+                | Self::Word
+                | Self::Dword
+                | Self::Lword
+                | Self::Time
+                | Self::Date
+                | Self::TimeOfDay
+                | Self::DateAndTime
+        )
+    }
+
     pub fn from_number(n: u8) -> Option<ElementaryType> {
         Self::ALL.into_iter().find(|t| t.number() == n)
     }
@@ -137,6 +154,15 @@ pub enum DataType {
     Elementary(ElementaryType),
     /// `ARRAY [n] OF t`: exactly `n` elements, 1 <= n <= [`MAX_ARRAY_LEN`].
     Array(ElementaryType, u16),
+}
+
+impl DataType {
+    /// See [`ElementaryType::has_one_json_form`].
+    pub fn has_one_json_form(self) -> bool {
+        match self {
+            DataType::Elementary(t) | DataType::Array(t, _) => t.has_one_json_form(),
+        }
+    }
 }
 
 impl fmt::Display for DataType {
