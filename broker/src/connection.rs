@@ -52,6 +52,7 @@ use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
 use crate::origin::{self, Origin};
+use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
 use crate::session_table::SessionTable;
@@ -67,6 +68,7 @@ pub struct Context {
     pub wills: Arc<Wills>,
     pub fb: FbTopics,
     pub sessions: SessionTable,
+    pub redeliveries: Redeliveries,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,
@@ -210,6 +212,12 @@ struct Session {
     client_receive_max: u16,
     /// QoS 1/2 deliveries sent and not yet acknowledged by the client.
     outstanding_out: u16,
+    /// Their fingerprints by packet id (PUBACK, or PUBREC for QoS 2, removes one): sent
+    /// with DUP=1 if the session resumes on a later connection (`redelivery`).
+    unacked_out: HashMap<u16, u64>,
+    /// Fingerprints of what the previous connection of this session left
+    /// unacknowledged: the router re-sends those first, and they go out with DUP=1.
+    redeliver: Vec<u64>,
     /// Deliveries waiting for the client's window, in order.
     held: VecDeque<(Publish, Option<PublishProperties>)>,
     /// The router paused delivery and is woken once `held` is short again.
@@ -447,6 +455,12 @@ impl Session {
             keep_alive = connect.keep_alive,
             "client connected"
         );
+        let redeliver = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
+            ctx.redeliveries.forget(&accepted.client_id);
+            Vec::new()
+        } else {
+            ctx.redeliveries.take(&accepted.client_id)
+        };
         Some(Session {
             io,
             peer,
@@ -480,6 +494,8 @@ impl Session {
                 .filter(|m| *m > 0)
                 .unwrap_or(u16::MAX),
             outstanding_out: 0,
+            unacked_out: HashMap::new(),
+            redeliver,
             held: VecDeque::new(),
             wake_pending: false,
             subscriptions: HashMap::new(),
@@ -624,11 +640,13 @@ impl Session {
             }
             Packet::PubAck(ack, _) if self.qos2_sent_as_qos1.remove(&ack.pkid) => {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
+                self.unacked_out.remove(&ack.pkid);
                 self.ack_for_client(2, ack.pkid);
                 Ok(())
             }
             Packet::PubAck(ack, properties) => {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
+                self.unacked_out.remove(&ack.pkid);
                 let pkid = ack.pkid;
                 let packet = Packet::PubAck(ack, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
@@ -636,6 +654,7 @@ impl Session {
             }
             Packet::PubRec(rec, properties) => {
                 let pkid = rec.pkid;
+                self.unacked_out.remove(&pkid);
                 let packet = Packet::PubRec(rec, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
                 Ok(())
@@ -1164,6 +1183,13 @@ impl Session {
                 self.ctx.metrics.messages_out.inc();
                 if qos > 0 {
                     self.outstanding_out += 1;
+                    let print = redelivery::fingerprint(&topic, &payload);
+                    self.unacked_out.insert(pkid, print);
+                    // A delivery the previous connection already sent [MQTT-3.3.1-1].
+                    if let Some(i) = self.redeliver.iter().position(|p| *p == print) {
+                        self.redeliver.swap_remove(i);
+                        self.io.write[before] |= 0b0000_1000;
+                    }
                 }
             }
         }
@@ -1287,6 +1313,14 @@ impl Session {
             }
         }
         self.ctx.sessions.close(&self.client_id, self.session);
+        if self.lifetime.clean_link {
+            self.ctx.redeliveries.forget(&self.client_id);
+        } else {
+            let unacked = std::mem::take(&mut self.unacked_out);
+            self.ctx
+                .redeliveries
+                .save(&self.client_id, unacked.into_values().collect());
+        }
         self.ctx.fb.registry.disconnected(
             &self.client_id,
             self.session,

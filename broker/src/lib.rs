@@ -16,7 +16,7 @@
 //! - [`connection`]: one client's session; its module doc is the packet path, in order.
 //!   Around it: [`framed`] (the socket and its buffers), [`codec`] (rumqttd's MQTT codecs
 //!   and the guards in front of them), [`frame`] (the bytes fbbus reads itself),
-//!   [`ack_order`] and [`origin`] (delivery rules the router leaves out),
+//!   [`ack_order`], [`origin`] and [`redelivery`] (delivery rules the router leaves out),
 //!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
 //! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
 //! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
@@ -46,6 +46,7 @@ pub mod listener;
 pub mod logging;
 pub mod metrics;
 pub mod origin;
+pub mod redelivery;
 pub mod registry;
 pub mod router;
 pub mod server;

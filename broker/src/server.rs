@@ -116,6 +116,7 @@ impl Broker {
                 Arc::clone(&metrics),
             ),
             sessions,
+            redeliveries: Default::default(),
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,

@@ -67,6 +67,7 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
     });
     if let Some(Ok((tx, _rx, _))) = linked {
         let _ = unlink(tx).await;
+        ctx.redeliveries.forget(client_id);
         tracing::debug!(client_id, "session expired");
     }
 }

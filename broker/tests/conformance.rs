@@ -429,3 +429,60 @@ fn mqtt5_subscription_options_are_honoured() {
         "Retain As Published keeps RETAIN on a live delivery, and only where it was set"
     );
 }
+
+/// [MQTT-3.3.1-1] [MQTT-4.4.0-1]: a QoS 1 delivery the client never acknowledged is sent
+/// again when the session resumes, with DUP=1; a new delivery after it has DUP=0. (The
+/// packet id is the original one here only because rumqttd's router numbers each
+/// connection's deliveries from 1: see docs/conformance.md, 17a/b.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
+    let broker = Broker::start();
+    let port = broker.port();
+    let (_, mut c) = connect_v5(port, "dup-sub", false, 300);
+    let mut sub = raw::subscribe(5, 1, &["dup/t"]);
+    *sub.last_mut().unwrap() = 1;
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    let publisher = V4::connect(port, "dup-pub", None).await.unwrap();
+    publisher
+        .client
+        .publish("dup/t", rumqttc::QoS::AtLeastOnce, false, "once")
+        .await
+        .unwrap();
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let (first, body) = c.read_packet().expect("the delivery");
+    assert_eq!(first & 0xF6, 0x32, "a QoS 1 PUBLISH");
+    assert_eq!(first & 0x08, 0, "first delivery with DUP=0");
+    let pkid = |body: &[u8]| {
+        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+        u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]])
+    };
+    assert!(pkid(&body) > 0);
+    // Gone without acknowledging it.
+    c.send(&raw::DISCONNECT);
+    assert!(c.closed_by_broker());
+
+    let (present, mut c) = connect_v5(port, "dup-sub", false, 300);
+    assert!(present, "session present");
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let (again, body) = c.read_packet().expect("the redelivery");
+    assert_eq!(again & 0xF0, 0x30);
+    assert_eq!(again & 0x08, 0x08, "re-sent with DUP=1");
+    assert_eq!(&body[2..7], b"dup/t");
+    let id = pkid(&body);
+    c.send(&raw::packet(0x40, &id.to_be_bytes()));
+    publisher
+        .client
+        .publish("dup/t", rumqttc::QoS::AtLeastOnce, false, "new")
+        .await
+        .unwrap();
+    let (fresh, _) = c.read_packet().expect("a new delivery");
+    assert_eq!(fresh & 0x08, 0, "a new delivery has DUP=0");
+    // End the session.
+    c.send(&raw::DISCONNECT);
+    connect_v5(port, "dup-sub", true, 0);
+}
