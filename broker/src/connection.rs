@@ -986,15 +986,17 @@ impl Session {
     }
 
     /// Hands the accepted packets of this read to the router: one wake-up per batch.
+    /// Then publishes the broker's answers to them (diagnostics), which must reach the
+    /// router after the packets they answer (a SUBSCRIBE to the diag topic among them).
     async fn route(&mut self) -> Result<(), End> {
-        let Some(last) = self.to_router.pop() else {
-            return Ok(());
-        };
-        {
-            let mut buffer = self.link_tx.buffer();
-            buffer.extend(self.to_router.drain(..));
+        if let Some(last) = self.to_router.pop() {
+            {
+                let mut buffer = self.link_tx.buffer();
+                buffer.extend(self.to_router.drain(..));
+            }
+            self.link_tx.send(last).await.map_err(|_| End::Router)?;
         }
-        self.link_tx.send(last).await.map_err(|_| End::Router)?;
+        self.ctx.fb.publish(self.fb.take_outbox());
         Ok(())
     }
 
@@ -1311,6 +1313,7 @@ impl Session {
                 }
                 Check::Consumed | Check::Refused(_) => {}
             }
+            self.ctx.fb.publish(self.fb.take_outbox());
         }
         self.ctx.sessions.close(&self.client_id, self.session);
         if self.lifetime.clean_link {

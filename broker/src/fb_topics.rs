@@ -106,6 +106,13 @@ pub struct FbTopics {
 }
 
 impl FbTopics {
+    /// Publishes what a connection's [`FbSession::take_outbox`] returned.
+    pub fn publish(&self, messages: Vec<BrokerMessage>) {
+        for m in messages {
+            self.publisher.publish(m);
+        }
+    }
+
     pub fn new(
         registry: Arc<Registry>,
         undeclared: Undeclared,
@@ -173,6 +180,11 @@ pub struct FbSession {
     logged: HashSet<(String, Refusal)>,
     diag_budget: f64,
     diag_refill: std::time::Instant,
+    /// Diagnostics for the device, published by the connection once the packets read
+    /// with the publication that caused them are in the router ([`FbSession::take_outbox`]):
+    /// a device that subscribes to its diag topic and declares in one write must get the
+    /// answer, which it would not if the answer reached the router before the SUBSCRIBE.
+    outbox: Vec<BrokerMessage>,
 }
 
 impl FbSession {
@@ -187,7 +199,14 @@ impl FbSession {
             logged: HashSet::new(),
             diag_budget: DIAG_BURST,
             diag_refill: std::time::Instant::now(),
+            outbox: Vec::new(),
         }
+    }
+
+    /// Diagnostics decided since the last call, to publish now that the packets read
+    /// before them are in the router.
+    pub fn take_outbox(&mut self) -> Vec<BrokerMessage> {
+        std::mem::take(&mut self.outbox)
     }
 
     /// The interface the registry had for this device when it connected.
@@ -354,7 +373,7 @@ impl FbSession {
                     fbs,
                     "interface declared"
                 );
-                fb.publisher.publish(BrokerMessage::broker(
+                self.outbox.push(BrokerMessage::broker(
                     topic::diag(&self.device),
                     json!({"kind": "declaration", "ok": true, "session": self.session, "line": fb.registry.line()}).to_string(),
                     false,
@@ -367,7 +386,7 @@ impl FbSession {
                     .with_label_values(&["refused"])
                     .inc();
                 tracing::warn!(device = self.device, errors = errors.len(), first = %errors[0], "interface declaration refused");
-                fb.publisher.publish(BrokerMessage::broker(
+                self.outbox.push(BrokerMessage::broker(
                     topic::diag(&self.device),
                     json!({"kind": "declaration", "ok": false, "errors": errors}).to_string(),
                     false,
@@ -422,7 +441,7 @@ impl FbSession {
         self.diag_refill = now;
         if self.diag_budget >= 1.0 {
             self.diag_budget -= 1.0;
-            fb.publisher.publish(BrokerMessage::broker(
+            self.outbox.push(BrokerMessage::broker(
                 topic::diag(&self.device),
                 json!({
                     "kind": "rejected",

@@ -9,12 +9,16 @@
 //!   that name the FB and the port;
 //! - [`topic`]: the typed topics (`fb/<device>/<fb>/<port>`) and fbbus's control topics;
 //! - [`codec`]: canonical JSON, DINASORE JSON and 4diac's `fbdk` bytes, all decoded to
-//!   and encoded from one [`codec::Message`].
+//!   and encoded from one [`codec::Message`];
+//! - [`client`]: the device client API, IEC 61499 PUBLISH/SUBSCRIBE semantics (INIT,
+//!   REQ→CNF, IND) over an MQTT 3.1.1 connection that declares, reconnects and
+//!   re-declares by itself.
 //!
 //! The broker uses this crate to check every publication on a typed topic; device
 //! software uses the same types through the client API. The device contract (topics,
 //! encodings, registry) is written down in this crate's README.
 
+pub mod client;
 pub mod codec;
 pub mod interface;
 pub mod topic;
