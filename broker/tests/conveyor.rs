@@ -40,7 +40,11 @@ fn the_conveyor_line_runs_add_remove_and_swap_to_completion() {
         ]),
         Duration::from_secs(120),
     );
-    assert!(ok, "the conveyor line failed:\n{out}\n{err}\nbroker log:\n{}", broker.log_text());
+    assert!(
+        ok,
+        "the conveyor line failed:\n{out}\n{err}\nbroker log:\n{}",
+        broker.log_text()
+    );
     for phase in [
         "== phase 3: conveyor-d is plugged in",
         "== phase 4: conveyor-b is unplugged abruptly",

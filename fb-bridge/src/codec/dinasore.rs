@@ -11,7 +11,7 @@
 //! for an event's `seq` and `ts`: they are absent after decoding (the broker stamps them)
 //! and dropped when encoding.
 
-use super::json::{self, object_fields, ordered_object, value_to_json, with_names};
+use super::json::{decode_object, with_names, write_object};
 use super::{CodecError, EventMessage, Message};
 use crate::interface::OutputPort;
 
@@ -21,23 +21,21 @@ pub fn decode(
     port_name: &str,
     port: &OutputPort<'_>,
 ) -> Result<Message, CodecError> {
-    let json = json::parse(payload)?;
-    let Some(object) = json.as_object() else {
-        return Err(CodecError::Malformed(format!(
-            "a DINASORE payload is a JSON object keyed by data port names, got {}",
-            json::describe(&json)
-        )));
+    let not_object = |got: &str| {
+        CodecError::Malformed(format!(
+            "a DINASORE payload is a JSON object keyed by data port names, got {got}"
+        ))
     };
     match port {
         // A data port reads like an event carrying just that port.
         OutputPort::Data(ty) => {
-            let mut values = object_fields(object, &[(port_name, *ty)])?;
+            let mut values = decode_object(payload, &[(port_name, *ty)], not_object)?;
             Ok(Message::Data(values.remove(0)))
         }
         OutputPort::Event(with) => Ok(Message::Event(EventMessage {
             seq: None,
             ts_us: None,
-            data: object_fields(object, with)?,
+            data: decode_object(payload, with, not_object)?,
         })),
     }
 }
@@ -46,15 +44,12 @@ pub fn decode(
 ///
 /// An event's keys follow WITH order; its `seq` and `ts` are dropped.
 pub fn encode(message: &Message, port_name: &str, port: &OutputPort<'_>) -> Vec<u8> {
-    let text = match message {
-        Message::Data(value) => ordered_object([(port_name, value_to_json(value).to_string())]),
-        Message::Event(event) => ordered_object(
-            with_names(port)
-                .into_iter()
-                .zip(event.data.iter().map(|v| value_to_json(v).to_string())),
-        ),
-    };
-    text.into_bytes()
+    let mut out = Vec::with_capacity(128);
+    match message {
+        Message::Data(value) => write_object(&mut out, [(port_name, value)]),
+        Message::Event(event) => write_object(&mut out, with_names(port).zip(&event.data)),
+    }
+    out
 }
 
 #[cfg(test)]

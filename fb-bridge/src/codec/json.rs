@@ -39,6 +39,9 @@
 //! when the milliseconds are not zero, and the shortest decimal that reads back as the
 //! same `REAL`/`LREAL`.
 
+mod de;
+
+use serde::{Serialize, Serializer};
 use serde_json::{Map, Number, Value as Json};
 
 use super::{CodecError, EventMessage, Message};
@@ -55,20 +58,25 @@ pub fn decode(payload: &[u8], port: &OutputPort<'_>) -> Result<Message, CodecErr
 }
 
 /// [`decode`], naming a data port `port_name` in [`CodecError::Type`].
+///
+/// Reads the payload in one pass, straight into typed values (see the `de` submodule),
+/// with the results of parsing it into a `serde_json::Value` and reading that with
+/// [`value_from_json`].
 pub fn decode_named(
     payload: &[u8],
     port_name: &str,
     port: &OutputPort<'_>,
 ) -> Result<Message, CodecError> {
-    let json = parse(payload)?;
     match port {
-        OutputPort::Data(ty) => value_from_json(&json, *ty)
+        OutputPort::Data(ty) => de::parse_value(payload, de::Typed(*ty))?
             .map(Message::Data)
             .map_err(|error| CodecError::Type {
                 port: port_name.to_owned(),
                 error,
             }),
-        OutputPort::Event(with) => decode_event(json, with).map(Message::Event),
+        OutputPort::Event(with) => {
+            de::parse_object(payload, de::Any(de::Event(with)))?.map(Message::Event)
+        }
     }
 }
 
@@ -78,10 +86,12 @@ pub fn decode_named(
 /// message that does not fit its port (which [`decode`] never returns) is written as far
 /// as the names go rather than panicking.
 pub fn encode(message: &Message, port: &OutputPort<'_>) -> Vec<u8> {
+    let mut out = Vec::with_capacity(128);
     match message {
-        Message::Data(value) => value_to_json(value).to_string().into_bytes(),
-        Message::Event(event) => encode_event(event, port).into_bytes(),
+        Message::Data(value) => write_json(&mut out, &Canonical(value)),
+        Message::Event(event) => encode_event(&mut out, event, port),
     }
+    out
 }
 
 /// A value in its canonical JSON form (the table in this module's documentation).
@@ -117,24 +127,33 @@ pub fn value_to_json(v: &Value) -> Json {
 /// documentation), then checks it with [`Value::check`].
 pub fn value_from_json(j: &Json, ty: DataType) -> Result<Value, TypeError> {
     let value = match ty {
-        DataType::Elementary(t) => scalar_from_json(j, t)?,
+        DataType::Elementary(t) => scalar_from_token(Token::of(j), t)?,
         DataType::Array(t, n) => array_from_json(j, t, n)?,
     };
     value.check(ty)?;
     Ok(value)
 }
 
-/// Parses a payload as JSON; anything that is not JSON is [`CodecError::Malformed`].
-pub(super) fn parse(payload: &[u8]) -> Result<Json, CodecError> {
-    serde_json::from_slice(payload).map_err(|e| CodecError::Malformed(format!("not JSON: {e}")))
-}
-
-/// Reads exactly the named, typed `fields` from a JSON object, in their order: the shape
-/// of an event's WITH data here and of every DINASORE payload.
+/// Reads a payload that is a JSON object of exactly the named, typed `fields`, in their
+/// order: every DINASORE payload. A payload that is JSON but not an object is refused
+/// with `not_object(its description)`.
 ///
 /// Structural mistakes are reported before value mistakes: a missing field first (in
 /// field order), then a key that is not a field, then the first ill-typed value.
-pub(super) fn object_fields(
+pub(super) fn decode_object(
+    payload: &[u8],
+    fields: &[(&str, DataType)],
+    not_object: impl FnOnce(&str) -> CodecError,
+) -> Result<Vec<Value>, CodecError> {
+    de::parse_object(payload, de::Any(de::Fields(fields)))?.map_err(not_object)?
+}
+
+/// Reads exactly the named, typed `fields` from a JSON object, in their order: what
+/// `de` does for an object whose fields do not all have distinct names.
+///
+/// Structural mistakes are reported before value mistakes: a missing field first (in
+/// field order), then a key that is not a field, then the first ill-typed value.
+fn object_fields(
     object: &Map<String, Json>,
     fields: &[(&str, DataType)],
 ) -> Result<Vec<Value>, CodecError> {
@@ -150,7 +169,8 @@ pub(super) fn object_fields(
     fields
         .iter()
         .map(|(name, ty)| {
-            value_from_json(&object[*name], *ty).map_err(|error| CodecError::Type {
+            let value = object.get(*name).unwrap_or(&Json::Null);
+            value_from_json(value, *ty).map_err(|error| CodecError::Type {
                 port: (*name).to_owned(),
                 error,
             })
@@ -159,115 +179,170 @@ pub(super) fn object_fields(
 }
 
 /// Writes a JSON object with its keys in the given order (`serde_json`'s map would sort
-/// them). Values are JSON text already.
-pub(super) fn ordered_object<'a>(fields: impl IntoIterator<Item = (&'a str, String)>) -> String {
-    let members: Vec<String> = fields
-        .into_iter()
-        .map(|(key, value)| format!("{}:{value}", Json::from(key)))
-        .collect();
-    format!("{{{}}}", members.join(","))
+/// them), each value in its canonical form.
+pub(super) fn write_object<'a>(
+    out: &mut Vec<u8>,
+    fields: impl IntoIterator<Item = (&'a str, &'a Value)>,
+) {
+    out.push(b'{');
+    for (i, (name, value)) in fields.into_iter().enumerate() {
+        if i > 0 {
+            out.push(b',');
+        }
+        write_json(out, name);
+        out.push(b':');
+        write_json(out, &Canonical(value));
+    }
+    out.push(b'}');
 }
 
 /// The WITH names of an event port, in order; none for a data port.
-pub(super) fn with_names<'p>(port: &'p OutputPort<'_>) -> Vec<&'p str> {
-    match port {
-        OutputPort::Event(with) => with.iter().map(|(name, _)| *name).collect(),
-        OutputPort::Data(_) => Vec::new(),
-    }
-}
-
-/// What kind of JSON value `j` is, for error messages ("expected INT, got a JSON string").
-pub(super) fn describe(j: &Json) -> &'static str {
-    match j {
-        Json::Null => "null",
-        Json::Bool(_) => "a JSON boolean",
-        Json::Number(n) if n.is_i64() || n.is_u64() => "a JSON integer",
-        Json::Number(n) if n.as_f64().is_some_and(|x| x.fract() != 0.0) => {
-            "a JSON number with a fraction"
-        }
-        Json::Number(_) => "a JSON number with a fraction or exponent",
-        Json::String(_) => "a JSON string",
-        Json::Array(_) => "a JSON array",
-        Json::Object(_) => "a JSON object",
-    }
-}
-
-fn decode_event(json: Json, with: &[(&str, DataType)]) -> Result<EventMessage, CodecError> {
-    let Json::Object(object) = json else {
-        return Err(CodecError::Malformed(format!(
-            r#"an event is a JSON object {{"seq":..,"ts":..,"data":{{..}}}}, got {}"#,
-            describe(&json)
-        )));
+pub(super) fn with_names<'p>(port: &'p OutputPort<'_>) -> impl Iterator<Item = &'p str> {
+    let with: &'p [(&'p str, DataType)] = match port {
+        OutputPort::Event(with) => with,
+        OutputPort::Data(_) => &[],
     };
-    if let Some(key) = object
-        .keys()
-        .find(|key| !matches!(key.as_str(), "seq" | "ts" | "data"))
-    {
-        return Err(CodecError::Unexpected(key.clone()));
-    }
-    let data = match object.get("data") {
-        Some(Json::Object(data)) => object_fields(data, with)?,
-        // Without `data`, an event with WITH ports reports the first one as missing.
-        None => object_fields(&Map::new(), with)?,
-        Some(other) => {
-            return Err(CodecError::Malformed(format!(
-                "data: expected a JSON object of the WITH data ports, got {}",
-                describe(other)
-            )))
+    with.iter().map(|(name, _)| *name)
+}
+
+fn encode_event(out: &mut Vec<u8>, event: &EventMessage, port: &OutputPort<'_>) {
+    out.push(b'{');
+    for (key, stamp) in [(&b"\"seq\":"[..], event.seq), (b"\"ts\":", event.ts_us)] {
+        if let Some(n) = stamp {
+            out.extend_from_slice(key);
+            write_json(out, &n);
+            out.push(b',');
         }
-    };
-    Ok(EventMessage {
-        seq: optional_u64(&object, "seq")?,
-        ts_us: optional_u64(&object, "ts")?,
-        data,
-    })
-}
-
-/// `seq` or `ts`: absent, or an unsigned integer.
-fn optional_u64(object: &Map<String, Json>, key: &str) -> Result<Option<u64>, CodecError> {
-    match object.get(key) {
-        None => Ok(None),
-        Some(j) => j.as_u64().map(Some).ok_or_else(|| {
-            CodecError::Malformed(format!(
-                "{key}: expected an unsigned integer, got {}",
-                describe(j)
-            ))
-        }),
     }
+    out.extend_from_slice(b"\"data\":");
+    write_object(out, with_names(port).zip(&event.data));
+    out.push(b'}');
 }
 
-fn encode_event(event: &EventMessage, port: &OutputPort<'_>) -> String {
-    let data = ordered_object(
-        with_names(port)
-            .into_iter()
-            .zip(event.data.iter().map(|v| value_to_json(v).to_string())),
-    );
-    let seq = event.seq.map(|n| ("seq", n.to_string()));
-    let ts = event.ts_us.map(|n| ("ts", n.to_string()));
-    ordered_object(seq.into_iter().chain(ts).chain([("data", data)]))
+/// Appends `value` as compact JSON.
+fn write_json(out: &mut Vec<u8>, value: &(impl Serialize + ?Sized)) {
+    // Writing to a Vec cannot fail, and neither can serializing strings, numbers or
+    // `Canonical`.
+    let _ = serde_json::to_writer(out, value);
+}
+
+/// A value serialized in its canonical JSON form: the text of [`value_to_json`]'s tree,
+/// written without building the tree.
+struct Canonical<'a>(&'a Value);
+
+impl Serialize for Canonical<'_> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self.0 {
+            Value::Bool(b) => s.serialize_bool(*b),
+            Value::Sint(n) => s.serialize_i8(*n),
+            Value::Int(n) => s.serialize_i16(*n),
+            Value::Dint(n) => s.serialize_i32(*n),
+            Value::Lint(n) => s.serialize_i64(*n),
+            Value::Usint(n) | Value::Byte(n) => s.serialize_u8(*n),
+            Value::Uint(n) | Value::Word(n) => s.serialize_u16(*n),
+            Value::Udint(n) | Value::Dword(n) => s.serialize_u32(*n),
+            Value::Ulint(n) | Value::Lword(n) => s.serialize_u64(*n),
+            // `serde_json` writes a non-finite number as `null`.
+            Value::Real(x) => s.serialize_f64(shortest_f64(*x)),
+            Value::Lreal(x) => s.serialize_f64(*x),
+            Value::String(text) | Value::WString(text) => s.serialize_str(text),
+            Value::Time(us) => s.serialize_str(&iec::format_time(*us)),
+            Value::Date(ms) => {
+                s.collect_str(&format_args!("D#{}", iec::format_date(*ms / MS_PER_DAY)))
+            }
+            Value::TimeOfDay(ms) => s.collect_str(&format_args!("TOD#{}", iec::format_tod(*ms))),
+            Value::DateAndTime(ms) => s.collect_str(&format_args!(
+                "DT#{}-{}",
+                iec::format_date(*ms / MS_PER_DAY),
+                iec::format_tod(*ms % MS_PER_DAY)
+            )),
+            Value::Array(_, items) => s.collect_seq(items.iter().map(Canonical)),
+        }
+    }
 }
 
 /// A `REAL` as the shortest decimal that reads back as the same `f32` (`0.1`, not the
 /// `0.10000000149011612` its widening to `f64` would print).
-fn real_to_json(x: f32) -> Json {
-    let shortest = x.to_string().parse::<f64>().unwrap_or(f64::from(x));
-    Number::from_f64(shortest).map_or(Json::Null, Json::Number)
+fn shortest_f64(x: f32) -> f64 {
+    x.to_string().parse::<f64>().unwrap_or(f64::from(x))
 }
 
-fn mismatch(j: &Json, expected: DataType) -> TypeError {
-    TypeError::Mismatch {
-        expected,
-        got: describe(j).to_owned(),
+fn real_to_json(x: f32) -> Json {
+    Number::from_f64(shortest_f64(x)).map_or(Json::Null, Json::Number)
+}
+
+/// One JSON value as the value readers see it: a scalar with its content, an array or
+/// an object by kind only. Both decoders, the tree ([`value_from_json`]) and the stream
+/// (`de`), hand values over as tokens, so they read them identically.
+#[derive(Debug, Clone, Copy)]
+enum Token<'a> {
+    Null,
+    Bool(bool),
+    /// An integer that `serde_json` read exactly: it fits `i64` or `u64`.
+    Int(i128),
+    /// Any other number: it has a fraction or an exponent, or is an integer beyond 64
+    /// bits.
+    Float(f64),
+    Str(&'a str),
+    Array,
+    Object,
+}
+
+impl<'a> Token<'a> {
+    fn of(j: &'a Json) -> Token<'a> {
+        match j {
+            Json::Null => Token::Null,
+            Json::Bool(b) => Token::Bool(*b),
+            Json::Number(n) => match (n.as_i64(), n.as_u64()) {
+                (Some(i), _) => Token::Int(i.into()),
+                (None, Some(u)) => Token::Int(u.into()),
+                (None, None) => Token::Float(n.as_f64().unwrap_or(f64::NAN)),
+            },
+            Json::String(s) => Token::Str(s),
+            Json::Array(_) => Token::Array,
+            Json::Object(_) => Token::Object,
+        }
+    }
+
+    /// What kind of JSON value this is, for error messages ("expected INT, got a JSON
+    /// string").
+    fn describe(self) -> &'static str {
+        match self {
+            Token::Null => "null",
+            Token::Bool(_) => "a JSON boolean",
+            Token::Int(_) => "a JSON integer",
+            Token::Float(x) if x.fract() != 0.0 => "a JSON number with a fraction",
+            Token::Float(_) => "a JSON number with a fraction or exponent",
+            Token::Str(_) => "a JSON string",
+            Token::Array => "a JSON array",
+            Token::Object => "a JSON object",
+        }
+    }
+
+    /// A number as `serde_json` writes it.
+    fn number_text(self) -> String {
+        match self {
+            Token::Int(n) => n.to_string(),
+            Token::Float(x) => Json::from(x).to_string(),
+            other => other.describe().to_owned(),
+        }
     }
 }
 
-fn scalar_mismatch(j: &Json, t: ElementaryType) -> TypeError {
-    mismatch(j, DataType::Elementary(t))
+fn mismatch(token: Token<'_>, expected: DataType) -> TypeError {
+    TypeError::Mismatch {
+        expected,
+        got: token.describe().to_owned(),
+    }
+}
+
+fn scalar_mismatch(token: Token<'_>, t: ElementaryType) -> TypeError {
+    mismatch(token, DataType::Elementary(t))
 }
 
 fn array_from_json(j: &Json, t: ElementaryType, n: u16) -> Result<Value, TypeError> {
     let Some(items) = j.as_array() else {
-        return Err(mismatch(j, DataType::Array(t, n)));
+        return Err(mismatch(Token::of(j), DataType::Array(t, n)));
     };
     if items.len() != usize::from(n) {
         return Err(TypeError::ArrayLength {
@@ -279,7 +354,7 @@ fn array_from_json(j: &Json, t: ElementaryType, n: u16) -> Result<Value, TypeErr
         .iter()
         .enumerate()
         .map(|(index, item)| {
-            scalar_from_json(item, t).map_err(|error| TypeError::Element {
+            scalar_from_token(Token::of(item), t).map_err(|error| TypeError::Element {
                 index,
                 error: Box::new(error),
             })
@@ -288,56 +363,56 @@ fn array_from_json(j: &Json, t: ElementaryType, n: u16) -> Result<Value, TypeErr
     Ok(Value::Array(t, elements))
 }
 
-fn scalar_from_json(j: &Json, t: ElementaryType) -> Result<Value, TypeError> {
+/// Reads an elementary value of type `t` (not yet [checked](Value::check)).
+fn scalar_from_token(token: Token<'_>, t: ElementaryType) -> Result<Value, TypeError> {
     use ElementaryType as T;
     Ok(match t {
-        T::Bool => Value::Bool(j.as_bool().ok_or_else(|| scalar_mismatch(j, t))?),
-        T::Sint => Value::Sint(fit(integer(j, t)?, t)?),
-        T::Int => Value::Int(fit(integer(j, t)?, t)?),
-        T::Dint => Value::Dint(fit(integer(j, t)?, t)?),
-        T::Lint => Value::Lint(fit(integer(j, t)?, t)?),
-        T::Usint => Value::Usint(fit(integer(j, t)?, t)?),
-        T::Uint => Value::Uint(fit(integer(j, t)?, t)?),
-        T::Udint => Value::Udint(fit(integer(j, t)?, t)?),
-        T::Ulint => Value::Ulint(fit(integer(j, t)?, t)?),
-        T::Byte => Value::Byte(fit(bit_string(j, t)?, t)?),
-        T::Word => Value::Word(fit(bit_string(j, t)?, t)?),
-        T::Dword => Value::Dword(fit(bit_string(j, t)?, t)?),
-        T::Lword => Value::Lword(fit(bit_string(j, t)?, t)?),
-        T::Real => Value::Real(real(j)?),
-        T::Lreal => Value::Lreal(number(j, t)?),
-        T::String => Value::String(string(j, t)?),
-        T::WString => Value::WString(string(j, t)?),
-        T::Time => Value::Time(time(j)?),
-        T::Date => Value::Date(literal(j, t, iec::parse_date)?),
-        T::TimeOfDay => Value::TimeOfDay(literal(j, t, iec::parse_tod)?),
-        T::DateAndTime => Value::DateAndTime(literal(j, t, iec::parse_date_and_time)?),
+        T::Bool => match token {
+            Token::Bool(b) => Value::Bool(b),
+            _ => return Err(scalar_mismatch(token, t)),
+        },
+        T::Sint => Value::Sint(fit(integer(token, t)?, t)?),
+        T::Int => Value::Int(fit(integer(token, t)?, t)?),
+        T::Dint => Value::Dint(fit(integer(token, t)?, t)?),
+        T::Lint => Value::Lint(fit(integer(token, t)?, t)?),
+        T::Usint => Value::Usint(fit(integer(token, t)?, t)?),
+        T::Uint => Value::Uint(fit(integer(token, t)?, t)?),
+        T::Udint => Value::Udint(fit(integer(token, t)?, t)?),
+        T::Ulint => Value::Ulint(fit(integer(token, t)?, t)?),
+        T::Byte => Value::Byte(fit(bit_string(token, t)?, t)?),
+        T::Word => Value::Word(fit(bit_string(token, t)?, t)?),
+        T::Dword => Value::Dword(fit(bit_string(token, t)?, t)?),
+        T::Lword => Value::Lword(fit(bit_string(token, t)?, t)?),
+        T::Real => Value::Real(real(token)?),
+        T::Lreal => Value::Lreal(number(token, t)?),
+        T::String => Value::String(string(token, t)?),
+        T::WString => Value::WString(string(token, t)?),
+        T::Time => Value::Time(time(token)?),
+        T::Date => Value::Date(literal(token, t, iec::parse_date)?),
+        T::TimeOfDay => Value::TimeOfDay(literal(token, t, iec::parse_tod)?),
+        T::DateAndTime => Value::DateAndTime(literal(token, t, iec::parse_date_and_time)?),
     })
 }
 
 /// A JSON integer, exactly. `serde_json` keeps integers that fit `i64` or `u64` as such;
 /// anything else it reads is an `f64`: a fraction, an exponent, or an integer too large
 /// for 64 bits (that last one is out of range rather than of the wrong kind).
-fn integer(j: &Json, t: ElementaryType) -> Result<i128, TypeError> {
-    let Some(n) = j.as_number() else {
-        return Err(scalar_mismatch(j, t));
-    };
-    if let Some(i) = n.as_i64() {
-        return Ok(i.into());
+fn integer(token: Token<'_>, t: ElementaryType) -> Result<i128, TypeError> {
+    match token {
+        Token::Int(n) => Ok(n),
+        Token::Float(x) => {
+            // Integers just below i64::MIN round to exactly -2^63, so that counts as beyond.
+            let beyond_64_bits = x <= -(2f64.powi(63)) || x >= 2f64.powi(64);
+            if x.fract() == 0.0 && beyond_64_bits {
+                return Err(TypeError::OutOfRange {
+                    ty: t,
+                    value: token.number_text(),
+                });
+            }
+            Err(scalar_mismatch(token, t))
+        }
+        _ => Err(scalar_mismatch(token, t)),
     }
-    if let Some(u) = n.as_u64() {
-        return Ok(u.into());
-    }
-    let x = n.as_f64().unwrap_or(f64::NAN);
-    // Integers just below i64::MIN round to exactly -2^63, so that counts as beyond.
-    let beyond_64_bits = x <= -(2f64.powi(63)) || x >= 2f64.powi(64);
-    if x.fract() == 0.0 && beyond_64_bits {
-        return Err(TypeError::OutOfRange {
-            ty: t,
-            value: n.to_string(),
-        });
-    }
-    Err(scalar_mismatch(j, t))
 }
 
 /// Narrows an integer to the Rust type of `t`'s values.
@@ -349,57 +424,72 @@ fn fit<N: TryFrom<i128>>(n: i128, t: ElementaryType) -> Result<N, TypeError> {
 }
 
 /// A bit string (`BYTE` .. `LWORD`): an integer, or an IEC literal such as `"16#FF"`.
-fn bit_string(j: &Json, t: ElementaryType) -> Result<i128, TypeError> {
-    match j {
-        Json::String(_) => literal(j, t, iec::parse_bit_string),
-        _ => integer(j, t),
+fn bit_string(token: Token<'_>, t: ElementaryType) -> Result<i128, TypeError> {
+    match token {
+        Token::Str(s) => literal_str(s, t, iec::parse_bit_string),
+        _ => integer(token, t),
     }
 }
 
-fn number(j: &Json, t: ElementaryType) -> Result<f64, TypeError> {
-    j.as_f64().ok_or_else(|| scalar_mismatch(j, t))
+fn number(token: Token<'_>, t: ElementaryType) -> Result<f64, TypeError> {
+    match token {
+        // Rounds to nearest, as `serde_json::Number::as_f64` does.
+        Token::Int(n) => Ok(n as f64),
+        Token::Float(x) => Ok(x),
+        _ => Err(scalar_mismatch(token, t)),
+    }
 }
 
 /// A `REAL`: any number that rounds to a finite `f32`. Rounding rather than comparing
 /// with `f32::MAX` accepts `3.4028235e38`, the shortest decimal for `f32::MAX`, which is
 /// a little larger than it.
-fn real(j: &Json) -> Result<f32, TypeError> {
-    let x = number(j, ElementaryType::Real)?;
+fn real(token: Token<'_>) -> Result<f32, TypeError> {
+    let x = number(token, ElementaryType::Real)?;
     let narrowed = x as f32;
     if narrowed.is_finite() {
         Ok(narrowed)
     } else {
         Err(TypeError::OutOfRange {
             ty: ElementaryType::Real,
-            value: j.to_string(),
+            value: token.number_text(),
         })
     }
 }
 
-fn string(j: &Json, t: ElementaryType) -> Result<String, TypeError> {
-    j.as_str()
-        .map(str::to_owned)
-        .ok_or_else(|| scalar_mismatch(j, t))
+fn string(token: Token<'_>, t: ElementaryType) -> Result<String, TypeError> {
+    match token {
+        Token::Str(s) => Ok(s.to_owned()),
+        _ => Err(scalar_mismatch(token, t)),
+    }
 }
 
 /// A `TIME`: an IEC literal, or an integer number of microseconds.
-fn time(j: &Json) -> Result<i64, TypeError> {
+fn time(token: Token<'_>) -> Result<i64, TypeError> {
     let t = ElementaryType::Time;
-    match j {
-        Json::String(_) => literal(j, t, iec::parse_time),
-        _ => fit(integer(j, t)?, t),
+    match token {
+        Token::Str(s) => literal_str(s, t, iec::parse_time),
+        _ => fit(integer(token, t)?, t),
     }
 }
 
 /// A JSON string holding an IEC literal of type `t`, read by `parse`.
 fn literal<V>(
-    j: &Json,
+    token: Token<'_>,
     t: ElementaryType,
     parse: impl Fn(&str) -> Result<V, iec::LiteralError>,
 ) -> Result<V, TypeError> {
-    let Some(s) = j.as_str() else {
-        return Err(scalar_mismatch(j, t));
-    };
+    match token {
+        Token::Str(s) => literal_str(s, t, parse),
+        _ => Err(scalar_mismatch(token, t)),
+    }
+}
+
+/// An IEC literal of type `t` in `s`, read by `parse`.
+fn literal_str<V>(
+    s: &str,
+    t: ElementaryType,
+    parse: impl Fn(&str) -> Result<V, iec::LiteralError>,
+) -> Result<V, TypeError> {
     parse(s).map_err(|e| match e {
         iec::LiteralError::Syntax(why) => TypeError::Mismatch {
             expected: DataType::Elementary(t),
@@ -424,6 +514,7 @@ fn excerpt(s: &str) -> String {
 
 /// IEC 61131-3 literals: durations, dates, times of day and based bit strings.
 mod iec {
+    use std::borrow::Cow;
     use std::fmt::Write;
 
     use super::excerpt;
@@ -454,24 +545,31 @@ mod iec {
     /// Splits a run of digits in `radix` off the front of `s`, skipping single `_`
     /// between digits (IEC 61131-3 allows `1_000_000`, `16#FF_FF`). `None` when `s`
     /// does not start with a digit.
-    fn take_digits(s: &str, radix: u32) -> Option<(String, &str)> {
+    fn take_digits(s: &str, radix: u32) -> Option<(Cow<'_, str>, &str)> {
         let bytes = s.as_bytes();
         let is_digit = |b: Option<&u8>| b.is_some_and(|b| char::from(*b).is_digit(radix));
         if !is_digit(bytes.first()) {
             return None;
         }
-        let mut digits = String::new();
         let mut end = 0;
+        let mut separated = false;
         while end < bytes.len() {
             match bytes[end] {
-                b if is_digit(Some(&b)) => digits.push(char::from(b)),
-                b'_' if is_digit(bytes.get(end + 1)) => {}
+                b if is_digit(Some(&b)) => {}
+                b'_' if is_digit(bytes.get(end + 1)) => separated = true,
                 _ => break,
             }
             end += 1;
         }
         // Only ASCII bytes were consumed, so `end` is a character boundary.
-        Some((digits, &s[end..]))
+        let (run, rest) = s.split_at(end);
+        // Only copied when there are `_` to drop.
+        let digits = if separated {
+            Cow::Owned(run.replace('_', ""))
+        } else {
+            Cow::Borrowed(run)
+        };
+        Some((digits, rest))
     }
 
     /// A based literal `16#FF`, `8#17` or `2#1010`.
@@ -652,8 +750,10 @@ mod iec {
 
     /// `YYYY-MM-DD` as days since 1970-01-01, for years 1970 to 9999.
     fn date_body(s: &str) -> Result<u64, LiteralError> {
-        let parts: Vec<&str> = s.split('-').collect();
-        let [year, month, day] = parts[..] else {
+        let mut parts = s.split('-');
+        let (Some(year), Some(month), Some(day), None) =
+            (parts.next(), parts.next(), parts.next(), parts.next())
+        else {
             return Err(syntax("expected YYYY-MM-DD"));
         };
         let year = field(year, 4, 4, "YYYY-MM-DD")?;
@@ -676,8 +776,10 @@ mod iec {
             Some((hms, fraction)) => (hms, Some(fraction)),
             None => (s, None),
         };
-        let parts: Vec<&str> = hms.split(':').collect();
-        let [hours, minutes, seconds] = parts[..] else {
+        let mut parts = hms.split(':');
+        let (Some(hours), Some(minutes), Some(seconds), None) =
+            (parts.next(), parts.next(), parts.next(), parts.next())
+        else {
             return Err(syntax(format!("expected {FORM}")));
         };
         let hours = field(hours, 1, 2, FORM)?;
@@ -989,6 +1091,67 @@ pub(crate) mod tests {
             let encoded = encode(&message, &data(ty));
             assert!(encoded.starts_with(b"["), "{t}");
             assert_eq!(decode(&encoded, &data(ty)), Ok(message), "{t}");
+        }
+    }
+
+    #[test]
+    fn encoding_writes_the_text_of_value_to_json() {
+        let mut values: Vec<Value> = Vec::new();
+        for (t, cases) in samples() {
+            let scalars: Vec<Value> = cases.into_iter().map(|(v, _)| v).collect();
+            values.extend(scalars.iter().cloned());
+            values.push(Value::Array(t, scalars));
+        }
+        values.extend([
+            Value::Real(f32::NAN),
+            Value::Real(f32::INFINITY),
+            Value::Real(-0.0),
+            Value::Real(16_777_217.0),
+            Value::Lreal(f64::NEG_INFINITY),
+            Value::Lreal(-0.0),
+            Value::Lreal(1e300),
+            Value::String("\u{0}\u{1f}\"\\/\u{7f}\u{2028}".into()),
+            Value::Date(MS_PER_DAY / 2),
+            Value::Array(T::Real, vec![Value::Real(f32::NAN), Value::Real(0.1)]),
+        ]);
+        for value in &values {
+            let encoded = encode(&Message::Data(value.clone()), &data(value.data_type()));
+            assert_eq!(
+                String::from_utf8_lossy(&encoded),
+                value_to_json(value).to_string(),
+                "{value:?}"
+            );
+        }
+        // Events, against building the text from `value_to_json`.
+        let port = OutputPort::Event(vec![
+            ("A", DataType::Elementary(T::Real)),
+            ("B\"\\", DataType::Elementary(T::String)),
+            ("C", DataType::Elementary(T::Time)),
+        ]);
+        for (seq, ts_us, data) in [
+            (Some(0), Some(u64::MAX), values[..3].to_vec()),
+            (None, Some(1), values[3..5].to_vec()),
+            (Some(7), None, values[5..9].to_vec()),
+            (None, None, vec![]),
+        ] {
+            let members: Vec<String> = seq
+                .map(|n| format!(r#""seq":{n}"#))
+                .into_iter()
+                .chain(ts_us.map(|n| format!(r#""ts":{n}"#)))
+                .chain([format!(
+                    r#""data":{{{}}}"#,
+                    with_names(&port)
+                        .zip(&data)
+                        .map(|(name, v)| format!("{}:{}", Json::from(name), value_to_json(v)))
+                        .collect::<Vec<_>>()
+                        .join(",")
+                )])
+                .collect();
+            let event = Message::Event(EventMessage { seq, ts_us, data });
+            assert_eq!(
+                String::from_utf8_lossy(&encode(&event, &port)),
+                format!("{{{}}}", members.join(","))
+            );
         }
     }
 
