@@ -26,7 +26,7 @@
 //! (refused by rumqttd 0.20), wills on takeover and keep-alive expiry, one port for
 //! MQTT 3.1.1 and 5, and refusals with the right reason codes.
 
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -85,12 +85,32 @@ pub struct ListenerPolicy {
 }
 
 /// Serves one accepted connection until it ends.
+///
+/// A connection's task is allocated once, as large as the largest state of this future,
+/// and most connections spend their life idle in `Session::run`. So the phases that are
+/// large and short (reading CONNECT, authenticating and linking, closing) run in boxes of
+/// their own that are freed when they end: an idle connection then holds its `Session`
+/// and the waiting loop, not the space the login needed (see also `Session::run`).
 pub async fn serve(
     stream: Box<dyn Stream>,
     peer: SocketAddr,
     listener: Arc<ListenerPolicy>,
     ctx: Arc<Context>,
 ) {
+    let Some(mut session) = Box::pin(accept(stream, peer, listener, &ctx)).await else {
+        return;
+    };
+    let end = session.run().await;
+    Box::pin(session.close(end)).await;
+}
+
+/// Reads the CONNECT and opens the session: None when the client was refused.
+async fn accept(
+    stream: Box<dyn Stream>,
+    peer: SocketAddr,
+    listener: Arc<ListenerPolicy>,
+    ctx: &Arc<Context>,
+) -> Option<Session> {
     let mut io = Io::new(stream, ctx.max_packet);
     let connect = match timeout(ctx.connect_timeout, io.read_connect()).await {
         Ok(Ok(packet)) => packet,
@@ -99,19 +119,25 @@ pub async fn serve(
             if let Some(code) = refusal.connack {
                 let _ = io.send(connack(code, None)).await;
             }
-            return;
+            return None;
         }
         Err(_) => {
             ctx.metrics.refused("connect_timeout");
             tracing::debug!(%peer, "no CONNECT in time; closed");
-            return;
+            return None;
         }
     };
-    let Some(mut session) = Session::open(io, connect, peer, &listener, &ctx).await else {
-        return;
-    };
-    let end = session.run().await;
-    session.close(end).await;
+    Session::open(io, connect, peer, &listener, ctx).await
+}
+
+/// What woke a waiting connection up (`Session::run`).
+enum Wake {
+    Backlogged,
+    Read(Result<usize, ReadError>),
+    /// The router sent something (`linked`), or dropped this connection's link.
+    Router {
+        linked: bool,
+    },
 }
 
 /// Why a session ended.
@@ -170,6 +196,11 @@ impl End {
 }
 
 /// An authenticated client's connection, registered with the router.
+///
+/// Every idle connection holds one, so it is kept small: per-session tables are B-tree
+/// maps (24 bytes and no allocation while empty, against 48 for a `HashMap`; they stay
+/// small, bounded by the in-flight windows), and the will, which most devices set but which
+/// is used once at the end, is boxed.
 struct Session {
     io: Io,
     peer: SocketAddr,
@@ -177,7 +208,7 @@ struct Session {
     username: Option<String>,
     version: Version,
     keep_alive: Option<Duration>,
-    will: Option<Will>,
+    will: Option<Box<Will>>,
     link_tx: LinkTx,
     link_rx: LinkRx,
     /// This connection's session number for its client id (see `session_table`).
@@ -188,12 +219,12 @@ struct Session {
     /// Packets accepted from the current network read, handed to the router as one batch.
     to_router: Vec<Packet>,
     /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
-    partial_subscribes: HashMap<u16, Vec<Option<SubscribeReasonCode>>>,
+    partial_subscribes: BTreeMap<u16, Vec<Option<SubscribeReasonCode>>>,
     /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
-    refused_qos2: HashSet<u16>,
+    refused_qos2: BTreeSet<u16>,
     /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
     /// real topic and the router only ever gets full topic names.
-    topic_aliases: HashMap<u16, String>,
+    topic_aliases: BTreeMap<u16, String>,
     /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
     /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
     inflight_in: u16,
@@ -201,10 +232,10 @@ struct Session {
     client_max_packet: Option<usize>,
     /// QoS 2 deliveries acknowledged to the router on the client's behalf (dropped, or sent
     /// at a lower QoS): the router's PUBREL for them is answered here.
-    dropped_qos2: HashSet<u16>,
+    dropped_qos2: BTreeSet<u16>,
     /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
     /// the PUBREC the router waits for.
-    qos2_sent_as_qos1: HashSet<u16>,
+    qos2_sent_as_qos1: BTreeSet<u16>,
     /// Acknowledgements to the router, kept in the order the router requires.
     ack_order: AckOrder,
     /// The client's Receive Maximum (MQTT 5 3.1.2.11.3): QoS 1/2 deliveries it may have
@@ -214,7 +245,7 @@ struct Session {
     outstanding_out: u16,
     /// Their fingerprints by packet id (PUBACK, or PUBREC for QoS 2, removes one): sent
     /// with DUP=1 if the session resumes on a later connection (`redelivery`).
-    unacked_out: HashMap<u16, u64>,
+    unacked_out: BTreeMap<u16, u64>,
     /// Fingerprints of what the previous connection of this session left
     /// unacknowledged: the router re-sends those first, and they go out with DUP=1.
     redeliver: Vec<u64>,
@@ -223,11 +254,11 @@ struct Session {
     /// The router paused delivery and is woken once `held` is short again.
     wake_pending: bool,
     /// The client's subscriptions by filter, with their MQTT 5 options.
-    subscriptions: HashMap<String, Filter>,
+    subscriptions: BTreeMap<String, Filter>,
     /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
     special_subscriptions: bool,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
-    logged_denials: HashSet<(&'static str, String)>,
+    logged_denials: BTreeSet<(&'static str, String)>,
     /// Typed-topic state: the device's interface, event sequence numbers.
     fb: FbSession,
 }
@@ -372,8 +403,7 @@ impl Session {
             // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it
             // sends by subscription filter, so two topics matching one wildcard would share
             // an alias. fbbus sends full topic names.
-            let linked =
-                tokio::task::block_in_place(|| ctx.router.link(&client_id, lifetime.clean_link, 0));
+            let linked = ctx.router.link(&client_id, lifetime.clean_link, 0).await;
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
@@ -474,19 +504,19 @@ impl Session {
                 .as_ref()
                 .and_then(|p| p.max_packet_size)
                 .map(|m| m as usize),
-            will: accepted.will,
+            will: accepted.will.map(Box::new),
             link_tx: accepted.link_tx,
             link_rx: accepted.link_rx,
             session: accepted.session,
             lifetime: accepted.lifetime,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
-            partial_subscribes: HashMap::new(),
-            refused_qos2: HashSet::new(),
-            topic_aliases: HashMap::new(),
+            partial_subscribes: BTreeMap::new(),
+            refused_qos2: BTreeSet::new(),
+            topic_aliases: BTreeMap::new(),
             inflight_in: 0,
-            dropped_qos2: HashSet::new(),
-            qos2_sent_as_qos1: HashSet::new(),
+            dropped_qos2: BTreeSet::new(),
+            qos2_sent_as_qos1: BTreeSet::new(),
             ack_order: AckOrder::default(),
             client_receive_max: properties
                 .as_ref()
@@ -494,18 +524,22 @@ impl Session {
                 .filter(|m| *m > 0)
                 .unwrap_or(u16::MAX),
             outstanding_out: 0,
-            unacked_out: HashMap::new(),
+            unacked_out: BTreeMap::new(),
             redeliver,
             held: VecDeque::new(),
             wake_pending: false,
-            subscriptions: HashMap::new(),
+            subscriptions: BTreeMap::new(),
             special_subscriptions: false,
-            logged_denials: HashSet::new(),
+            logged_denials: BTreeSet::new(),
             fb,
         })
     }
 
     /// The connection's loop: network reads, router deliveries, keep-alive, shutdown.
+    ///
+    /// The loop only waits here; what it was woken for is handled in a boxed future, so
+    /// the connection's task holds the small waiting state while the device is idle and
+    /// the larger state of handling a batch only while it handles one (`serve`).
     async fn run(&mut self) -> End {
         let mut shutdown = self.ctx.shutdown.clone();
         let far_future = Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600);
@@ -516,17 +550,33 @@ impl Session {
             // Backpressure: while the router has not taken this client's previous packets,
             // stop reading its socket, so a fast publisher is slowed by TCP instead of
             // growing the router's input queue without bound.
+            // Two waits, one per case, so the pause timer only takes room in the task while
+            // the connection is backlogged.
             let backlogged = self.link_tx.buffer().len() >= ROUTER_BACKLOG;
-            tokio::select! {
-                _ = shutdown.changed() => return End::Shutdown,
-                _ = &mut deadline => return End::KeepAlive,
-                _ = tokio::time::sleep(Duration::from_millis(1)), if backlogged => {
+            let wake = if backlogged {
+                tokio::select! {
+                    _ = shutdown.changed() => return End::Shutdown,
+                    _ = &mut deadline => return End::KeepAlive,
+                    _ = tokio::time::sleep(Duration::from_millis(1)) => Wake::Backlogged,
+                    linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                }
+            } else {
+                tokio::select! {
+                    _ = shutdown.changed() => return End::Shutdown,
+                    _ = &mut deadline => return End::KeepAlive,
+                    read = self.io.fill() => Wake::Read(read),
+                    linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                }
+            };
+            let handled = match wake {
+                Wake::Backlogged => {
                     // Not reading is the broker's choice, not client silence.
                     if let Some(k) = self.keep_alive {
                         deadline.as_mut().reset(Instant::now() + k);
                     }
+                    Ok(())
                 }
-                read = self.io.fill(), if !backlogged => {
+                Wake::Read(read) => {
                     let n = match read {
                         Ok(n) => n,
                         Err(_) => return End::Abrupt,
@@ -535,15 +585,13 @@ impl Session {
                     if let Some(k) = self.keep_alive {
                         deadline.as_mut().reset(Instant::now() + k);
                     }
-                    if let Err(end) = self.read_packets().await {
-                        return end;
-                    }
+                    Box::pin(self.read_packets()).await
                 }
-                delivered = self.link_rx.next() => {
-                    if let Err(end) = self.deliver(delivered).await {
-                        return end;
-                    }
-                }
+                Wake::Router { linked: true } => Box::pin(self.deliver()).await,
+                Wake::Router { linked: false } => Err(Box::pin(self.router_dropped()).await),
+            };
+            if let Err(end) = handled {
+                return end;
             }
         }
     }
@@ -1001,33 +1049,16 @@ impl Session {
     }
 
     /// Writes what the router delivered, draining everything it has queued.
-    async fn deliver(&mut self, first: Result<Option<Notification>, LinkError>) -> Result<(), End> {
+    async fn deliver(&mut self) -> Result<(), End> {
         let mut unscheduled = false;
-        let mut next = first;
         loop {
-            match next {
+            match self.link_rx.recv_deadline(std::time::Instant::now()) {
                 Ok(Some(Notification::Unschedule)) => unscheduled = true,
                 Ok(Some(notification)) => self.outbound(notification),
                 Ok(None) => {}
                 Err(LinkError::RecvTimeout(_)) => break,
-                Err(_) => {
-                    let _ = self.io.flush().await;
-                    // The router dropped this link: either a newer connection took the
-                    // client id over, or the router refused something this client sent.
-                    return Err(
-                        if self.ctx.sessions.is_current(&self.client_id, self.session) {
-                            tracing::warn!(
-                                client_id = self.client_id,
-                                "the router ended the connection"
-                            );
-                            End::Router
-                        } else {
-                            End::Takeover
-                        },
-                    );
-                }
+                Err(_) => return Err(self.router_dropped().await),
             }
-            next = self.link_rx.recv_deadline(std::time::Instant::now());
         }
         self.route().await?;
         let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
@@ -1040,6 +1071,21 @@ impl Session {
             }
         }
         Ok(())
+    }
+
+    /// The router dropped this link: either a newer connection took the client id over,
+    /// or the router refused something this client sent.
+    async fn router_dropped(&mut self) -> End {
+        let _ = self.io.flush().await;
+        if self.ctx.sessions.is_current(&self.client_id, self.session) {
+            tracing::warn!(
+                client_id = self.client_id,
+                "the router ended the connection"
+            );
+            End::Router
+        } else {
+            End::Takeover
+        }
     }
 
     /// Sends held deliveries while the client's Receive Maximum allows.
@@ -1296,7 +1342,7 @@ impl Session {
             let _ = unlink(self.link_tx).await;
         }
         let will = self.will.take().filter(|_| end.fires_will());
-        if let Some(will) = will {
+        if let Some(will) = will.map(|w| *w) {
             // A will on a typed topic is a publication like any other: checked against
             // the declaration now, and re-encoded like one (the reference line's CONNECT
             // FB sets a BOOL output to FALSE this way).

@@ -2,7 +2,8 @@
 //!
 //! Reading is cancel-safe (bytes read stay in the buffer), so the connection loop can
 //! select on it. Buffers start small, because most of a line's devices are idle most of
-//! the time, and grow with the traffic.
+//! the time, grow with the traffic, and are let go of once they are empty again: a device
+//! that sent one burst must not keep a burst-sized buffer for the rest of the shift.
 
 use std::net::SocketAddr;
 
@@ -37,6 +38,15 @@ impl Refusal {
     }
 }
 
+/// Free room below which a read first reserves `BUSY_READ_RESERVE` more.
+const MIN_READ_ROOM: usize = 256;
+
+/// Room a read gets once a packet is underway: a batch of small packets per system call.
+const BUSY_READ_RESERVE: usize = 4 * 1024;
+
+/// A write buffer larger than this is freed after it was written out, not kept.
+const KEPT_WRITE_CAPACITY: usize = 1024;
+
 /// The socket with its read and write buffers.
 pub struct Io {
     pub stream: Box<dyn Stream>,
@@ -50,8 +60,8 @@ impl Io {
     pub fn new(stream: Box<dyn Stream>, max_packet: usize) -> Io {
         Io {
             stream,
-            // Small to start: an idle device should cost little; busy ones grow on demand.
-            read: BytesMut::with_capacity(512),
+            // Empty to start: an idle device should cost little; busy ones grow on demand.
+            read: BytesMut::new(),
             write: BytesMut::new(),
             codec: Codec(Version::V311),
             max_packet,
@@ -60,8 +70,16 @@ impl Io {
 
     /// Reads more bytes from the socket. Cancel-safe: bytes read stay in the buffer.
     pub async fn fill(&mut self) -> Result<usize, ReadError> {
-        if self.read.capacity() - self.read.len() < 256 {
-            self.read.reserve(4 * 1024);
+        if self.read.is_empty() {
+            // Everything read was decoded: let go of the last batch's buffer (packets that
+            // still point into it keep it alive only as long as they live). Reading into an
+            // empty `BytesMut` reserves 64 bytes: enough for a device's usual packet, and
+            // the next read of a longer one reserves more.
+            if self.read.capacity() > 0 {
+                self.read = BytesMut::new();
+            }
+        } else if self.read.capacity() - self.read.len() < MIN_READ_ROOM {
+            self.read.reserve(BUSY_READ_RESERVE);
         }
         match self.stream.read_buf(&mut self.read).await {
             Ok(0) | Err(_) => Err(ReadError::Closed),
@@ -159,7 +177,11 @@ impl Io {
         }
         self.stream.write_all(&self.write).await?;
         let n = self.write.len();
-        self.write.clear();
+        if self.write.capacity() > KEPT_WRITE_CAPACITY {
+            self.write = BytesMut::new();
+        } else {
+            self.write.clear();
+        }
         Ok(n)
     }
 

@@ -29,6 +29,8 @@
 //! - [`config`]: the TOML file, its embedded default and the secure-by-default rules.
 //! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
 //! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`.
+//! - [`router`] and [`memory`]: the vendored rumqttd router's thread, its reports
+//!   (skipped messages, idle), and giving freed memory back to the OS.
 //!
 //! Password files, access rules and throttling are the `security` crate's.
 
@@ -44,6 +46,7 @@ pub mod frame;
 pub mod framed;
 pub mod listener;
 pub mod logging;
+pub mod memory;
 pub mod metrics;
 pub mod origin;
 pub mod redelivery;

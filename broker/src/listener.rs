@@ -60,8 +60,11 @@ impl Listener {
                 let stream: Box<dyn Stream> = match tls {
                     None => Box::new(tcp),
                     Some(acceptor) => {
-                        match tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp)).await
-                        {
+                        // Boxed: the handshake's state must not stay in the task for the
+                        // connection's whole life (see `connection::serve`).
+                        let handshake =
+                            tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp));
+                        match Box::pin(handshake).await {
                             Ok(Ok(tls)) => Box::new(tls),
                             Ok(Err(e)) => {
                                 ctx.metrics.refused("tls_handshake");

@@ -86,6 +86,7 @@ pub struct Metrics {
     pub bytes_out: IntCounter,
     pub wills_published: IntCounter,
     pub messages_dropped: IntCounterVec,
+    pub messages_skipped: IntCounter,
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
     pub reloads: IntCounterVec,
@@ -208,6 +209,12 @@ impl Metrics {
                 "fbbus_messages_dropped_total",
                 "Deliveries not sent, by reason (client_max_packet_size)",
                 &["reason"],
+            ),
+            messages_skipped: counter(
+                "fbbus_messages_skipped_total",
+                "Messages a lagging subscriber never got: the router's commit log for its \
+                 filter had dropped them before it read them (router_segment_count x \
+                 router_segment_bytes per filter)",
             ),
             malformed_packets: counter(
                 "fbbus_malformed_packets_total",

@@ -4,28 +4,49 @@
 //! Connections reach it through links (`LinkTx` towards the router, `LinkRx` back).
 //! rumqttd does not export the type of the router's event channel, so the channel is
 //! captured in a closure here and the rest of the broker only sees [`RouterHandle::link`].
+//!
+//! fbbus runs a vendored rumqttd (`vendor/rumqttd`, changes in its `FBBUS-CHANGES.md`)
+//! that reports two things back through [`RouterHooks`]:
+//! - **skipped messages**: a subscriber that lags by more than a filter's commit log holds
+//!   (`router_segment_count` x `router_segment_bytes`) reads on from the oldest message
+//!   still there, and what retention dropped unread is lost. MQTT allows that for QoS 0,
+//!   but never silently here: `fbbus_messages_skipped_total` counts every such message
+//!   and one warning is logged per episode (until the subscriber catches up again).
+//!   Publishers are not slowed down for a slow subscriber: one stalled device must not
+//!   stop a line.
+//! - **idle**: after [`IDLE_AFTER`] without any event the router has freed the commit-log
+//!   data every reader has read and the empty per-connection queues; the broker then asks
+//!   the allocator to give freed memory back to the OS ([`crate::memory`]).
+
+use std::sync::Arc;
+use std::time::Duration;
 
 use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
-use rumqttd::{Notification, Router, RouterConfig};
+use rumqttd::{Notification, Router, RouterConfig, RouterHooks, Skipped};
 
 use crate::config::BrokerSection;
+use crate::metrics::Metrics;
 
-type Connect =
-    dyn Fn(&str, bool, u16) -> Result<(LinkTx, LinkRx, Notification), LinkRefused> + Send + Sync;
+/// How long the router must be quiet before it releases memory.
+pub const IDLE_AFTER: Duration = Duration::from_millis(500);
+
+type Builder = dyn for<'a> Fn(&'a str) -> LinkBuilder<'a> + Send + Sync;
 
 /// The router did not register a link (it is gone, or full).
 #[derive(Debug, thiserror::Error)]
 #[error("the router refused the connection: {0}")]
 pub struct LinkRefused(String);
 
+type Linked = Result<(LinkTx, LinkRx, Notification), LinkRefused>;
+
 pub struct RouterHandle {
-    connect: Box<Connect>,
+    builder: Box<Builder>,
 }
 
 impl RouterHandle {
     /// Starts the router thread with the line's memory bounds.
-    pub fn spawn(broker: &BrokerSection) -> RouterHandle {
+    pub fn spawn(broker: &BrokerSection, metrics: Arc<Metrics>) -> RouterHandle {
         let config = RouterConfig {
             // One extra for the broker's internal link.
             max_connections: broker.max_connections + 1,
@@ -36,29 +57,56 @@ impl RouterHandle {
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
         };
-        let router_tx = Router::new(0, config).spawn();
+        let hooks = RouterHooks {
+            skipped: Some(Box::new(move |skipped: &Skipped<'_>| {
+                metrics.messages_skipped.inc_by(skipped.count);
+                if skipped.first_in_episode {
+                    tracing::warn!(
+                        client_id = skipped.client_id,
+                        filter = skipped.filter,
+                        skipped = skipped.count,
+                        "subscriber lagged behind the commit log; messages skipped \
+                         (counted in fbbus_messages_skipped_total, logged once until it catches up)"
+                    );
+                }
+            })),
+            idle: Some(Box::new(crate::memory::release_freed)),
+            idle_after: IDLE_AFTER,
+        };
+        let router_tx = Router::new(0, config).with_hooks(hooks).spawn();
         RouterHandle {
-            connect: Box::new(move |client_id, clean_session, topic_alias_max| {
-                LinkBuilder::new(client_id, router_tx.clone())
-                    .clean_session(clean_session)
-                    .dynamic_filters(true)
-                    .topic_alias_max(topic_alias_max)
-                    .build()
-                    .map_err(|e| LinkRefused(e.to_string()))
-            }),
+            builder: Box::new(move |client_id| LinkBuilder::new(client_id, router_tx.clone())),
         }
     }
 
     /// Registers a connection with the router. A connection with the same client id is
     /// dropped by the router (its `LinkRx` fails), which is how takeover reaches it.
-    /// Blocks until the router answers, which it does within its next event loop turn.
-    pub fn link(
+    /// Waits (without blocking the thread) until the router answers, within its next
+    /// event loop turn.
+    pub async fn link(&self, client_id: &str, clean_session: bool, topic_alias_max: u16) -> Linked {
+        self.builder(client_id, clean_session, topic_alias_max)
+            .build_async()
+            .await
+            .map_err(|e| LinkRefused(e.to_string()))
+    }
+
+    /// [`RouterHandle::link`] for callers that must link while holding a lock: blocks the
+    /// thread (and tells tokio so) until the router answers.
+    pub fn link_blocking(&self, client_id: &str, clean_session: bool) -> Linked {
+        let builder = self.builder(client_id, clean_session, 0);
+        tokio::task::block_in_place(|| builder.build().map_err(|e| LinkRefused(e.to_string())))
+    }
+
+    fn builder<'a>(
         &self,
-        client_id: &str,
+        client_id: &'a str,
         clean_session: bool,
         topic_alias_max: u16,
-    ) -> Result<(LinkTx, LinkRx, Notification), LinkRefused> {
-        (self.connect)(client_id, clean_session, topic_alias_max)
+    ) -> LinkBuilder<'a> {
+        (self.builder)(client_id)
+            .clean_session(clean_session)
+            .dynamic_filters(true)
+            .topic_alias_max(topic_alias_max)
     }
 }
 

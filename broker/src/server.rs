@@ -78,8 +78,10 @@ impl Broker {
             Arc::clone(&metrics),
         ));
 
-        let router = RouterHandle::spawn(&config.broker);
-        let internal = tokio::task::block_in_place(|| router.link(INTERNAL_CLIENT_ID, true, 0))
+        let router = RouterHandle::spawn(&config.broker, Arc::clone(&metrics));
+        let internal = router
+            .link(INTERNAL_CLIENT_ID, true, 0)
+            .await
             .map_err(|e| StartError::Router(e.to_string()))?;
         let publisher = BrokerPublisher::start((internal.0, internal.1));
         let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics));

@@ -52,7 +52,7 @@ impl SessionLifetime {
 /// Ends a session the router saved for `client_id`: a clean link with that client id
 /// replaces the saved state, and is disconnected at once.
 pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
-    let linked = tokio::task::block_in_place(|| router.link(client_id, true, 0));
+    let linked = router.link(client_id, true, 0).await;
     if let Ok((tx, _rx, _)) = linked {
         let _ = unlink(tx).await;
     }
@@ -63,7 +63,7 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
     // Linking under the table's lock orders the purge before any new connection of this
     // client id, whose own link then simply replaces the purge link.
     let linked = ctx.sessions.with_idle(client_id, session, || {
-        tokio::task::block_in_place(|| ctx.router.link(client_id, true, 0))
+        ctx.router.link_blocking(client_id, true)
     });
     if let Some(Ok((tx, _rx, _))) = linked {
         let _ = unlink(tx).await;

@@ -99,6 +99,23 @@ impl<'a> LinkBuilder<'a> {
     }
 
     pub fn build(self) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
+        let (event, pending) = self.connect_event();
+        pending.router_tx.send((0, event))?;
+        pending.link_rx.recv()?;
+        pending.finish()
+    }
+
+    /// fbbus: `build` without blocking the calling thread while the router registers the
+    /// connection, so a runtime worker keeps serving other connections meanwhile.
+    pub async fn build_async(self) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
+        let (event, pending) = self.connect_event();
+        pending.router_tx.send_async((0, event)).await?;
+        pending.link_rx.recv_async().await?;
+        pending.finish()
+    }
+
+    /// The router's Connect event, and what the link needs once the router answered it.
+    fn connect_event(self) -> (Event, PendingLink) {
         // Connect to router
         // Local connections to the router shall have access to all subscriptions
         let mut connection = Connection::new(
@@ -113,19 +130,37 @@ impl<'a> LinkBuilder<'a> {
             .topic_alias_max(self.topic_alias_max);
         let incoming = Incoming::new(connection.client_id.to_owned());
         let (outgoing, link_rx) = Outgoing::new(connection.client_id.to_owned());
-        let outgoing_data_buffer = outgoing.buffer();
-        let incoming_data_buffer = incoming.buffer();
+        let pending = PendingLink {
+            router_tx: self.router_tx,
+            link_rx,
+            outgoing_data_buffer: outgoing.buffer(),
+            incoming_data_buffer: incoming.buffer(),
+        };
 
         let event = Event::Connect {
             connection,
             incoming,
             outgoing,
         };
+        (event, pending)
+    }
+}
 
-        self.router_tx.send((0, event))?;
+/// fbbus: a link whose Connect event was sent, waiting for the router's ConnAck.
+struct PendingLink {
+    router_tx: Sender<(ConnectionId, Event)>,
+    link_rx: Receiver<()>,
+    outgoing_data_buffer: Arc<Mutex<VecDeque<Notification>>>,
+    incoming_data_buffer: Arc<Mutex<VecDeque<Packet>>>,
+}
 
-        link_rx.recv()?;
-        let notification = outgoing_data_buffer.lock().pop_front().unwrap();
+impl PendingLink {
+    fn finish(self) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
+        let notification = self
+            .outgoing_data_buffer
+            .lock()
+            .pop_front()
+            .ok_or(LinkError::NotConnectionAck)?;
 
         // Right now link identifies failure with dropped rx in router,
         // which is probably ok. We need this here to get id assigned by router
@@ -134,8 +169,8 @@ impl<'a> LinkBuilder<'a> {
             _message => return Err(LinkError::NotConnectionAck),
         };
 
-        let tx = LinkTx::new(id, self.router_tx.clone(), incoming_data_buffer);
-        let rx = LinkRx::new(id, self.router_tx, link_rx, outgoing_data_buffer);
+        let tx = LinkTx::new(id, self.router_tx.clone(), self.incoming_data_buffer);
+        let rx = LinkRx::new(id, self.router_tx, self.link_rx, self.outgoing_data_buffer);
         Ok((tx, rx, notification))
     }
 }
@@ -336,12 +371,21 @@ impl LinkRx {
             router_tx,
             router_rx,
             send_buffer: outgoing_data_buffer,
-            cache: VecDeque::with_capacity(100),
+            // fbbus: unallocated while idle, see `refill`.
+            cache: VecDeque::new(),
         }
     }
 
     pub fn id(&self) -> ConnectionId {
         self.connection_id
+    }
+
+    /// Collects 'all' the notifications the router buffered (one router trigger signifies
+    /// a bunch of them). fbbus: takes the router's buffer instead of swapping in the empty
+    /// cache, so neither side keeps a batch-sized allocation while the connection is idle
+    /// (upstream preallocated 100 notifications per link and the swap kept both buffers).
+    fn refill(&mut self) {
+        self.cache = mem::take(&mut *self.send_buffer.lock());
     }
 
     pub fn recv(&mut self) -> Result<Option<Notification>, LinkError> {
@@ -355,7 +399,7 @@ impl LinkRx {
                 self.router_rx.recv()?;
                 // Collect 'all' the data in the buffer after a notification.
                 // Notification means fresh data which isn't previously collected
-                mem::swap(&mut *self.send_buffer.lock(), &mut self.cache);
+                self.refill();
                 Ok(self.cache.pop_front())
             }
         }
@@ -370,10 +414,22 @@ impl LinkRx {
             None => {
                 // If cache is empty, check for router trigger and get fresh notifications
                 self.router_rx.recv_deadline(deadline)?;
-                mem::swap(&mut *self.send_buffer.lock(), &mut self.cache);
+                self.refill();
                 Ok(self.cache.pop_front())
             }
         }
+    }
+
+    /// fbbus: waits until the router sent something, without taking it: the next `recv*`
+    /// or `next` returns it. A caller waiting on several things (a socket, the router)
+    /// then holds no notification, and no allocation, while it waits.
+    pub async fn wait(&mut self) -> Result<(), LinkError> {
+        if self.cache.is_empty() {
+            self.cache = VecDeque::new();
+            self.router_rx.recv_async().await?;
+            self.refill();
+        }
+        Ok(())
     }
 
     pub async fn next(&mut self) -> Result<Option<Notification>, LinkError> {
@@ -383,11 +439,13 @@ impl LinkRx {
         match self.cache.pop_front() {
             Some(v) => Ok(Some(v)),
             None => {
+                // fbbus: hold no allocation while waiting.
+                self.cache = VecDeque::new();
                 // If cache is empty, check for router trigger and get fresh notifications
                 self.router_rx.recv_async().await?;
                 // Collect 'all' the data in the buffer after a notification.
                 // Notification means fresh data which isn't previously collected
-                mem::swap(&mut *self.send_buffer.lock(), &mut self.cache);
+                self.refill();
                 Ok(self.cache.pop_front())
             }
         }

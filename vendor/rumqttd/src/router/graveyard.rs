@@ -2,7 +2,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 
 use super::{
     scheduler::{PauseReason, Tracker},
-    ConnectionEvents,
+    ConnectionEvents, DataRequest,
 };
 
 pub struct Graveyard {
@@ -48,15 +48,12 @@ impl Graveyard {
         );
     }
 
-    /// Save only metrics for connection
-    pub fn save_metrics(&mut self, id: String, metrics: ConnectionEvents) {
-        self.connections.insert(
-            id,
-            SavedState {
-                session_state: None,
-                metrics,
-            },
-        );
+    /// fbbus: the read requests of the saved sessions (their subscriptions' cursors).
+    pub fn data_requests(&self) -> impl Iterator<Item = &DataRequest> {
+        self.connections
+            .values()
+            .filter_map(|saved| saved.session_state.as_ref())
+            .flat_map(|state| state.tracker.data_requests.iter())
     }
 }
 

@@ -32,7 +32,8 @@ impl Incoming {
     #[inline]
     pub(crate) fn new(client_id: String) -> Self {
         Self {
-            buffer: Arc::new(Mutex::new(VecDeque::with_capacity(MAX_CHANNEL_CAPACITY))),
+            // fbbus: allocated on first use; most devices are idle most of the time.
+            buffer: Arc::new(Mutex::new(VecDeque::new())),
             meter: Default::default(),
             client_id,
         }
@@ -43,10 +44,12 @@ impl Incoming {
         self.buffer.clone()
     }
 
+    /// Takes what the connection sent. fbbus: the connection is left with an unallocated
+    /// buffer (upstream swapped in the router's cache, so every connection that ever sent a
+    /// batch kept a batch-sized buffer while idle).
     #[inline]
-    pub(crate) fn exchange(&mut self, mut v: VecDeque<Packet>) -> VecDeque<Packet> {
-        std::mem::swap(&mut v, &mut self.buffer.lock());
-        v
+    pub(crate) fn take(&mut self) -> VecDeque<Packet> {
+        std::mem::take(&mut *self.buffer.lock())
     }
 }
 
@@ -72,13 +75,12 @@ impl Outgoing {
     #[inline]
     pub(crate) fn new(client_id: String) -> (Self, Receiver<()>) {
         let (handle, rx) = flume::bounded(MAX_CHANNEL_CAPACITY);
-        let data_buffer = VecDeque::with_capacity(MAX_CHANNEL_CAPACITY);
-        let inflight_buffer = VecDeque::with_capacity(MAX_INFLIGHT);
-        let unacked_pubrels = VecDeque::with_capacity(MAX_INFLIGHT);
-
-        // Ensure that there won't be any new allocations
-        assert!(MAX_INFLIGHT <= inflight_buffer.capacity());
-        assert!(MAX_CHANNEL_CAPACITY <= data_buffer.capacity());
+        // fbbus: no buffer is preallocated (upstream reserved 200 notifications and 2 x 100
+        // inflight entries per connection, ~40 KB for an idle device); they grow on use and
+        // `compact` gives the memory back once they are empty again.
+        let data_buffer = VecDeque::new();
+        let inflight_buffer = VecDeque::new();
+        let unacked_pubrels = VecDeque::new();
 
         let outgoing = Self {
             client_id,
@@ -96,6 +98,13 @@ impl Outgoing {
     #[inline]
     pub(crate) fn buffer(&self) -> Arc<Mutex<VecDeque<Notification>>> {
         self.data_buffer.clone()
+    }
+
+    /// fbbus: releases the memory of empty buffers (called when the router is idle).
+    pub(crate) fn compact(&mut self) {
+        shrink_if_empty(&mut self.inflight_buffer);
+        shrink_if_empty(&mut self.unacked_pubrels);
+        shrink_if_empty(&mut self.data_buffer.lock());
     }
 
     pub fn free_slots(&self) -> usize {
@@ -210,6 +219,13 @@ impl Outgoing {
         }
 
         o
+    }
+}
+
+/// fbbus: frees the allocation of an empty queue.
+pub(crate) fn shrink_if_empty<T>(queue: &mut VecDeque<T>) {
+    if queue.is_empty() && queue.capacity() > 0 {
+        *queue = VecDeque::new();
     }
 }
 

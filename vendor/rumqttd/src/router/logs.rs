@@ -6,6 +6,7 @@ use crate::protocol::{
     matches, ConnAck, ConnAckProperties, PingResp, PubAck, PubComp, PubRec, PubRel, Publish,
     PublishProperties, SubAck, UnsubAck,
 };
+use crate::router::iobufs::shrink_if_empty;
 use crate::router::{DataRequest, FilterIdx, SubscriptionMeter, Waiters};
 use crate::{ConnectionId, Filter, Offset, RouterConfig, Topic};
 
@@ -337,7 +338,8 @@ where
         // max_segment_size: usize, max_mem_segments: usize
         let log = CommitLog::new(max_segment_size, max_mem_segments).unwrap();
 
-        let waiters = Waiters::with_capacity(10);
+        // fbbus: allocated on first use.
+        let waiters = Waiters::with_capacity(0);
         let metrics = SubscriptionMeter::default();
         Data {
             filter: filter.to_owned(),
@@ -379,9 +381,10 @@ pub struct AckLog {
 impl AckLog {
     /// New log
     pub fn new() -> AckLog {
+        // fbbus: allocated on first use (upstream reserved 2 x 100 entries per connection).
         AckLog {
-            committed: VecDeque::with_capacity(100),
-            recorded: VecDeque::with_capacity(100),
+            committed: VecDeque::new(),
+            recorded: VecDeque::new(),
         }
     }
 
@@ -429,6 +432,12 @@ impl AckLog {
 
     pub fn readv(&mut self) -> &mut VecDeque<Ack> {
         &mut self.committed
+    }
+
+    /// fbbus: releases the memory of empty queues (called when the router is idle).
+    pub fn compact(&mut self) {
+        shrink_if_empty(&mut self.committed);
+        shrink_if_empty(&mut self.recorded);
     }
 }
 

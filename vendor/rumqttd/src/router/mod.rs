@@ -30,6 +30,40 @@ pub use connection::Connection;
 pub use routing::Router;
 pub use waiters::Waiters;
 
+/// fbbus: what the router tells the broker embedding it. The callbacks run on the router
+/// thread, between two events: they must be quick and must not wait on the router.
+pub struct RouterHooks {
+    /// A subscriber read past messages the filter's commit log no longer held: it lagged
+    /// by more than `max_segment_count` segments and retention dropped them unread.
+    pub skipped: Option<Box<dyn FnMut(&Skipped<'_>) + Send>>,
+    /// Called once the router had no event for `idle_after`, after it released the memory
+    /// no reader needs any more (read commit-log segments, empty per-connection queues).
+    /// Without it the router never releases memory early (upstream behaviour).
+    pub idle: Option<Box<dyn FnMut() + Send>>,
+    pub idle_after: std::time::Duration,
+}
+
+impl Default for RouterHooks {
+    fn default() -> Self {
+        RouterHooks {
+            skipped: None,
+            idle: None,
+            idle_after: std::time::Duration::from_millis(500),
+        }
+    }
+}
+
+/// fbbus: messages one subscriber did not get because the commit log had dropped them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Skipped<'a> {
+    pub client_id: &'a str,
+    pub filter: &'a str,
+    /// Messages skipped by this read.
+    pub count: u64,
+    /// True for the first skip since this subscription last caught up with its filter.
+    pub first_in_episode: bool,
+}
+
 pub const MAX_SCHEDULE_ITERATIONS: usize = 100;
 pub const MAX_CHANNEL_CAPACITY: usize = 200;
 
@@ -196,6 +230,9 @@ pub struct DataRequest {
     max_count: usize,
     pub(crate) forward_retained: bool,
     pub(crate) group: Option<String>,
+    /// fbbus: the last read skipped messages and the reader has not caught up since.
+    #[serde(default)]
+    pub(crate) skipping: bool,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

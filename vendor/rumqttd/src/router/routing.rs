@@ -9,12 +9,11 @@ use crate::router::scheduler::{PauseReason, Tracker};
 use crate::router::{ConnectionEvents, Forward};
 use crate::segments::Position;
 use crate::*;
-use flume::{bounded, Receiver, RecvError, Sender, TryRecvError};
+use flume::{bounded, Receiver, RecvError, RecvTimeoutError, Sender, TryRecvError};
 use slab::Slab;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::str::Utf8Error;
 use std::thread;
-use std::time::SystemTime;
 use thiserror::Error;
 use tracing::{debug, error, info, trace, warn};
 
@@ -25,8 +24,8 @@ use super::logs::{AckLog, DataLog};
 use super::scheduler::{ScheduleReason, Scheduler};
 use super::shared_subs::SharedGroup;
 use super::{
-    packetid, Connection, DataRequest, Event, FilterIdx, Meter, Notification, Print, RouterMeter,
-    ShadowRequest, MAX_CHANNEL_CAPACITY, MAX_SCHEDULE_ITERATIONS,
+    packetid, Connection, DataRequest, Event, FilterIdx, Meter, Notification, Print, RouterHooks,
+    RouterMeter, ShadowRequest, Skipped, MAX_CHANNEL_CAPACITY, MAX_SCHEDULE_ITERATIONS,
 };
 
 #[derive(Error, Debug)]
@@ -96,12 +95,14 @@ pub struct Router {
     router_tx: Sender<(ConnectionId, Event)>,
     /// Router metrics
     router_meters: RouterMeter,
-    /// Buffer for cache exchange of incoming packets
-    cache: Option<VecDeque<Packet>>,
     /// Shared subscriptions map <group-name, group>
     shared_subscriptions: HashMap<String, SharedGroup>,
     /// Will messages per client_id
     last_wills: HashMap<String, (LastWill, Option<LastWillProperties>)>,
+    /// fbbus: what the router reports to the broker embedding it.
+    hooks: RouterHooks,
+    /// fbbus: an event arrived since the router last released memory.
+    dirty: bool,
 }
 
 impl Router {
@@ -140,10 +141,17 @@ impl Router {
             router_rx,
             router_tx,
             router_meters: router_metrics,
-            cache: Some(VecDeque::with_capacity(MAX_CHANNEL_CAPACITY)),
             shared_subscriptions: HashMap::new(),
             last_wills: HashMap::new(),
+            hooks: RouterHooks::default(),
+            dirty: false,
         }
+    }
+
+    /// fbbus: sets the callbacks the router reports to (see [`RouterHooks`]).
+    pub fn with_hooks(mut self, hooks: RouterHooks) -> Router {
+        self.hooks = hooks;
+        self
     }
 
     /// Gets handle to the router. This is not a public method to ensure that link
@@ -196,7 +204,20 @@ impl Router {
         // Block on incoming events if there are no ready connections for consumption
         if self.consume().is_none() {
             // trace!("{}:: {:20} {:20} {:?}", self.id, "", "done-await", self.readyqueue);
-            let (id, data) = self.router_rx.recv()?;
+            // fbbus: once nothing happened for `idle_after`, release memory (only when the
+            // embedder asked for it with an idle hook, and once per quiet period).
+            let (id, data) = if self.dirty && self.hooks.idle.is_some() {
+                match self.router_rx.recv_timeout(self.hooks.idle_after) {
+                    Ok(event) => event,
+                    Err(RecvTimeoutError::Timeout) => {
+                        self.release_memory();
+                        return Ok(());
+                    }
+                    Err(RecvTimeoutError::Disconnected) => return Err(RouterError::Disconnected),
+                }
+            } else {
+                self.router_rx.recv()?
+            };
             self.events(id, data);
         }
 
@@ -234,6 +255,7 @@ impl Router {
     fn events(&mut self, id: ConnectionId, data: Event) {
         let span = tracing::error_span!("[>] incoming", connection_id = id);
         let _guard = span.enter();
+        self.dirty = true;
 
         match data {
             Event::Connect {
@@ -335,22 +357,14 @@ impl Router {
 
         let ackslog = AckLog::new();
 
-        let time = match SystemTime::now().duration_since(SystemTime::UNIX_EPOCH) {
-            Ok(v) => v.as_millis().to_string(),
-            Err(e) => format!("Time error = {e:?}"),
-        };
-
-        let event = "connection at ".to_owned() + &time + ", clean = " + &clean_session.to_string();
-        connection.events.events.push_back(event);
-
-        if connection.events.events.len() > 10 {
-            connection.events.events.pop_front();
-        }
+        // fbbus: no "connection at <time>" string is kept in the connection's event history
+        // (only `print_status` reads it): it cost a formatted string and a queue per
+        // connection, idle or not.
 
         if let Some(will) = connection.last_will.take() {
             self.last_wills.insert(
                 client_id.clone(),
-                (will, connection.last_will_properties.take()),
+                (*will, connection.last_will_properties.take().map(|p| *p)),
             );
         }
 
@@ -451,7 +465,7 @@ impl Router {
         }
 
         // Remove connection from router
-        let mut connection = self.connections.remove(id);
+        let connection = self.connections.remove(id);
         let _incoming = self.ibufs.remove(id);
         let outgoing = self.obufs.remove(id);
         let mut tracker = self.scheduler.remove(id);
@@ -481,18 +495,7 @@ impl Router {
             }
         }
 
-        // Add disconnection event to metrics
-        let time = match SystemTime::now().duration_since(SystemTime::UNIX_EPOCH) {
-            Ok(v) => v.as_millis().to_string(),
-            Err(e) => format!("Time error = {e:?}"),
-        };
-
-        let event = "disconnection at ".to_owned() + &time;
-        connection.events.events.push_back(event);
-
-        if connection.events.events.len() > 10 {
-            connection.events.events.pop_front();
-        }
+        // fbbus: no "disconnection at <time>" event string either (see above).
 
         // Save state for persistent sessions
         if !connection.clean {
@@ -521,12 +524,10 @@ impl Router {
                 connection.events,
                 outgoing.unacked_pubrels,
             );
-        } else {
-            tracker.pause(PauseReason::Busy);
-            let id = tracker.id.clone();
-            // Only save metrics in clean session
-            self.graveyard.save_metrics(id, connection.events);
         }
+        // fbbus: nothing is kept for a clean session. Upstream saved its event history in
+        // the graveyard, an entry per client id ever seen that was never removed: with
+        // server-assigned ids, memory grew with every connection.
         self.router_meters.total_connections -= 1;
     }
 
@@ -545,8 +546,7 @@ impl Router {
         let span = tracing::error_span!("incoming_payload", client_id);
         let _guard = span.enter();
 
-        // Instead of exchanging, we should just append new incoming packets inside cache
-        let mut packets = incoming.exchange(self.cache.take().unwrap());
+        let mut packets = incoming.take();
 
         let mut force_ack = false;
         let mut new_data = false;
@@ -638,12 +638,10 @@ impl Router {
                         }
                     };
 
-                    let meter = &mut self.ibufs.get_mut(id).unwrap().meter;
-                    if let Err(e) = meter.register_publish(&publish) {
-                        error!(
-                            reason = ?e, "Failed to write to incoming meter"
-                        );
-                    };
+                    // fbbus: no per-topic incoming meter (`IncomingMeter::register_publish`):
+                    // it copied the topic into a new String for every publish and kept an
+                    // entry per topic per connection for the connection's life; fbbus meters
+                    // publications itself.
                 }
                 Packet::Subscribe(mut subscribe, props) => {
                     let mut return_codes = Vec::new();
@@ -880,8 +878,6 @@ impl Router {
             }
         }
 
-        self.cache = Some(packets);
-
         // Prepare AcksRequest in tracker if router is operating in a
         // single node mode or force ack request for subscriptions
         if force_ack {
@@ -975,6 +971,7 @@ impl Router {
                 // set true for new subscriptions
                 forward_retained,
                 group,
+                skipping: false,
             };
 
             self.scheduler.track(id, request);
@@ -1057,6 +1054,7 @@ impl Router {
                 alertlog,
                 connection,
                 shared_group,
+                &mut self.hooks.skipped,
             ) {
                 ConsumeStatus::BufferFull => {
                     requests.push_back(request);
@@ -1090,6 +1088,60 @@ impl Router {
         requests.extend(skipped_requests);
         self.scheduler.trackv(id, requests);
         Some(())
+    }
+
+    /// fbbus: gives back the memory no reader needs any more, then calls the idle hook.
+    /// Commit-log data is kept from the lowest offset anyone may still read: subscribers'
+    /// read requests (active, parked, of offline persistent sessions, of shared groups)
+    /// and unacknowledged QoS 1/2 deliveries, which a resumed session re-reads.
+    fn release_memory(&mut self) {
+        self.dirty = false;
+        let mut needed: HashMap<FilterIdx, u64> = HashMap::new();
+        let mut need = |filter_idx: FilterIdx, offset: u64| {
+            needed
+                .entry(filter_idx)
+                .and_modify(|o| *o = (*o).min(offset))
+                .or_insert(offset);
+        };
+        let requests = self
+            .scheduler
+            .trackers
+            .iter()
+            .flat_map(|(_, tracker)| tracker.data_requests.iter())
+            .chain(
+                self.datalog
+                    .native
+                    .iter()
+                    .flat_map(|(_, data)| data.waiters.waiters().iter().map(|(_, r)| r)),
+            )
+            .chain(self.notifications.iter().map(|(_, r)| r))
+            .chain(self.graveyard.data_requests());
+        for request in requests {
+            need(request.filter_idx, request.cursor.1);
+            let group = request.group.as_ref();
+            if let Some(group) = group.and_then(|g| self.shared_subscriptions.get(g)) {
+                need(request.filter_idx, group.cursor.1);
+            }
+        }
+        for (_, outgoing) in self.obufs.iter_mut() {
+            for (filter_idx, cursor) in outgoing.retransmission_map() {
+                need(filter_idx, cursor.1);
+            }
+            outgoing.compact();
+        }
+        for (filter_idx, data) in self.datalog.native.iter_mut() {
+            data.log.release_read(needed.get(&filter_idx).copied());
+            super::iobufs::shrink_if_empty(data.waiters.get_mut());
+        }
+        for (_, ackslog) in self.ackslog.iter_mut() {
+            ackslog.compact();
+        }
+        for (_, tracker) in self.scheduler.trackers.iter_mut() {
+            super::iobufs::shrink_if_empty(&mut tracker.data_requests);
+        }
+        if let Some(idle) = self.hooks.idle.as_mut() {
+            idle();
+        }
     }
 
     pub fn handle_last_will(
@@ -1394,6 +1446,9 @@ fn ack_device_data(ackslog: &mut AckLog, outgoing: &mut Outgoing) -> bool {
     true
 }
 
+/// fbbus: see [`RouterHooks::skipped`].
+type SkipHook = Box<dyn FnMut(&Skipped<'_>) + Send>;
+
 enum ConsumeStatus {
     /// Limit for publishes on outgoing channel reached
     BufferFull,
@@ -1421,6 +1476,7 @@ fn forward_device_data(
     alertlog: &mut AlertLog,
     connection: &mut Connection,
     shared_group: Option<&mut SharedGroup>,
+    on_skip: &mut Option<SkipHook>,
 ) -> ConsumeStatus {
     let span = tracing::info_span!("outgoing_publish", client_id = outgoing.client_id);
     let _guard = span.enter();
@@ -1507,20 +1563,34 @@ fn forward_device_data(
         }
     }
 
-    if start != request.cursor {
-        let error = format!(
-            "Read cursor start jumped from {:?} to {:?} on {}",
-            request.cursor, start, request.filter
-        );
-
-        warn!(
+    // fbbus: a jump is measured in absolute offsets (the segment index of a cursor may
+    // change without any message being skipped, see `CommitLog::readv`), reported to the
+    // embedder with its size, and logged here at debug level only: a lagging subscriber
+    // jumps on nearly every read, the embedder logs once per episode.
+    if start.1 != request.cursor.1 {
+        let count = start.1.saturating_sub(request.cursor.1);
+        debug!(
             request_cursor = ?request.cursor,
             start_cursor = ?start,
-            error
+            count,
+            "Read cursor start jumped on {}",
+            request.filter
         );
+        if let Some(on_skip) = on_skip.as_mut() {
+            on_skip(&Skipped {
+                client_id: &outgoing.client_id,
+                filter: &request.filter,
+                count,
+                first_in_episode: !request.skipping,
+            });
+        }
+        request.skipping = true;
 
         let alert = alert::cursorjump(&outgoing.client_id, &request.filter, 0);
         alertlog.log(alert);
+    }
+    if caughtup {
+        request.skipping = false;
     }
 
     trace!(

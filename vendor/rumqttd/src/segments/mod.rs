@@ -5,7 +5,7 @@ mod segment;
 pub mod utils;
 
 use segment::{Segment, SegmentPosition};
-use tracing::warn;
+use tracing::debug;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Position {
@@ -167,6 +167,25 @@ where
         self.active_segment().last()
     }
 
+    /// fbbus: frees what every reader has read. `needed_from` is the lowest absolute offset
+    /// a reader may still read (`None`: nobody reads this log). Whole segments before it are
+    /// dropped; the active segment is emptied in place (same index, same next offset) when
+    /// everything in it was read, so no reader's cursor changes meaning. Upstream kept every
+    /// segment until retention pushed it out, i.e. up to `max_mem_segments + 1` full
+    /// segments per filter for as long as the broker ran.
+    pub fn release_read(&mut self, needed_from: Option<u64>) {
+        let end = self.active_segment().next_offset();
+        let keep_from = needed_from.map_or(end, |offset| offset.min(end));
+        while self.segments.len() > 1 && self.segments[0].next_offset() <= keep_from {
+            self.segments.pop_front();
+            self.head += 1;
+        }
+        if self.segments.len() == 1 && end <= keep_from && self.active_segment().is_allocated() {
+            *self.active_segment_mut() = Segment::with_offset(end);
+        }
+        self.segments.shrink_to_fit();
+    }
+
     /// Read `len` Ts at once. More efficient than reading 1 at a time. Returns
     /// the next offset to read data from. The Position::start returned need not
     /// be a valid index if the start given is not valid either.
@@ -183,13 +202,26 @@ where
             return Ok(Position::Done { start, end: start });
         }
 
-        if cursor.0 < self.head {
-            let head_absolute_offset = self.segments.front().unwrap().absolute_offset;
-            warn!(
-                "given index {} less than head {}, jumping to head",
-                cursor.0, head_absolute_offset
+        // fbbus: a cursor is located by its absolute offset. Below the head segment's first
+        // offset, the messages in between are gone (retention wrapped the log under a slow
+        // reader): the read starts at the head and `start` says so, and the router counts
+        // the skip. A cursor that only names a segment `release_read` dropped after it was
+        // read to its end is moved to the segment holding its offset: nothing was skipped.
+        let head_absolute_offset = self.segments.front().unwrap().absolute_offset;
+        if cursor.1 < head_absolute_offset {
+            debug!(
+                "offset {} below the log's first offset {}, jumping to head",
+                cursor.1, head_absolute_offset
             );
             cursor = (self.head, head_absolute_offset);
+            start = cursor;
+        } else if cursor.0 < self.head {
+            let idx = self
+                .segments
+                .iter()
+                .rposition(|segment| segment.absolute_offset <= cursor.1)
+                .unwrap_or(0);
+            cursor.0 = self.head + idx as u64;
             start = cursor;
         }
 
@@ -197,7 +229,7 @@ where
         let mut curr_segment = &self.segments[idx];
 
         if curr_segment.absolute_offset > cursor.1 {
-            warn!(
+            debug!(
                 "offset specified {} if less than actual {}, jumping",
                 cursor.1, curr_segment.absolute_offset
             );
@@ -674,5 +706,87 @@ mod tests {
                 end: (10, 105)
             }
         );
+    }
+}
+
+/// fbbus: releasing read segments and locating cursors by offset.
+#[cfg(test)]
+mod fbbus_tests {
+    use super::{CommitLog, Position};
+    use crate::Offset;
+    use bytes::Bytes;
+
+    /// A log of 1 KiB segments holding `count` 128-byte entries, 8 per segment: entry `i`
+    /// is at offset `i` in segment `i / 8`.
+    fn log(count: u8, max_segments: usize) -> CommitLog<Bytes> {
+        let mut log = CommitLog::new(1024, max_segments).unwrap();
+        for i in 0..count {
+            log.append(Bytes::from(vec![i; 128]));
+        }
+        log
+    }
+
+    fn read(log: &CommitLog<Bytes>, cursor: Offset, len: u64) -> (Position, Vec<u8>) {
+        let mut out = Vec::new();
+        let position = log.readv(cursor, len, &mut out).unwrap();
+        (position, out.into_iter().map(|(b, _)| b[0]).collect())
+    }
+
+    #[test]
+    fn releasing_everything_read_keeps_offsets() {
+        let mut log = log(25, 10);
+        assert_eq!(log.next_offset(), (3, 25));
+        // Segments 0..8, 8..16 and 16..24 were read by everyone.
+        log.release_read(Some(24));
+        assert_eq!(log.memory_segments_count(), 1);
+        // A reader at the end of a released segment reads on without a jump.
+        let (position, read_ids) = read(&log, (2, 24), 10);
+        assert_eq!(read_ids, vec![24]);
+        let (start, end) = ((3, 24), (3, 25));
+        assert_eq!(position, Position::Done { start, end });
+
+        // Everything was read: the active segment is emptied, offsets go on.
+        log.release_read(Some(25));
+        assert_eq!(log.memory_segments_count(), 1);
+        assert_eq!(log.next_offset(), (3, 25));
+        let start = (3, 25);
+        let nothing = (Position::Done { start, end: start }, vec![]);
+        assert_eq!(read(&log, start, 10), nothing);
+        log.append(Bytes::from(vec![25; 128]));
+        let (position, read_ids) = read(&log, (3, 25), 10);
+        assert_eq!(read_ids, vec![25]);
+        let (start, end) = ((3, 25), (3, 26));
+        assert_eq!(position, Position::Done { start, end });
+    }
+
+    #[test]
+    fn nothing_a_reader_still_needs_is_released() {
+        let mut log = log(25, 10);
+        log.release_read(Some(12));
+        // Segment 0 (0..8) was read by everyone; segment 1 (8..16) is still needed.
+        assert_eq!(log.memory_segments_count(), 3);
+        let (position, read_ids) = read(&log, (1, 12), 100);
+        assert_eq!(read_ids, (12..25).collect::<Vec<u8>>());
+        let (start, end) = ((1, 12), (3, 25));
+        assert_eq!(position, Position::Done { start, end });
+    }
+
+    #[test]
+    fn a_log_nobody_reads_is_emptied() {
+        let mut log = log(25, 10);
+        log.release_read(None);
+        assert_eq!(log.memory_segments_count(), 1);
+        assert_eq!(log.next_offset(), (3, 25));
+        assert_eq!(read(&log, (3, 25), 10).1, Vec::<u8>::new());
+    }
+
+    #[test]
+    fn a_jump_over_dropped_messages_starts_at_the_head() {
+        // At most 2 segments: of 45 entries, 32..45 are left.
+        let log = log(45, 2);
+        let (position, read_ids) = read(&log, (0, 5), 100);
+        assert_eq!(read_ids, (32..45).collect::<Vec<u8>>());
+        let (start, end) = ((4, 32), (5, 45));
+        assert_eq!(position, Position::Done { start, end });
     }
 }

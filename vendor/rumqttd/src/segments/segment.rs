@@ -27,16 +27,18 @@ impl<T> Segment<T>
 where
     T: Storage + Clone,
 {
+    // fbbus: segments start unallocated (upstream reserved 1,024 entries, ~300 KB, for
+    // every filter, including the dynamic filter of every topic ever published).
     pub(crate) fn with_offset(absolute_offset: u64) -> Self {
         Self {
-            data: Vec::with_capacity(1024),
+            data: Vec::new(),
             absolute_offset,
             total_size: 0,
         }
     }
     pub(crate) fn new() -> Self {
         Self {
-            data: Vec::with_capacity(1024),
+            data: Vec::new(),
             absolute_offset: 0,
             total_size: 0,
         }
@@ -94,6 +96,12 @@ where
             )),
             None => Ok(SegmentPosition::Done(self.next_offset())),
         }
+    }
+
+    /// fbbus: whether the segment holds memory (entries or reserved capacity).
+    #[inline]
+    pub(crate) fn is_allocated(&self) -> bool {
+        self.data.capacity() > 0
     }
 
     /// Get the number of `T` in the segment.
