@@ -11,15 +11,18 @@
 //!   (`router_segment_count` x `router_segment_bytes`) reads on from the oldest message
 //!   still there, and what retention dropped unread is lost. MQTT allows that for QoS 0,
 //!   but never silently here: `fbbus_messages_skipped_total` counts every such message
-//!   and one warning is logged per episode (until the subscriber catches up again).
+//!   and one warning is logged per episode (until the subscriber catches up again), at
+//!   most one per client per [`SKIP_WARNING_INTERVAL`]: a device that keeps falling behind
+//!   catches up briefly between bursts, and must not flood the log.
 //!   Publishers are not slowed down for a slow subscriber: one stalled device must not
 //!   stop a line.
 //! - **idle**: after [`IDLE_AFTER`] without any event the router has freed the commit-log
 //!   data every reader has read and the empty per-connection queues; the broker then asks
 //!   the allocator to give freed memory back to the OS ([`crate::memory`]).
 
+use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
@@ -30,6 +33,9 @@ use crate::metrics::Metrics;
 
 /// How long the router must be quiet before it releases memory.
 pub const IDLE_AFTER: Duration = Duration::from_millis(500);
+
+/// At most one skipped-messages warning per client in this time.
+pub const SKIP_WARNING_INTERVAL: Duration = Duration::from_secs(60);
 
 type Builder = dyn for<'a> Fn(&'a str) -> LinkBuilder<'a> + Send + Sync;
 
@@ -57,16 +63,18 @@ impl RouterHandle {
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
         };
+        let mut warned = SkipWarnings::default();
         let hooks = RouterHooks {
             skipped: Some(Box::new(move |skipped: &Skipped<'_>| {
                 metrics.messages_skipped.inc_by(skipped.count);
-                if skipped.first_in_episode {
+                if skipped.first_in_episode && warned.may_warn(skipped.client_id) {
                     tracing::warn!(
                         client_id = skipped.client_id,
                         filter = skipped.filter,
                         skipped = skipped.count,
                         "subscriber lagged behind the commit log; messages skipped \
-                         (counted in fbbus_messages_skipped_total, logged once until it catches up)"
+                         (all counted in fbbus_messages_skipped_total; logged once per \
+                         episode and at most once a minute per client)"
                     );
                 }
             })),
@@ -107,6 +115,32 @@ impl RouterHandle {
             .clean_session(clean_session)
             .dynamic_filters(true)
             .topic_alias_max(topic_alias_max)
+    }
+}
+
+/// When each client was last warned about skipped messages (router thread only).
+#[derive(Default)]
+struct SkipWarnings {
+    last: HashMap<String, Instant>,
+}
+
+impl SkipWarnings {
+    /// Whether `client_id` may be warned about now; records it if so.
+    fn may_warn(&mut self, client_id: &str) -> bool {
+        let now = Instant::now();
+        if self
+            .last
+            .get(client_id)
+            .is_some_and(|at| now.duration_since(*at) < SKIP_WARNING_INTERVAL)
+        {
+            return false;
+        }
+        if self.last.len() >= 1024 {
+            self.last
+                .retain(|_, at| now.duration_since(*at) < SKIP_WARNING_INTERVAL);
+        }
+        self.last.insert(client_id.to_owned(), now);
+        true
     }
 }
 
