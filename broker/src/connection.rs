@@ -40,7 +40,7 @@ use rumqttd::protocol::{
 use rumqttd::Notification;
 use security::{AclRules, Identity};
 use tokio::io::AsyncWriteExt;
-use tokio::sync::watch;
+use tokio::sync::{watch, OwnedSemaphorePermit};
 use tokio::time::{timeout, Instant};
 
 use crate::ack_order::AckOrder;
@@ -84,24 +84,31 @@ pub struct ListenerPolicy {
     pub anonymous: bool,
 }
 
-/// Serves one accepted connection until it ends.
+/// Serves one accepted connection: reads its CONNECT and logs it in on this task, then
+/// runs the session on a task of its own until it ends. `slot` is its place under
+/// `max_connections`, held until then.
 ///
-/// A connection's task is allocated once, as large as the largest state of this future,
-/// and most connections spend their life idle in `Session::run`. So the phases that are
-/// large and short (reading CONNECT, authenticating and linking, closing) run in boxes of
-/// their own that are freed when they end: an idle connection then holds its `Session`
-/// and the waiting loop, not the space the login needed (see also `Session::run`).
+/// Most connections spend their life idle in `Session::run`, and a task is allocated once,
+/// as large as the largest state of its future. So the session's task is spawned only once
+/// the login is done: it holds the `Session` and the waiting loop, not the room reading
+/// CONNECT, authenticating and linking needed. That room is this task's, freed right after,
+/// and reused by the next connection's login instead of leaving a hole next to each
+/// session's memory. The close, also large and short, runs boxed.
 pub async fn serve(
     stream: Box<dyn Stream>,
     peer: SocketAddr,
     listener: Arc<ListenerPolicy>,
     ctx: Arc<Context>,
+    slot: OwnedSemaphorePermit,
 ) {
-    let Some(mut session) = Box::pin(accept(stream, peer, listener, &ctx)).await else {
+    let Some(mut session) = accept(stream, peer, listener, &ctx).await else {
         return;
     };
-    let end = session.run().await;
-    Box::pin(session.close(end)).await;
+    tokio::spawn(async move {
+        let _slot = slot;
+        let end = session.run().await;
+        Box::pin(session.close(end)).await;
+    });
 }
 
 /// Reads the CONNECT and opens the session: None when the client was refused.
@@ -218,24 +225,11 @@ struct Session {
     ctx: Arc<Context>,
     /// Packets accepted from the current network read, handed to the router as one batch.
     to_router: Vec<Packet>,
-    /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
-    partial_subscribes: BTreeMap<u16, Vec<Option<SubscribeReasonCode>>>,
-    /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
-    refused_qos2: BTreeSet<u16>,
-    /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
-    /// real topic and the router only ever gets full topic names.
-    topic_aliases: BTreeMap<u16, String>,
     /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
     /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
     inflight_in: u16,
     /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
     client_max_packet: Option<usize>,
-    /// QoS 2 deliveries acknowledged to the router on the client's behalf (dropped, or sent
-    /// at a lower QoS): the router's PUBREL for them is answered here.
-    dropped_qos2: BTreeSet<u16>,
-    /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
-    /// the PUBREC the router waits for.
-    qos2_sent_as_qos1: BTreeSet<u16>,
     /// Acknowledgements to the router, kept in the order the router requires.
     ack_order: AckOrder,
     /// The client's Receive Maximum (MQTT 5 3.1.2.11.3): QoS 1/2 deliveries it may have
@@ -246,9 +240,6 @@ struct Session {
     /// Their fingerprints by packet id (PUBACK, or PUBREC for QoS 2, removes one): sent
     /// with DUP=1 if the session resumes on a later connection (`redelivery`).
     unacked_out: BTreeMap<u16, u64>,
-    /// Fingerprints of what the previous connection of this session left
-    /// unacknowledged: the router re-sends those first, and they go out with DUP=1.
-    redeliver: Vec<u64>,
     /// Deliveries waiting for the client's window, in order.
     held: VecDeque<(Publish, Option<PublishProperties>)>,
     /// The router paused delivery and is woken once `held` is short again.
@@ -257,10 +248,35 @@ struct Session {
     subscriptions: BTreeMap<String, Filter>,
     /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
     special_subscriptions: bool,
-    /// (action, topic) pairs already logged as denied, so a looping device logs once.
-    logged_denials: BTreeSet<(&'static str, String)>,
     /// Typed-topic state: the device's interface, event sequence numbers.
     fb: FbSession,
+    /// State most sessions never need, allocated on first use ([`Session::rare`]).
+    rare: Option<Box<Rare>>,
+}
+
+/// What a session needs only for uncommon traffic: refused or partly refused requests,
+/// QoS 2 exchanges the broker answers itself, MQTT 5 topic aliases, a resumed session's
+/// redeliveries. Boxed apart so the many sessions that never need it do not carry it.
+#[derive(Default)]
+struct Rare {
+    /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
+    partial_subscribes: BTreeMap<u16, Vec<Option<SubscribeReasonCode>>>,
+    /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
+    refused_qos2: BTreeSet<u16>,
+    /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
+    /// real topic and the router only ever gets full topic names.
+    topic_aliases: BTreeMap<u16, String>,
+    /// QoS 2 deliveries acknowledged to the router on the client's behalf (dropped, or sent
+    /// at a lower QoS): the router's PUBREL for them is answered here.
+    dropped_qos2: BTreeSet<u16>,
+    /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
+    /// the PUBREC the router waits for.
+    qos2_sent_as_qos1: BTreeSet<u16>,
+    /// Fingerprints of what the previous connection of this session left
+    /// unacknowledged: the router re-sends those first, and they go out with DUP=1.
+    redeliver: Vec<u64>,
+    /// (action, topic) pairs already logged as denied, so a looping device logs once.
+    logged_denials: BTreeSet<(&'static str, String)>,
 }
 
 const MAX_LOGGED_DENIALS: usize = 1024;
@@ -511,12 +527,7 @@ impl Session {
             lifetime: accepted.lifetime,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
-            partial_subscribes: BTreeMap::new(),
-            refused_qos2: BTreeSet::new(),
-            topic_aliases: BTreeMap::new(),
             inflight_in: 0,
-            dropped_qos2: BTreeSet::new(),
-            qos2_sent_as_qos1: BTreeSet::new(),
             ack_order: AckOrder::default(),
             client_receive_max: properties
                 .as_ref()
@@ -525,12 +536,16 @@ impl Session {
                 .unwrap_or(u16::MAX),
             outstanding_out: 0,
             unacked_out: BTreeMap::new(),
-            redeliver,
+            rare: (!redeliver.is_empty()).then(|| {
+                Box::new(Rare {
+                    redeliver,
+                    ..Rare::default()
+                })
+            }),
             held: VecDeque::new(),
             wake_pending: false,
             subscriptions: BTreeMap::new(),
             special_subscriptions: false,
-            logged_denials: BTreeSet::new(),
             fb,
         })
     }
@@ -550,14 +565,14 @@ impl Session {
             // Backpressure: while the router has not taken this client's previous packets,
             // stop reading its socket, so a fast publisher is slowed by TCP instead of
             // growing the router's input queue without bound.
-            // Two waits, one per case, so the pause timer only takes room in the task while
-            // the connection is backlogged.
+            // Two waits, one per case; the pause timer is boxed so it only takes memory
+            // while the connection is backlogged.
             let backlogged = self.link_tx.buffer().len() >= ROUTER_BACKLOG;
             let wake = if backlogged {
                 tokio::select! {
                     _ = shutdown.changed() => return End::Shutdown,
                     _ = &mut deadline => return End::KeepAlive,
-                    _ = tokio::time::sleep(Duration::from_millis(1)) => Wake::Backlogged,
+                    _ = Box::pin(tokio::time::sleep(Duration::from_millis(1))) => Wake::Backlogged,
                     linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
                 }
             } else {
@@ -665,7 +680,11 @@ impl Session {
                 Ok(())
             }
             Packet::PubRel(pubrel, _) => {
-                if self.refused_qos2.remove(&pubrel.pkid) {
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.refused_qos2.remove(&pubrel.pkid))
+                {
                     // A refused QoS 2 exchange ends here, never in the router, which drops
                     // a connection that releases a packet id it never saw.
                     let reason = match self.version {
@@ -686,7 +705,12 @@ impl Session {
                 }
                 Ok(())
             }
-            Packet::PubAck(ack, _) if self.qos2_sent_as_qos1.remove(&ack.pkid) => {
+            Packet::PubAck(ack, _)
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.qos2_sent_as_qos1.remove(&ack.pkid)) =>
+            {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 self.unacked_out.remove(&ack.pkid);
                 self.ack_for_client(2, ack.pkid);
@@ -843,7 +867,7 @@ impl Session {
                     None,
                 ));
                 // The PUBREL is answered here, like a refused one's: the router never saw it.
-                self.refused_qos2.insert(pkid);
+                self.rare().refused_qos2.insert(pkid);
             }
             _ => {}
         }
@@ -864,14 +888,18 @@ impl Session {
                 return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
             }
             (false, Some(alias)) => {
-                self.topic_aliases.insert(alias, topic.to_owned());
+                self.rare().topic_aliases.insert(alias, topic.to_owned());
                 topic.to_owned()
             }
             (false, None) => topic.to_owned(),
-            (true, Some(alias)) => match self.topic_aliases.get(&alias) {
-                Some(t) => t.clone(),
-                None => return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid)),
-            },
+            (true, Some(alias)) => {
+                match self.rare.as_ref().and_then(|r| r.topic_aliases.get(&alias)) {
+                    Some(t) => t.clone(),
+                    None => {
+                        return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
+                    }
+                }
+            }
             (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
         };
         if !security::acl::valid_topic(&topic) {
@@ -909,7 +937,7 @@ impl Session {
                     .queue(Packet::PubRec(PubRec { pkid, reason: rec }, None));
                 // MQTT 5 clients should not send PUBREL after a refusing PUBREC; some
                 // (paho 2.2) do, so the id is remembered for both versions.
-                self.refused_qos2.insert(pkid);
+                self.rare().refused_qos2.insert(pkid);
             }
             _ => {}
         }
@@ -987,7 +1015,9 @@ impl Session {
             .filter(|(_, r)| r.is_none())
             .map(|(f, _)| f)
             .collect();
-        self.partial_subscribes.insert(subscribe.pkid, refused);
+        self.rare()
+            .partial_subscribes
+            .insert(subscribe.pkid, refused);
         self.to_router.push(Packet::Subscribe(
             Subscribe {
                 pkid: subscribe.pkid,
@@ -995,6 +1025,11 @@ impl Session {
             },
             properties,
         ));
+    }
+
+    /// The session's [`Rare`] state, allocated on first use.
+    fn rare(&mut self) -> &mut Rare {
+        self.rare.get_or_insert_with(Box::default)
     }
 
     fn identity(&self) -> Identity<'_> {
@@ -1019,10 +1054,11 @@ impl Session {
     }
 
     fn log_denial(&mut self, action: &'static str, topic: &str) {
-        if self.logged_denials.len() >= MAX_LOGGED_DENIALS {
+        let logged = &mut self.rare().logged_denials;
+        if logged.len() >= MAX_LOGGED_DENIALS {
             return;
         }
-        if self.logged_denials.insert((action, topic.to_owned())) {
+        if logged.insert((action, topic.to_owned())) {
             tracing::warn!(
                 client_id = self.client_id,
                 username = self.username.as_deref().unwrap_or(""),
@@ -1103,7 +1139,11 @@ impl Session {
         let packet: Option<Packet> = notification.into();
         match packet {
             Some(Packet::SubAck(mut suback, properties)) => {
-                if let Some(refused) = self.partial_subscribes.remove(&suback.pkid) {
+                let refused = self
+                    .rare
+                    .as_mut()
+                    .and_then(|r| r.partial_subscribes.remove(&suback.pkid));
+                if let Some(refused) = refused {
                     let mut granted = suback.return_codes.into_iter();
                     suback.return_codes = refused
                         .into_iter()
@@ -1125,7 +1165,11 @@ impl Session {
             }
             Some(Packet::PubRel(pubrel, properties)) => {
                 self.ack_order.released(pubrel.pkid);
-                if self.dropped_qos2.remove(&pubrel.pkid) {
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.dropped_qos2.remove(&pubrel.pkid))
+                {
                     let complete = Packet::PubComp(
                         PubComp {
                             pkid: pubrel.pkid,
@@ -1203,7 +1247,7 @@ impl Session {
             if qos == 0 {
                 self.ack_for_client(routed_qos, pkid);
             } else {
-                self.qos2_sent_as_qos1.insert(pkid);
+                self.rare().qos2_sent_as_qos1.insert(pkid);
             }
         }
 
@@ -1211,7 +1255,9 @@ impl Session {
         match self.client_max_packet {
             Some(max) if size > max => {
                 self.io.write.truncate(before);
-                self.qos2_sent_as_qos1.remove(&pkid);
+                if let Some(rare) = self.rare.as_mut() {
+                    rare.qos2_sent_as_qos1.remove(&pkid);
+                }
                 if qos > 0 {
                     self.ack_for_client(routed_qos, pkid);
                 }
@@ -1234,9 +1280,12 @@ impl Session {
                     let print = redelivery::fingerprint(&topic, &payload);
                     self.unacked_out.insert(pkid, print);
                     // A delivery the previous connection already sent [MQTT-3.3.1-1].
-                    if let Some(i) = self.redeliver.iter().position(|p| *p == print) {
-                        self.redeliver.swap_remove(i);
-                        self.io.write[before] |= 0b0000_1000;
+                    let redeliver = self.rare.as_mut().map(|r| &mut r.redeliver);
+                    if let Some(redeliver) = redeliver.filter(|r| !r.is_empty()) {
+                        if let Some(i) = redeliver.iter().position(|p| *p == print) {
+                            redeliver.swap_remove(i);
+                            self.io.write[before] |= 0b0000_1000;
+                        }
                     }
                 }
             }
@@ -1313,7 +1362,7 @@ impl Session {
                 None,
             ),
             2 => {
-                self.dropped_qos2.insert(pkid);
+                self.rare().dropped_qos2.insert(pkid);
                 Packet::PubRec(
                     PubRec {
                         pkid,

@@ -16,7 +16,7 @@
 //! topics nobody declared pass through unchecked; declared ports are still checked, so an
 //! ill-typed message is never delivered in either mode.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::SystemTime;
@@ -44,7 +44,7 @@ pub enum Undeclared {
 }
 
 /// Why a publication was refused; each maps to one MQTT 5 PUBACK/PUBREC reason code.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Refusal {
     /// 0x87: another device's topic, or the broker's own namespace.
     NotAuthorized,
@@ -176,8 +176,9 @@ pub struct FbSession {
     /// The device's declared interface, once it has one.
     interface: Option<Arc<Interface>>,
     /// Event sequence numbers stamped for publishers that send none, per fb and port.
-    seq: HashMap<String, HashMap<String, u64>>,
-    logged: HashSet<(String, Refusal)>,
+    // B-tree maps: no allocation and 24 bytes while empty; every connection holds one.
+    seq: BTreeMap<String, BTreeMap<String, u64>>,
+    logged: BTreeSet<(String, Refusal)>,
     diag_budget: f64,
     diag_refill: std::time::Instant,
     /// Diagnostics for the device, published by the connection once the packets read
@@ -195,8 +196,8 @@ impl FbSession {
             username: username.map(str::to_owned),
             session,
             interface: None,
-            seq: HashMap::new(),
-            logged: HashSet::new(),
+            seq: BTreeMap::new(),
+            logged: BTreeSet::new(),
             diag_budget: DIAG_BURST,
             diag_refill: std::time::Instant::now(),
             outbox: Vec::new(),

@@ -56,15 +56,11 @@ impl Listener {
             let policy = Arc::clone(&self.policy);
             let tls = self.tls.clone();
             tokio::spawn(async move {
-                let _slot = slot;
                 let stream: Box<dyn Stream> = match tls {
                     None => Box::new(tcp),
                     Some(acceptor) => {
-                        // Boxed: the handshake's state must not stay in the task for the
-                        // connection's whole life (see `connection::serve`).
-                        let handshake =
-                            tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp));
-                        match Box::pin(handshake).await {
+                        match tokio::time::timeout(ctx.connect_timeout, acceptor.accept(tcp)).await
+                        {
                             Ok(Ok(tls)) => Box::new(tls),
                             Ok(Err(e)) => {
                                 ctx.metrics.refused("tls_handshake");
@@ -78,7 +74,7 @@ impl Listener {
                         }
                     }
                 };
-                connection::serve(stream, peer, policy, ctx).await;
+                connection::serve(stream, peer, policy, ctx, slot).await;
             });
         }
     }

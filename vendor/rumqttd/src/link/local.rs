@@ -4,7 +4,7 @@ use crate::protocol::{
 };
 use crate::router::Ack;
 use crate::router::{
-    iobufs::{Incoming, Outgoing},
+    iobufs::{shrink_if_empty, Incoming, Outgoing},
     Connection, Event, Notification, ShadowRequest,
 };
 use crate::ConnectionId;
@@ -156,11 +156,14 @@ struct PendingLink {
 
 impl PendingLink {
     fn finish(self) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
-        let notification = self
-            .outgoing_data_buffer
-            .lock()
-            .pop_front()
-            .ok_or(LinkError::NotConnectionAck)?;
+        // fbbus: the buffer the router allocated for the ConnAck is freed now if nothing
+        // else is in it (a resumed session's PubRels may be), not kept by an idle connection.
+        let notification = {
+            let mut buffer = self.outgoing_data_buffer.lock();
+            let notification = buffer.pop_front().ok_or(LinkError::NotConnectionAck)?;
+            shrink_if_empty(&mut buffer);
+            notification
+        };
 
         // Right now link identifies failure with dropped rx in router,
         // which is probably ok. We need this here to get id assigned by router

@@ -3,7 +3,7 @@ use slab::Slab;
 use crate::protocol::LastWillProperties;
 use crate::Filter;
 use crate::{protocol::LastWill, Topic};
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use super::ConnectionEvents;
 
@@ -20,7 +20,9 @@ pub struct Connection {
     /// Clean session
     pub clean: bool,
     /// Subscriptions
-    pub subscriptions: HashSet<Filter>,
+    /// fbbus: B-tree maps here (24 bytes and no allocation while empty, against 48): the
+    /// router keeps a `Connection` per connection, most with few subscriptions and aliases.
+    pub subscriptions: BTreeSet<Filter>,
     /// Last will of this connection
     /// fbbus: boxed, like the properties and the broker's aliases below: the router keeps a
     /// `Connection` per connection, and these are rarely set (fbbus handles wills itself).
@@ -30,11 +32,11 @@ pub struct Connection {
     /// Connection events
     pub events: ConnectionEvents,
     /// Topic aliases set by clients
-    pub(crate) topic_aliases: HashMap<u16, Topic>,
+    pub(crate) topic_aliases: BTreeMap<u16, Topic>,
     /// Topic aliases used by broker
     pub(crate) broker_topic_aliases: Option<Box<BrokerAliases>>,
     /// subscription IDs for a connection
-    pub(crate) subscription_ids: HashMap<Filter, usize>,
+    pub(crate) subscription_ids: BTreeMap<Filter, usize>,
 }
 
 impl Connection {
@@ -61,13 +63,13 @@ impl Connection {
             tenant_prefix,
             dynamic_filters,
             clean,
-            subscriptions: HashSet::default(),
+            subscriptions: BTreeSet::new(),
             last_will: None,
             last_will_properties: None,
             events: ConnectionEvents::default(),
-            topic_aliases: HashMap::new(),
+            topic_aliases: BTreeMap::new(),
             broker_topic_aliases: None,
-            subscription_ids: HashMap::new(),
+            subscription_ids: BTreeMap::new(),
         }
     }
 

@@ -1,4 +1,4 @@
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 
 use super::{
     scheduler::{PauseReason, Tracker},
@@ -26,7 +26,7 @@ impl Graveyard {
     pub fn save_state(
         &mut self,
         mut tracker: Tracker,
-        subscriptions: HashSet<String>,
+        subscriptions: BTreeSet<String>,
         metrics: ConnectionEvents,
         unacked_pubrels: VecDeque<u16>,
     ) {
@@ -66,7 +66,7 @@ pub struct SavedState {
 #[derive(Debug)]
 pub struct SessionState {
     pub tracker: Tracker,
-    pub subscriptions: HashSet<String>,
+    pub subscriptions: BTreeSet<String>,
     // used for pubrel in qos2
     pub unacked_pubrels: VecDeque<u16>,
 }

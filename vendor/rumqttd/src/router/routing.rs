@@ -719,9 +719,6 @@ impl Router {
                                 continue;
                             }
 
-                            let meter = &mut self.ibufs.get_mut(id).unwrap().meter;
-                            meter.unregister_subscription(filter);
-
                             if !connection.subscriptions.remove(filter) {
                                 warn!(
                                     pkid = unsubscribe.pkid,
@@ -982,9 +979,6 @@ impl Router {
         // TODO: figure out how we can update existing DataRequest
         // helpful in re-subscriptions and forwarding retained messages on
         // every subscribe
-
-        let meter = &mut self.ibufs.get_mut(id).unwrap().meter;
-        meter.register_subscription(filter_path.clone());
     }
 
     /// When a connection is ready, it should sweep native data from 'datalog',
@@ -1422,7 +1416,11 @@ fn ack_device_data(ackslog: &mut AckLog, outgoing: &mut Outgoing) -> bool {
     let span = tracing::info_span!("outgoing_ack", client_id = outgoing.client_id);
     let _guard = span.enter();
 
-    let acks = ackslog.readv();
+    // fbbus: the acks are taken, leaving the log unallocated. A connection's acks come in
+    // small batches (its ConnAck, a SubAck, the PubAcks of one read); a log that kept its
+    // largest batch's capacity until the router was idle left, after a connection storm,
+    // a hole next to every connection's memory that the allocator could not give back.
+    let acks = std::mem::take(ackslog.readv());
     if acks.is_empty() {
         debug!("No acks pending");
         return false;
@@ -1433,7 +1431,7 @@ fn ack_device_data(ackslog: &mut AckLog, outgoing: &mut Outgoing) -> bool {
 
     // Unlike forwards, we are reading all the pending acks for a given connection.
     // At any given point of time, there can be a max of connection's buffer size
-    for ack in acks.drain(..) {
+    for ack in acks {
         let pkid = packetid(&ack);
         trace!(pkid, "Ack added for pkid {}", pkid);
         let message = Notification::DeviceAck(ack);
