@@ -16,9 +16,11 @@
 //!   catches up briefly between bursts, and must not flood the log.
 //!   Publishers are not slowed down for a slow subscriber: one stalled device must not
 //!   stop a line.
-//! - **idle**: after [`IDLE_AFTER`] without any event the router has freed the commit-log
-//!   data every reader has read and the empty per-connection queues; the broker then asks
-//!   the allocator to give freed memory back to the OS ([`crate::memory`]).
+//! - **released**: the router has freed the commit-log data every reader has read and the
+//!   empty per-connection queues, after [`IDLE_AFTER`] without any event, and every
+//!   [`RELEASE_EVERY`] while traffic never pauses that long (a line with steady telemetry,
+//!   the registry publishing after a reconnect storm); the broker then asks the allocator
+//!   to give freed memory back to the OS ([`crate::memory`]).
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -33,6 +35,9 @@ use crate::metrics::Metrics;
 
 /// How long the router must be quiet before it releases memory.
 pub const IDLE_AFTER: Duration = Duration::from_millis(500);
+
+/// How often the router releases memory while it is never quiet that long.
+pub const RELEASE_EVERY: Duration = Duration::from_secs(10);
 
 /// At most one skipped-messages warning per client in this time.
 pub const SKIP_WARNING_INTERVAL: Duration = Duration::from_secs(60);
@@ -78,8 +83,9 @@ impl RouterHandle {
                     );
                 }
             })),
-            idle: Some(Box::new(crate::memory::release_freed)),
+            released: Some(Box::new(crate::memory::release_freed)),
             idle_after: IDLE_AFTER,
+            release_every: RELEASE_EVERY,
         };
         let router_tx = Router::new(0, config).with_hooks(hooks).spawn();
         RouterHandle {

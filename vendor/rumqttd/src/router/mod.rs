@@ -36,19 +36,22 @@ pub struct RouterHooks {
     /// A subscriber read past messages the filter's commit log no longer held: it lagged
     /// by more than `max_segment_count` segments and retention dropped them unread.
     pub skipped: Option<Box<dyn FnMut(&Skipped<'_>) + Send>>,
-    /// Called once the router had no event for `idle_after`, after it released the memory
-    /// no reader needs any more (read commit-log segments, empty per-connection queues).
+    /// Called after the router released the memory no reader needs any more (read
+    /// commit-log segments, empty per-connection queues): once it had no event for
+    /// `idle_after`, and while events keep coming, at most every `release_every`.
     /// Without it the router never releases memory early (upstream behaviour).
-    pub idle: Option<Box<dyn FnMut() + Send>>,
+    pub released: Option<Box<dyn FnMut() + Send>>,
     pub idle_after: std::time::Duration,
+    pub release_every: std::time::Duration,
 }
 
 impl Default for RouterHooks {
     fn default() -> Self {
         RouterHooks {
             skipped: None,
-            idle: None,
+            released: None,
             idle_after: std::time::Duration::from_millis(500),
+            release_every: std::time::Duration::from_secs(10),
         }
     }
 }

@@ -103,6 +103,8 @@ pub struct Router {
     hooks: RouterHooks,
     /// fbbus: an event arrived since the router last released memory.
     dirty: bool,
+    /// fbbus: when the router last released memory.
+    last_release: std::time::Instant,
 }
 
 impl Router {
@@ -145,6 +147,7 @@ impl Router {
             last_wills: HashMap::new(),
             hooks: RouterHooks::default(),
             dirty: false,
+            last_release: std::time::Instant::now(),
         }
     }
 
@@ -205,8 +208,8 @@ impl Router {
         if self.consume().is_none() {
             // trace!("{}:: {:20} {:20} {:?}", self.id, "", "done-await", self.readyqueue);
             // fbbus: once nothing happened for `idle_after`, release memory (only when the
-            // embedder asked for it with an idle hook, and once per quiet period).
-            let (id, data) = if self.dirty && self.hooks.idle.is_some() {
+            // embedder asked for it with a `released` hook, and once per quiet period).
+            let (id, data) = if self.dirty && self.hooks.released.is_some() {
                 match self.router_rx.recv_timeout(self.hooks.idle_after) {
                     Ok(event) => event,
                     Err(RecvTimeoutError::Timeout) => {
@@ -246,6 +249,15 @@ impl Router {
         // Poll 100 connections which are ready in ready queue
         for _ in 0..100 {
             self.consume();
+        }
+
+        // fbbus: a line is rarely quiet for long; under steady traffic, memory is still
+        // released every `release_every`.
+        if self.dirty
+            && self.hooks.released.is_some()
+            && self.last_release.elapsed() >= self.hooks.release_every
+        {
+            self.release_memory();
         }
 
         // self.send_all_alerts();
@@ -1084,12 +1096,14 @@ impl Router {
         Some(())
     }
 
-    /// fbbus: gives back the memory no reader needs any more, then calls the idle hook.
+    /// fbbus: gives back the memory no reader needs any more, then calls the `released`
+    /// hook.
     /// Commit-log data is kept from the lowest offset anyone may still read: subscribers'
     /// read requests (active, parked, of offline persistent sessions, of shared groups)
     /// and unacknowledged QoS 1/2 deliveries, which a resumed session re-reads.
     fn release_memory(&mut self) {
         self.dirty = false;
+        self.last_release = std::time::Instant::now();
         let mut needed: HashMap<FilterIdx, u64> = HashMap::new();
         let mut need = |filter_idx: FilterIdx, offset: u64| {
             needed
@@ -1133,8 +1147,8 @@ impl Router {
         for (_, tracker) in self.scheduler.trackers.iter_mut() {
             super::iobufs::shrink_if_empty(&mut tracker.data_requests);
         }
-        if let Some(idle) = self.hooks.idle.as_mut() {
-            idle();
+        if let Some(released) = self.hooks.released.as_mut() {
+            released();
         }
     }
 
