@@ -148,6 +148,7 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
         None => Config::embedded_default(),
     };
     broker::logging::init(&config.log).map_err(anyhow::Error::msg)?;
+    broker::memory::configure();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("fbbus")

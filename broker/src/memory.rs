@@ -14,6 +14,34 @@
 //! (`router::IDLE_AFTER`, once per quiet period) or every `router::RELEASE_EVERY` under
 //! steady traffic, never per packet.
 
+/// Allocations at least this large get pages of their own (mmap), returned on free.
+const MMAP_THRESHOLD: usize = 1024 * 1024;
+
+/// Free memory at the top of a heap beyond this is returned on free.
+const TRIM_THRESHOLD: usize = 4 * 1024 * 1024;
+
+/// Fixes glibc's thresholds for large allocations. Call once, before other threads start.
+///
+/// By default glibc raises its mmap threshold to the size of every large block freed, up to
+/// 32 MiB, and its trim threshold to twice that. After one burst, a commit-log segment's
+/// entry vector (tens of MiB) is then allocated inside a thread's arena instead of getting
+/// pages of its own; freed, it merges with the free space at the top of that arena, which
+/// `malloc_trim` does not return for arenas other than the main one, and which the free
+/// path only shrinks beyond the (now 64 MiB) trim threshold. The broker's resident size
+/// after a million messages then came out at 30 MB or at 95 MB from run to run, depending
+/// on where the last segment happened to lie. With fixed thresholds a block of 1 MiB or more
+/// is mapped on its own and unmapped when freed, and an arena keeps at most 4 MiB free at
+/// its top. The price: every argon2id login's 8 MiB working block is mapped fresh.
+pub fn configure() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; it is called before other threads
+    // allocate (and would be safe even then: glibc takes its own locks).
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD as libc::c_int);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD as libc::c_int);
+    }
+}
+
 /// Returns the allocator's free pages to the OS (glibc only; elsewhere a no-op).
 pub fn release_freed() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
