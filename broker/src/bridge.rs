@@ -191,43 +191,44 @@ pub async fn start(
     .await?;
     let retained_queries = link.retained_queries().await?;
 
-    let mut tasks = Vec::new();
-    tasks.push(tokio::spawn(imports(
-        Arc::clone(&link),
-        interest_rx,
-        Arc::clone(&ctx),
-        Arc::clone(&injector),
-    )));
-    tasks.push(tokio::spawn(inject_loop(
-        inbox,
-        Arc::clone(&ctx),
-        Arc::clone(&injector),
-        config.import.clone(),
-    )));
-    tasks.push(tokio::spawn(export_loop(
-        link.exporter(),
-        (export_link.0, export_link.1),
-        remote_interest_rx,
-        Arc::clone(&ctx),
-        config.export.clone(),
-    )));
-    tasks.push(tokio::spawn(bus_events(
-        Arc::clone(&link),
-        events,
-        remote_interest,
-        Arc::clone(&ctx),
-    )));
-    tasks.push(tokio::spawn(announce_local(
-        Arc::clone(&link),
-        local_now,
-        local_records_rx,
-    )));
-    tasks.push(tokio::spawn(serve_retained(
-        Arc::clone(&link),
-        retained_queries,
-        Arc::clone(&ctx),
-        config.export.clone(),
-    )));
+    let tasks = vec![
+        tokio::spawn(imports(
+            Arc::clone(&link),
+            interest_rx,
+            Arc::clone(&ctx),
+            Arc::clone(&injector),
+        )),
+        tokio::spawn(inject_loop(
+            inbox,
+            Arc::clone(&ctx),
+            Arc::clone(&injector),
+            config.import.clone(),
+        )),
+        tokio::spawn(export_loop(
+            link.exporter(),
+            (export_link.0, export_link.1),
+            remote_interest_rx,
+            Arc::clone(&ctx),
+            config.export.clone(),
+        )),
+        tokio::spawn(bus_events(
+            Arc::clone(&link),
+            events,
+            remote_interest,
+            Arc::clone(&ctx),
+        )),
+        tokio::spawn(announce_local(
+            Arc::clone(&link),
+            local_now,
+            local_records_rx,
+        )),
+        tokio::spawn(serve_retained(
+            Arc::clone(&link),
+            retained_queries,
+            Arc::clone(&ctx),
+            config.export.clone(),
+        )),
+    ];
     tracing::info!(line, mode = config.mode.as_str(), listen = ?config.listen, connect = ?config.connect,
         "bridge to the other lines started (zenoh)");
     metrics.bridge_imports.set(0);
@@ -471,11 +472,7 @@ async fn export_loop(
                             is_event.clear();
                         }
                     }
-                    Some(Notification::Unschedule) => {
-                        if rx.wake().await.is_err() {
-                            return;
-                        }
-                    }
+                    Some(Notification::Unschedule) if rx.wake().await.is_err() => return,
                     _ => {}
                 }
             }

@@ -40,6 +40,7 @@ impl Line {
         Line::start_on(name, &zenoh, connect, extra, None)
     }
 
+    /// `zenoh` empty: the bridge does not listen (zenoh client mode).
     fn start_on(
         name: &str,
         zenoh: &str,
@@ -47,6 +48,7 @@ impl Line {
         extra: &str,
         ports: Option<(SocketAddr, SocketAddr)>,
     ) -> Line {
+        let listen: Vec<&str> = [zenoh].into_iter().filter(|z| !z.is_empty()).collect();
         let dir = tempfile::tempdir().unwrap();
         let (mqtt, admin) = ports.unwrap_or_else(|| {
             (
@@ -62,7 +64,7 @@ impl Line {
                  [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\n\
                  [admin]\nbind = \"{admin}\"\n\n\
                  [log]\nlevel = \"info,rumqttd=warn,zenoh=warn\"\n\n\
-                 [bridge]\nlisten = [\"{zenoh}\"]\nconnect = {connect:?}\nlease_ms = 1000\n{extra}\n",
+                 [bridge]\nlisten = {listen:?}\nconnect = {connect:?}\nlease_ms = 1000\n{extra}\n",
             ),
         )
         .unwrap();
@@ -261,4 +263,298 @@ async fn a_remote_device_is_subscribed_to_as_if_it_were_local() {
             .metric("fbbus_bridge_messages_total{direction=\"import\"}"),
         (N + 4 + 1) as f64
     );
+}
+
+// ---------------------------------------------------------------- three lines: no loops, no duplicates
+
+/// Starts a device on each line and an observer of everything (`fb/#`) on each, has
+/// each device publish `n` QoS 1 values, and checks that every observer received every
+/// device's values exactly once, in order, at QoS 1: the loop-prone case, since every
+/// line both imports and exports everything.
+async fn everyone_gets_everything_once(lines: &[&Line], n: i64) {
+    let mut observers = Vec::new();
+    for line in lines {
+        let mut obs = V4::connect(line.port(), &format!("watch-{}", line.name), None)
+            .await
+            .unwrap();
+        obs.subscribe("fb/#").await;
+        observers.push(obs);
+    }
+    let others = (lines.len() - 1) as f64;
+    for line in lines {
+        line.wait_metric("fbbus_bridge_remote_subscriptions", others);
+    }
+    let mut devices = Vec::new();
+    for line in lines {
+        devices.push(device(line, &format!("dev-{}", line.name)).await);
+    }
+    for line in lines {
+        for other in lines {
+            other.wait_record(&format!("dev-{}", line.name), "online", PROPAGATION);
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    for i in 0..n {
+        for (dev, line) in devices.iter().zip(lines) {
+            publish(
+                dev,
+                &format!("fb/dev-{}/CONV/POSITION", line.name),
+                i.to_string(),
+                false,
+            )
+            .await;
+        }
+    }
+    for (obs, at) in observers.iter_mut().zip(lines) {
+        let received = drain(obs, Duration::from_millis(1500)).await;
+        for line in lines {
+            let topic = format!("fb/dev-{}/CONV/POSITION", line.name);
+            assert_eq!(
+                positions(&received, &topic),
+                (0..n).collect::<Vec<_>>(),
+                "observer on {} for {topic}: every value exactly once, in order",
+                at.name
+            );
+        }
+        assert_eq!(
+            received.len() as i64,
+            n * lines.len() as i64,
+            "nothing else"
+        );
+        assert!(received.iter().all(|p| p.qos == rumqttc::QoS::AtLeastOnce));
+    }
+    for line in lines {
+        assert_eq!(
+            line.broker
+                .metric("fbbus_bridge_messages_total{direction=\"export\"}"),
+            n as f64,
+            "line {} exported its own device's messages once, nothing it imported",
+            line.name
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chain_of_three_lines_delivers_exactly_once() {
+    // A and C are zenoh clients of B, a zenoh router: everything between A and C goes
+    // through B's bridge process, which must not re-export what it carries.
+    let b = Line::start("line-b", &[], "mode = \"router\"");
+    let a = Line::start_on("line-a", "", &[&b.zenoh], "mode = \"client\"", None);
+    let c = Line::start_on("line-c", "", &[&b.zenoh], "mode = \"client\"", None);
+    everyone_gets_everything_once(&[&a, &b, &c], 100).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_mesh_of_three_lines_delivers_exactly_once() {
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let c = Line::start("line-c", &[&a.zenoh, &b.zenoh], "");
+    everyone_gets_everything_once(&[&a, &b, &c], 100).await;
+}
+
+// ---------------------------------------------------------------- registry federation
+
+/// `fbbus devices` against `line`'s admin endpoint: the row of `id`.
+fn devices_row(line: &Line, id: &str) -> String {
+    let (ok, out, err) = common::run(
+        std::process::Command::new(common::fbbus_bin()).args([
+            "devices",
+            "--admin",
+            &line.broker.admin.to_string(),
+        ]),
+        Duration::from_secs(10),
+    );
+    assert!(ok, "fbbus devices failed: {err}");
+    out.lines()
+        .find(|l| l.split_whitespace().next() == Some(id))
+        .unwrap_or_else(|| panic!("no row for {id}:\n{out}"))
+        .to_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn remote_devices_are_unreachable_while_their_line_is_down_and_back_after() {
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let dev = device(&a, "conv-a").await;
+    let quitter = device(&a, "quitter").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    b.wait_record("quitter", "online", PROPAGATION);
+    let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+
+    // A device's own end is "offline" with its reason, not "unreachable".
+    quitter.client.disconnect().await.unwrap();
+    let record = b.wait_record("quitter", "offline", PROPAGATION);
+    assert_eq!(record["last_will_reason"], "clean disconnect");
+    drop(quitter);
+
+    // Line A dies abruptly: within a few seconds (lease 1 s) B marks its devices
+    // unreachable, and says so in `fbbus devices`.
+    let (mqtt, admin, zenoh) = (a.broker.mqtt, a.broker.admin, a.zenoh.clone());
+    drop(dev);
+    let stopped = Instant::now();
+    drop(a);
+    b.wait_record("conv-a", "unreachable", Duration::from_secs(6));
+    b.wait_record("quitter", "unreachable", Duration::from_secs(6));
+    let took = stopped.elapsed();
+    let row = devices_row(&b, "conv-a");
+    assert!(
+        row.contains("line-a") && row.contains("unreachable"),
+        "{row}"
+    );
+    assert!(
+        b.broker
+            .metric("fbbus_bridge_liveliness_changes_total{kind=\"line_down\"}")
+            >= 1.0
+    );
+    eprintln!("conv-a unreachable on line B {took:?} after line A stopped");
+
+    // Line A comes back (same addresses) and its device reconnects: online again on B,
+    // and B's subscriber, subscribed all along, gets the device's messages again, once.
+    let a = Line::start_on("line-a", &zenoh, &[], "", Some((mqtt, admin)));
+    let dev = device(&a, "conv-a").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    for i in 0..50 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..50).collect::<Vec<_>>()
+    );
+}
+
+// ---------------------------------------------------------------- deploy example
+
+/// The multi-line example in deploy/ is what operators copy: it must stay valid.
+#[test]
+fn the_multi_line_deploy_example_passes_check_config() {
+    let root = env!("CARGO_MANIFEST_DIR").to_owned() + "/../deploy/multi-line";
+    for file in ["line-a.toml", "line-b.toml"] {
+        let (ok, out, err) = common::run(
+            std::process::Command::new(common::fbbus_bin())
+                .args(["check-config", &format!("{root}/{file}")]),
+            Duration::from_secs(10),
+        );
+        assert!(ok, "deploy/multi-line/{file}: {out}{err}");
+    }
+}
+
+// ---------------------------------------------------------------- Python eclipse-zenoh
+
+/// Whether Python's `eclipse-zenoh` is importable (`.ci/run` installs it).
+fn python_zenoh() -> bool {
+    std::process::Command::new("python3")
+        .args(["-c", "import zenoh"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_python_zenoh_application_reads_and_writes_the_bus() {
+    use std::io::{BufRead, Write};
+    if !python_zenoh() {
+        eprintln!("SKIPPED: Python eclipse-zenoh is not installed (pip install eclipse-zenoh==1.10.2; .ci/run does)");
+        return;
+    }
+    let a = Line::start("line-a", &[], "");
+    let dev = device(&a, "conv-a").await;
+    let mut obs = V4::connect(a.port(), "watch-a", None).await.unwrap();
+    obs.subscribe("fb/pydev/CONV/POSITION").await;
+    obs.subscribe("dinasore/pydev/CONV/POSITION").await;
+
+    let script = env!("CARGO_MANIFEST_DIR").to_owned() + "/tests/python/zenoh_interop.py";
+    let mut py = std::process::Command::new("python3")
+        .args([&script, &a.zenoh])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut stdin = py.stdin.take().unwrap();
+    let (lines_tx, lines) = std::sync::mpsc::channel::<String>();
+    let stdout = py.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = lines_tx.send(line);
+        }
+    });
+    let next_line = |within: Duration| lines.recv_timeout(within).ok();
+    let guard = scopeguard(&mut py);
+
+    assert_eq!(next_line(Duration::from_secs(20)).as_deref(), Some("ready"));
+    // The Python line announced itself and its device: line A's registry has its record
+    // (from the record queryable), so its messages are checked against INT.
+    let record = a.wait_record("pydev", "online", PROPAGATION);
+    assert_eq!(record["line"], "line-py");
+    a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+
+    // Python sees line A's device under the documented key, with its stamp.
+    let mut got = None;
+    for i in 0..100 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+        if let Some(line) = next_line(Duration::from_millis(100)) {
+            got = Some(line);
+            break;
+        }
+    }
+    let got = got.expect("Python received no fbbus message");
+    let words: Vec<&str> = got.split_whitespace().collect();
+    assert_eq!(words[0], "got", "{got}");
+    assert_eq!(words[1], "fbbus/line-a/fb/conv-a/CONV/POSITION");
+    assert!(words[2].parse::<i64>().is_ok(), "{got}");
+    assert_eq!(
+        (words[3], words[4]),
+        ("line-a", "1"),
+        "origin line and QoS: {got}"
+    );
+
+    // Python's puts reach line A's MQTT subscribers as typed messages, re-encoded for
+    // DINASORE; the ill-typed one is refused.
+    writeln!(stdin, "put").unwrap();
+    assert_eq!(next_line(Duration::from_secs(10)).as_deref(), Some("put"));
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/pydev/CONV/POSITION"),
+        vec![1, 2, 3],
+        "{received:?}"
+    );
+    let dinasore: Vec<Value> = received
+        .iter()
+        .filter(|p| p.topic == "dinasore/pydev/CONV/POSITION")
+        .map(|p| serde_json::from_slice(&p.payload).unwrap())
+        .collect();
+    assert_eq!(
+        dinasore,
+        vec![
+            json!({"POSITION": 1}),
+            json!({"POSITION": 2}),
+            json!({"POSITION": 3})
+        ]
+    );
+    assert_eq!(
+        a.broker
+            .metric("fbbus_bridge_dropped_total{reason=\"type\"}"),
+        1.0
+    );
+    let _ = writeln!(stdin, "done");
+    drop(guard);
+}
+
+/// Kills the child when the test ends, however it ends.
+fn scopeguard(child: &mut std::process::Child) -> impl Drop + '_ {
+    struct Kill<'a>(&'a mut std::process::Child);
+    impl Drop for Kill<'_> {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    Kill(child)
 }
