@@ -48,8 +48,32 @@ impl Line {
         extra: &str,
         ports: Option<(SocketAddr, SocketAddr)>,
     ) -> Line {
+        Line::start_full(name, zenoh, connect, extra, ports, |_| String::new())
+    }
+
+    /// `prepare` writes files into the broker's directory and returns TOML tables for
+    /// the top of the config (`[auth]`, ...).
+    fn start_with(
+        name: &str,
+        zenoh: &str,
+        connect: &[&str],
+        extra: &str,
+        prepare: impl FnOnce(&std::path::Path) -> String,
+    ) -> Line {
+        Line::start_full(name, zenoh, connect, extra, None, prepare)
+    }
+
+    fn start_full(
+        name: &str,
+        zenoh: &str,
+        connect: &[&str],
+        extra: &str,
+        ports: Option<(SocketAddr, SocketAddr)>,
+        prepare: impl FnOnce(&std::path::Path) -> String,
+    ) -> Line {
         let listen: Vec<&str> = [zenoh].into_iter().filter(|z| !z.is_empty()).collect();
         let dir = tempfile::tempdir().unwrap();
+        let top = prepare(dir.path());
         let (mqtt, admin) = ports.unwrap_or_else(|| {
             (
                 format!("127.0.0.1:{}", free_port()).parse().unwrap(),
@@ -60,7 +84,7 @@ impl Line {
         std::fs::write(
             &config,
             format!(
-                "[broker]\nline = \"{name}\"\n\n\
+                "[broker]\nline = \"{name}\"\n\n{top}\n\
                  [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\n\
                  [admin]\nbind = \"{admin}\"\n\n\
                  [log]\nlevel = \"info,rumqttd=warn,zenoh=warn\"\n\n\
@@ -557,4 +581,120 @@ fn scopeguard(child: &mut std::process::Child) -> impl Drop + '_ {
         }
     }
     Kill(child)
+}
+
+// ---------------------------------------------------------------- security
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cross_line_traffic_obeys_the_acl_and_the_export_filters() {
+    // Line A exports only conv-a's ports; line B's ACL does not let conv-a write its ID
+    // port, exactly as it would refuse a local conv-a.
+    let a = Line::start("line-a", &[], "export = [\"fb/conv-a/#\"]");
+    let b = Line::start_with(
+        "line-b",
+        &format!("tcp/127.0.0.1:{}", free_port()),
+        &[&a.zenoh],
+        "",
+        |dir| {
+            let acl = dir.join("acl");
+            std::fs::write(
+                &acl,
+                "pattern write fb/%c/#\npattern read fb/#\npattern write fbbus/declare/%c\n\
+                 pattern read fbbus/diag/%c\nclient conv-a\ntopic deny fb/conv-a/CONV/ID\n",
+            )
+            .unwrap();
+            format!("[auth]\nacl_file = \"{}\"\n", acl.display())
+        },
+    );
+    let mut obs = observe(&b, "watch-b", &["fb/#"], &[&a]).await;
+    let conv = device(&a, "conv-a").await;
+    let other = device(&a, "conv-z").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    for i in 0..10 {
+        publish(&conv, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+        publish(&other, "fb/conv-z/CONV/POSITION", i.to_string(), false).await;
+    }
+    publish(&conv, "fb/conv-a/CONV/ID", json!("x").to_string(), false).await;
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..10).collect::<Vec<_>>()
+    );
+    assert!(
+        received.iter().all(|p| !p.topic.starts_with("fb/conv-z/")),
+        "line A does not export conv-z: {received:?}"
+    );
+    assert!(
+        received.iter().all(|p| p.topic != "fb/conv-a/CONV/ID"),
+        "line B's ACL refuses conv-a's ID"
+    );
+    assert_eq!(
+        b.broker
+            .metric("fbbus_bridge_dropped_total{reason=\"acl\"}"),
+        1.0
+    );
+}
+
+/// A CA and one certificate for 127.0.0.1/localhost usable as TLS server and client,
+/// as PEM strings: (ca, cert, key).
+fn bus_pki() -> (String, String, String) {
+    use rcgen::{
+        BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, KeyPair,
+        KeyUsagePurpose,
+    };
+    let ca_key = KeyPair::generate().unwrap();
+    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(DnType::CommonName, "fbbus bus test CA");
+    ca_params.key_usages = vec![
+        KeyUsagePurpose::KeyCertSign,
+        KeyUsagePurpose::DigitalSignature,
+    ];
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let key = KeyPair::generate().unwrap();
+    let mut params = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+    params.distinguished_name.push(DnType::CommonName, "line");
+    params.use_authority_key_identifier_extension = true;
+    params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+    params.extended_key_usages = vec![
+        ExtendedKeyUsagePurpose::ServerAuth,
+        ExtendedKeyUsagePurpose::ClientAuth,
+    ];
+    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    (ca.pem(), cert.pem(), key.serialize_pem())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_link_over_zenoh_tls_with_certificates_on_both_sides() {
+    let (ca, cert, key) = bus_pki();
+    let write = |dir: &std::path::Path| {
+        std::fs::write(dir.join("ca.crt"), &ca).unwrap();
+        std::fs::write(dir.join("line.crt"), &cert).unwrap();
+        std::fs::write(dir.join("line.key"), &key).unwrap();
+        String::new()
+    };
+    let tls = "[bridge.tls]\nroot_ca = \"ca.crt\"\ncert = \"line.crt\"\nkey = \"line.key\"\nmutual = true\n";
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let a = Line::start_full("line-a", &endpoint, &[], tls, None, write);
+    let b = Line::start_full(
+        "line-b",
+        &format!("tls/127.0.0.1:{}", free_port()),
+        &[&endpoint],
+        tls,
+        None,
+        write,
+    );
+    let dev = device(&a, "conv-a").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+    for i in 0..10 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..10).collect::<Vec<_>>()
+    );
 }
