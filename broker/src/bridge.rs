@@ -68,10 +68,10 @@ use security::Identity;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
-use crate::broker_publisher::{self, BrokerPublisher, Message};
+use crate::broker_publisher;
 use crate::connection::Context;
 use crate::fb_topics::{Check, FbSession};
-use crate::origin;
+use crate::origin::{self, Origin};
 use crate::registry::{Record, Status};
 
 /// The router link messages from the bus enter through.
@@ -167,7 +167,6 @@ pub async fn start(
             .map_err(|e| BridgeError::Router(e.to_string()))
     };
     let import_link = router_link(IMPORT_CLIENT_ID)?;
-    let injector = BrokerPublisher::start((import_link.0, import_link.1));
     let export_link = router_link(EXPORT_CLIENT_ID)?;
 
     let (interest, interest_rx) = mpsc::unbounded_channel();
@@ -190,18 +189,14 @@ pub async fn start(
     })
     .await?;
     let retained_queries = link.retained_queries().await?;
+    link.announce_line().await?;
 
     let tasks = vec![
-        tokio::spawn(imports(
-            Arc::clone(&link),
-            interest_rx,
-            Arc::clone(&ctx),
-            Arc::clone(&injector),
-        )),
+        tokio::spawn(imports(Arc::clone(&link), interest_rx, Arc::clone(&ctx))),
         tokio::spawn(inject_loop(
             inbox,
             Arc::clone(&ctx),
-            Arc::clone(&injector),
+            (import_link.0, import_link.1),
             config.import.clone(),
         )),
         tokio::spawn(export_loop(
@@ -247,7 +242,6 @@ async fn imports(
     link: Arc<Link>,
     mut interest: mpsc::UnboundedReceiver<Interest>,
     ctx: Arc<Context>,
-    injector: Arc<BrokerPublisher>,
 ) {
     let mut active: HashMap<String, (usize, Import)> = HashMap::new();
     while let Some(change) = interest.recv().await {
@@ -268,7 +262,7 @@ async fn imports(
                             Ok(retained) => {
                                 for message in retained {
                                     ctx.metrics.bridge_retained_replayed.inc();
-                                    inject(&ctx, &injector, message);
+                                    link.requeue(message).await;
                                 }
                             }
                             Err(e) => {
@@ -294,92 +288,150 @@ async fn imports(
     }
 }
 
-/// Messages from the bus into the router, checked like local publications.
+/// Messages from the bus into the router, checked like local publications, through the
+/// import link. Whatever the inbox holds is taken at once (up to [`INJECT_BATCH`]) and
+/// handed to the router in one go: one router wake-up per batch, not per message.
 async fn inject_loop(
     inbox: flume::Receiver<Inbound>,
     ctx: Arc<Context>,
-    injector: Arc<BrokerPublisher>,
+    (mut tx, mut rx): (LinkTx, LinkRx),
     import: Vec<String>,
 ) {
-    let mut dedup = Dedup::default();
-    while let Ok(message) = inbox.recv_async().await {
-        if !dedup.first_time(&message.stamp) {
-            ctx.metrics
-                .bridge_dropped
-                .with_label_values(&["duplicate"])
-                .inc();
-            continue;
+    // The router acknowledges QoS 1 messages to this link; nothing waits for them.
+    tokio::spawn(async move {
+        while let Ok(notification) = rx.next().await {
+            if matches!(notification, Some(Notification::Unschedule)) {
+                let _ = rx.wake().await;
+            }
         }
-        if !BusConfig::allows(&import, &message.topic) {
-            ctx.metrics
-                .bridge_dropped
-                .with_label_values(&["filter"])
-                .inc();
-            continue;
+    });
+    let mut injector = Injector {
+        dedup: Dedup::default(),
+        devices: HashMap::new(),
+        import,
+        pkid: 0,
+        packets: Vec::new(),
+    };
+    while let Ok(first) = inbox.recv_async().await {
+        injector.take(&ctx, first);
+        for message in inbox.try_iter().take(INJECT_BATCH) {
+            injector.take(&ctx, message);
         }
-        inject(&ctx, &injector, message);
+        if let Some(last) = injector.packets.pop() {
+            tx.buffer().extend(injector.packets.drain(..));
+            if tx.send(last).await.is_err() {
+                tracing::error!("router gone: the bridge stops importing");
+                return;
+            }
+        }
     }
 }
 
-/// ACL and typed check, then into the router through the import link.
-fn inject(ctx: &Context, injector: &BrokerPublisher, message: Inbound) {
-    let dropped = |reason: &str| {
-        ctx.metrics
-            .bridge_dropped
-            .with_label_values(&[reason])
-            .inc()
-    };
-    let Some(typed) = TypedTopic::parse(&message.topic) else {
-        return dropped("unbridgeable");
-    };
-    let device = typed.device;
-    let allowed = ctx.acl.as_ref().is_none_or(|acl| {
-        acl.get().can_publish(
-            Identity {
-                username: Some(device),
-                client_id: device,
-            },
-            &message.topic,
-        )
-    });
-    if !allowed {
-        tracing::debug!(
-            topic = message.topic,
-            line = message.stamp.line,
-            "message from another line refused by this line's ACL"
-        );
-        return dropped("acl");
-    }
-    let payload = Bytes::from(message.payload);
-    let routes = match ctx.fb.registry.get(device) {
-        Some(record) if record.line == message.stamp.line => {
-            let mut fb = FbSession::new(&ctx.fb, device, Some(device), 0);
-            fb.set_interface(Some(Arc::clone(&record.interface)));
-            let check = fb.check(&ctx.fb, &message.topic, &payload);
-            drop(fb.take_outbox());
-            match check {
-                Check::Pass => vec![(message.topic.clone(), payload)],
-                Check::Route(routes) => routes,
-                Check::Consumed | Check::Refused(_) => return dropped("type"),
-            }
+/// Messages taken from the inbox at once before the router is woken.
+const INJECT_BATCH: usize = 256;
+
+/// The importing side's state: what it has seen, and each remote device's typed check.
+struct Injector {
+    dedup: Dedup,
+    /// Per remote device: the interface its session checks against.
+    devices: HashMap<String, (Arc<fb_bridge::Interface>, FbSession)>,
+    import: Vec<String>,
+    pkid: u16,
+    packets: Vec<Packet>,
+}
+
+impl Injector {
+    fn take(&mut self, ctx: &Context, message: Inbound) {
+        let dropped = |reason: &str| {
+            ctx.metrics
+                .bridge_dropped
+                .with_label_values(&[reason])
+                .inc()
+        };
+        if !self.dedup.first_time(&message.stamp) {
+            return dropped("duplicate");
         }
-        // The record has not arrived yet: the origin line checked it against the same
-        // declaration; pass it as it came.
-        _ => vec![(message.topic.clone(), payload)],
-    };
-    ctx.metrics
-        .bridge_messages
-        .with_label_values(&["import"])
-        .inc();
-    for (topic, payload) in routes {
-        injector.publish(Message {
-            topic: topic.into(),
-            payload,
-            qos: message.stamp.qos.min(1),
-            retain: message.stamp.retain,
-            properties: None,
-            publisher: IMPORT_CLIENT_ID.to_owned(),
+        if !BusConfig::allows(&self.import, &message.topic) {
+            return dropped("filter");
+        }
+        let Some(typed) = TypedTopic::parse(&message.topic) else {
+            return dropped("unbridgeable");
+        };
+        let device = typed.device;
+        let allowed = ctx.acl.as_ref().is_none_or(|acl| {
+            acl.get().can_publish(
+                Identity {
+                    username: Some(device),
+                    client_id: device,
+                },
+                &message.topic,
+            )
         });
+        if !allowed {
+            tracing::debug!(
+                topic = message.topic,
+                line = message.stamp.line,
+                "message from another line refused by this line's ACL"
+            );
+            return dropped("acl");
+        }
+        let payload = Bytes::from(message.payload);
+        let routes = match ctx
+            .fb
+            .registry
+            .remote_interface(device, &message.stamp.line)
+        {
+            Some(interface) => {
+                let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
+                    (
+                        Arc::clone(&interface),
+                        FbSession::new(&ctx.fb, device, Some(device), 0),
+                    )
+                });
+                if !Arc::ptr_eq(&entry.0, &interface) || entry.1.interface().is_none() {
+                    entry.0 = Arc::clone(&interface);
+                    entry.1.set_interface(Some(interface));
+                }
+                let check = entry.1.check(&ctx.fb, &message.topic, &payload);
+                drop(entry.1.take_outbox());
+                match check {
+                    Check::Pass => vec![(message.topic, payload)],
+                    Check::Route(routes) => routes,
+                    Check::Consumed | Check::Refused(_) => return dropped("type"),
+                }
+            }
+            // The record has not arrived yet: the origin line checked the message against
+            // the same declaration; pass it as it came.
+            None => vec![(message.topic, payload)],
+        };
+        ctx.metrics
+            .bridge_messages
+            .with_label_values(&["import"])
+            .inc();
+        let qos = message.stamp.qos.min(1);
+        let origin = Origin {
+            qos,
+            retain: message.stamp.retain,
+            publisher: IMPORT_CLIENT_ID.to_owned(),
+        };
+        for (topic, payload) in routes {
+            let pkid = if qos > 0 {
+                self.pkid = self.pkid % u16::MAX + 1;
+                self.pkid
+            } else {
+                0
+            };
+            let publish = broker_publisher::publish_packet(
+                topic.as_bytes(),
+                &payload,
+                qos,
+                message.stamp.retain,
+                pkid,
+            );
+            let mut properties = None;
+            origin::mark(&mut properties, &origin);
+            self.packets.push(Packet::Publish(publish, properties));
+        }
     }
 }
 
@@ -453,7 +505,7 @@ async fn export_loop(
                             let qos = origin.as_ref().map_or(routed_qos, |o| o.qos.min(routed_qos));
                             let retain = origin.as_ref().is_some_and(|o| o.retain);
                             let payload = std::mem::take(&mut publish.payload);
-                            match exporter.export(&topic, &payload, qos, retain, event).await {
+                            match exporter.export(&topic, payload, qos, retain, event).await {
                                 Ok(true) => ctx.metrics.bridge_messages.with_label_values(&["export"]).inc(),
                                 Ok(false) => ctx.metrics.bridge_dropped.with_label_values(&["unbridgeable"]).inc(),
                                 Err(e) => {

@@ -242,6 +242,16 @@ impl Registry {
         self.devices.lock().expect("lock poisoned").get(id).cloned()
     }
 
+    /// The declared interface of `id` if it is a device of `line` (the bridge's typed
+    /// check of messages from that line: no record is cloned).
+    pub fn remote_interface(&self, id: &str, line: &str) -> Option<Arc<Interface>> {
+        let devices = self.devices.lock().expect("lock poisoned");
+        devices
+            .get(id)
+            .filter(|r| r.line == line)
+            .map(|r| Arc::clone(&r.interface))
+    }
+
     /// Every device, by id.
     pub fn list(&self) -> Vec<Record> {
         let mut all: Vec<Record> = self

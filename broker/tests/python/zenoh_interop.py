@@ -59,18 +59,19 @@ conf.insert_json5("connect/endpoints", json.dumps([ENDPOINT]))
 conf.insert_json5("scouting/multicast/enabled", "false")
 session = zenoh.open(conf)
 
-tokens = [
-    session.liveliness().declare_token(f"fbbus/@/line/{LINE}"),
-    session.liveliness().declare_token(f"fbbus/@/device/{LINE}/{DEVICE}"),
-    session.liveliness().declare_token(f"fbbus/@/interest/{LINE}/fb/%23"),
-]
 
 
 def answer(query):
     query.reply(f"fbbus/@/record/{LINE}/{DEVICE}", json.dumps(RECORD).encode())
 
 
+# Records are served before the line is announced: lines query them when they see it.
 records = session.declare_queryable(f"fbbus/@/record/{LINE}/*", answer)
+tokens = [
+    session.liveliness().declare_token(f"fbbus/@/line/{LINE}"),
+    session.liveliness().declare_token(f"fbbus/@/device/{LINE}/{DEVICE}"),
+    session.liveliness().declare_token(f"fbbus/@/interest/{LINE}/fb/%23"),
+]
 
 seen = threading.Event()
 

@@ -87,7 +87,8 @@ pub struct Link {
     line: String,
     epoch: u64,
     inbox: flume::Sender<Inbound>,
-    _line_token: LivelinessToken,
+    /// Declared by [`Link::announce_line`], once the line answers registry queries.
+    line_token: std::sync::Mutex<Option<LivelinessToken>>,
 }
 
 /// The interest of this line in one MQTT filter; dropping it undeclares both halves.
@@ -147,7 +148,8 @@ mod erased {
 }
 
 impl Link {
-    /// Opens the session, announces the line and starts watching the bus. Returns the
+    /// Opens the session and starts watching the bus (the line is announced separately,
+    /// [`Link::announce_line`]). Returns the
     /// link, its inbox (messages of imported filters) and the liveliness events.
     pub async fn open(
         config: &BusConfig,
@@ -247,22 +249,30 @@ impl Link {
             .await
             .map_err(zerr)?;
 
-        let line_token = session
-            .liveliness()
-            .declare_token(keys::line_token(line))
-            .await
-            .map_err(zerr)?;
         Ok((
             Link {
                 session,
                 line: line.to_owned(),
                 epoch,
                 inbox,
-                _line_token: line_token,
+                line_token: std::sync::Mutex::new(None),
             },
             inbox_rx,
             events_rx,
         ))
+    }
+
+    /// Tells the other lines this line is up. Call it once the records are served
+    /// ([`Link::serve_records`]): other lines query them as soon as they see the token.
+    pub async fn announce_line(&self) -> Result<(), LinkError> {
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(keys::line_token(&self.line))
+            .await
+            .map_err(zerr)?;
+        *self.line_token.lock().expect("lock poisoned") = Some(token);
+        Ok(())
     }
 
     pub fn line(&self) -> &str {
@@ -278,6 +288,11 @@ impl Link {
             seq: 0,
             publishers: std::collections::HashMap::new(),
         }
+    }
+
+    /// Puts a message (a retained reply) into the inbox, behind what is already there.
+    pub async fn requeue(&self, message: Inbound) {
+        let _ = self.inbox.send_async(message).await;
     }
 
     /// Declares this line's interest in `filter` (an MQTT filter within `fb/#`).
@@ -480,7 +495,7 @@ impl Exporter {
     pub async fn export(
         &mut self,
         topic: &str,
-        payload: &[u8],
+        payload: impl Into<zenoh::bytes::ZBytes>,
         qos: u8,
         retain: bool,
         event: bool,
@@ -515,7 +530,7 @@ impl Exporter {
         };
         let publisher = &self.publishers[topic];
         publisher
-            .put(payload.to_vec())
+            .put(payload)
             .attachment(stamp.encode())
             .await
             .map_err(zerr)?;

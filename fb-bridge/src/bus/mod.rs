@@ -226,7 +226,13 @@ impl Dedup {
         if stamp.seq == 0 {
             return true;
         }
-        let w = self.origins.entry(stamp.line.clone()).or_default();
+        if !self.origins.contains_key(&stamp.line) {
+            self.origins.insert(stamp.line.clone(), Window::default());
+        }
+        let w = self
+            .origins
+            .get_mut(&stamp.line)
+            .expect("inserted just above");
         if stamp.epoch != w.epoch {
             if stamp.epoch < w.epoch {
                 // A message of an older incarnation still in flight: its seq space is gone.
