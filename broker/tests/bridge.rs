@@ -698,3 +698,15 @@ async fn lines_link_over_zenoh_tls_with_certificates_on_both_sides() {
         (0..10).collect::<Vec<_>>()
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_line_started_before_its_peer_links_once_the_peer_is_up() {
+    // Line B starts while nothing listens on line A's endpoint yet: it keeps trying.
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let b = Line::start("line-b", &[&endpoint], "");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let a = Line::start_on("line-a", &endpoint, &[], "", None);
+    let _dev = device(&a, "conv-a").await;
+    let record = b.wait_record("conv-a", "online", Duration::from_secs(20));
+    assert_eq!(record["line"], "line-a");
+}

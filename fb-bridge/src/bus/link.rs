@@ -113,9 +113,13 @@ pub fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
     set("mode", json(&config.mode.as_str()))?;
     set("listen/endpoints", json(&config.listen))?;
     set("connect/endpoints", json(&config.connect))?;
-    // A line whose peers are down starts anyway and keeps trying in the background.
-    set("connect/timeout_ms", "0".into())?;
-    set("connect/exit_on_failure", "false".into())?;
+    if config.mode != super::Mode::Client {
+        // A line whose peers are down starts anyway and keeps trying in the background
+        // (a zero timeout would try once and give up). A client needs its zenoh router
+        // at start (zenoh fails `open` otherwise) and reconnects to it by itself later.
+        set("connect/timeout_ms", "-1".into())?;
+        set("connect/exit_on_failure", "false".into())?;
+    }
     set(
         "scouting/multicast/enabled",
         config.multicast_scouting.to_string(),
