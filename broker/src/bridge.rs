@@ -32,7 +32,8 @@
 //!
 //! **Delivery.** zenoh links are reliable and every put uses blocking congestion control:
 //! a slow link or a slow remote line slows the exporter down (and, behind it, the router's
-//! queue for the export link), it does not drop. Event ports travel at a higher zenoh
+//! queue for the export link), it does not drop; a line that takes nothing for 5 s
+//! (zenoh's blocking limit) has its link closed, is marked unreachable and reconnects. Event ports travel at a higher zenoh
 //! priority than data ports, so events overtake queued data; each topic keeps its order.
 //! An MQTT QoS 1 message is acknowledged to the router only after zenoh took it, and is
 //! injected on the other line at QoS 1. What holds across failures: while both bridges

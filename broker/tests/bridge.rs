@@ -567,6 +567,13 @@ async fn a_python_zenoh_application_reads_and_writes_the_bus() {
             .metric("fbbus_bridge_dropped_total{reason=\"type\"}"),
         1.0
     );
+    // Registry queries across lines: line A answers for its device.
+    writeln!(stdin, "query").unwrap();
+    let records = next_line(Duration::from_secs(10)).expect("records");
+    assert!(
+        records.starts_with("records") && records.contains("conv-a@line-a:online"),
+        "{records}"
+    );
     let _ = writeln!(stdin, "done");
     drop(guard);
 }

@@ -9,8 +9,11 @@ It joins the bus as a line of its own, `line-py`, with one device `pydev`:
   3. on "put" from stdin, puts pydev's POSITION values 1, 2, "bad", 3 (stamped) on
      `fbbus/line-py/fb/pydev/CONV/POSITION`.
 
+  4. on "query" from stdin, asks every line for its registry records
+     (`fbbus/@/record/*/*`) and prints them.
+
 Protocol on stdout, one line each: `ready`, `got <key> <payload> <origin line> <qos>`,
-`put`. Every wait is bounded.
+`put`, `records <id@line:status>...`. Every wait is bounded.
 """
 
 import json
@@ -102,6 +105,16 @@ publisher = session.declare_publisher(
 for seq, value in enumerate([1, 2, "bad", 3], start=1):
     publisher.put(json.dumps(value).encode(), attachment=stamp(seq))
 say("put")
-# Keep the tokens up until the test is done with this line.
-sys.stdin.readline()
+
+# 4. Registry queries across lines: every line answers for its own devices.
+command = sys.stdin.readline().strip()
+if command == "query":
+    found = []
+    for reply in session.get("fbbus/@/record/*/*", timeout=5.0):
+        if reply.ok is not None:
+            record = json.loads(reply.ok.payload.to_bytes())
+            found.append(f"{record['id']}@{record['line']}:{record['status']}")
+    say("records", *sorted(found))
+    # Keep the tokens up until the test is done with this line.
+    sys.stdin.readline()
 session.close()
