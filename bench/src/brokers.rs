@@ -148,6 +148,18 @@ pub async fn start(
     programs: &Programs,
     auth: Option<&AuthFiles>,
 ) -> Result<Running> {
+    start_with(kind, programs, auth, &[], "").await
+}
+
+/// [`start`], with fbbus given extra `[broker]` keys and TOML tables appended to its
+/// config (the bridge scenario's `line` and `[bridge]`).
+pub async fn start_with(
+    kind: BrokerKind,
+    programs: &Programs,
+    auth: Option<&AuthFiles>,
+    broker_keys: &[String],
+    tables: &str,
+) -> Result<Running> {
     let dir = readable_tempdir()?;
     let port = free_port()?;
     let addr = SocketAddr::from(([127, 0, 0, 1], port));
@@ -159,7 +171,7 @@ pub async fn start(
             let admin_addr = SocketAddr::from(([127, 0, 0, 1], free_port()?));
             admin = Some(admin_addr);
             let mut config = String::from("[broker]\nmax_connections = 10100\n");
-            for option in &programs.fbbus_broker_options {
+            for option in programs.fbbus_broker_options.iter().chain(broker_keys) {
                 config.push_str(option);
                 config.push('\n');
             }
@@ -182,6 +194,7 @@ pub async fn start(
             config.push_str(&format!(
                 "\n[admin]\nbind = \"{admin_addr}\"\n\n[log]\nlevel = \"warn\"\n"
             ));
+            config.push_str(tables);
             let path = dir.path().join("fbbus.toml");
             std::fs::write(&path, config)?;
             let mut c = Command::new(&programs.fbbus);

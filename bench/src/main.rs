@@ -6,6 +6,7 @@
 //! binary re-executed as the hidden `serve-rumqttd` subcommand); every client is a minimal
 //! MQTT 3.1.1 client on this process's multi-thread tokio runtime.
 
+mod bridge;
 mod brokers;
 mod fb;
 mod mqtt;
@@ -54,6 +55,16 @@ enum Command {
         /// Devices registered for the births and query measurements (default 10000).
         #[arg(long, value_name = "N")]
         devices: Option<usize>,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+    },
+    /// fbbus only: the zenoh bridge between two lines: latency p50/p99 and burst
+    /// throughput line A -> line B, next to the same on one broker.
+    Bridge {
+        /// Small sizes (a smoke test, not a measurement).
+        #[arg(long)]
+        quick: bool,
         /// The fbbus binary. Default: `fbbus` next to this binary.
         #[arg(long, value_name = "PATH")]
         fbbus: Option<PathBuf>,
@@ -122,6 +133,11 @@ fn main() -> ExitCode {
             .build()
             .context("starting the tokio runtime")
             .and_then(|rt| rt.block_on(run_fb(quick, devices, fbbus))),
+        Some(Command::Bridge { quick, fbbus }) => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .context("starting the tokio runtime")
+            .and_then(|rt| rt.block_on(run_bridge(quick, fbbus))),
         None => tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()
@@ -162,6 +178,30 @@ async fn run_fb(quick: bool, devices: Option<usize>, fbbus: Option<PathBuf>) -> 
         bench,
     };
     fb::run(&programs, &params).await
+}
+
+async fn run_bridge(quick: bool, fbbus: Option<PathBuf>) -> Result<()> {
+    let bench = std::env::current_exe().context("locating this binary")?;
+    let fbbus = fbbus.unwrap_or_else(|| bench.with_file_name("fbbus"));
+    if !fbbus.is_file() {
+        bail!(
+            "the fbbus binary is not at {}: build it with `cargo build --release -p broker -p fbbus-bench` or pass --fbbus PATH",
+            fbbus.display()
+        );
+    }
+    let params = if quick {
+        bridge::BridgeParams::quick()
+    } else {
+        bridge::BridgeParams::full()
+    };
+    let programs = Programs {
+        fbbus,
+        fbbus_broker_options: Vec::new(),
+        mosquitto: None,
+        mosquitto_passwd: None,
+        bench,
+    };
+    bridge::run(&programs, &params).await
 }
 
 /// rumqttd's version as resolved in the workspace's Cargo.lock.

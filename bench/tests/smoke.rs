@@ -117,3 +117,51 @@ fn quick_fanin_and_connrate_against_fbbus() {
         "the quick smoke run took {elapsed:?}"
     );
 }
+
+/// `fbbus-bench bridge --quick` links two fbbus lines over zenoh and reports the hop.
+#[test]
+fn quick_bridge_scenario_reports_the_hop() {
+    let Some(fbbus) = fbbus_binary() else {
+        eprintln!("skipping the bridge smoke test: no fbbus binary built");
+        return;
+    };
+    let mut child = Command::new(env!("CARGO_BIN_EXE_fbbus-bench"))
+        .args(["bridge", "--quick", "--fbbus"])
+        .arg(&fbbus)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start fbbus-bench bridge");
+    let mut stdout = child.stdout.take().expect("stdout");
+    let started = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if started.elapsed() > Duration::from_secs(120) {
+            let _ = child.kill();
+            panic!("fbbus-bench bridge --quick took more than 120 s");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut out = String::new();
+    stdout.read_to_string(&mut out).unwrap();
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(status.success(), "fbbus-bench bridge failed:\n{out}\n{err}");
+    let across = out
+        .lines()
+        .find(|l| l.starts_with("A -> B"))
+        .unwrap_or_else(|| panic!("no A -> B row:\n{out}"));
+    assert!(
+        across.ends_with("2000/2000"),
+        "every burst message crossed: {across}"
+    );
+    assert!(out.contains("hop adds"), "{out}");
+}

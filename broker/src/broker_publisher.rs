@@ -96,6 +96,26 @@ impl BrokerPublisher {
     }
 }
 
+/// The QoS and packet id of a `Publish` (crate-private in rumqttd: read back from its
+/// serialisation, like [`publish_packet`] writes them).
+pub fn qos_and_pkid(publish: &Publish) -> (u8, u16) {
+    use rumqttd::protocol::{v4::V4, Protocol};
+    // `Publish::len` counts a packet id only for QoS 1 and 2.
+    if publish.len() == 2 + publish.topic.len() + publish.payload.len() {
+        return (0, 0);
+    }
+    let mut header = publish.clone();
+    header.payload = Bytes::new();
+    let mut buf = BytesMut::new();
+    if V4.write(Packet::Publish(header, None), &mut buf).is_err() {
+        return (0, 0);
+    }
+    crate::frame::check(&buf, usize::MAX)
+        .ok()
+        .and_then(|h| crate::frame::publish_qos_and_pkid(&buf, &h))
+        .unwrap_or((0, 0))
+}
+
 /// Builds a `Publish` with a QoS and packet id. rumqttd keeps those fields crate-private;
 /// its public, stable serialisation format is the way to set them.
 pub fn publish_packet(topic: &[u8], payload: &[u8], qos: u8, retain: bool, pkid: u16) -> Publish {

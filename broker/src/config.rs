@@ -58,6 +58,8 @@ pub struct Config {
     pub log: LogSection,
     #[serde(default)]
     pub fb: FbSection,
+    /// Present: link this line to the other lines' brokers over zenoh (`bridge`).
+    pub bridge: Option<fb_bridge::bus::BusConfig>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -293,6 +295,11 @@ impl Config {
         if !self.fb.registry_file.as_os_str().is_empty() {
             fix(&mut self.fb.registry_file);
         }
+        if let Some(tls) = self.bridge.as_mut().and_then(|b| b.tls.as_mut()) {
+            fix(&mut tls.root_ca);
+            fix(&mut tls.cert);
+            fix(&mut tls.key);
+        }
         for l in &mut self.listeners {
             if let Some(tls) = l.tls.as_mut() {
                 fix(&mut tls.cert);
@@ -376,6 +383,11 @@ impl Config {
                 "auth.throttle",
                 "base_delay_ms must be at least 1 and max_delay_ms at least base_delay_ms",
             ));
+        }
+        if let Some(bridge) = &self.bridge {
+            bridge
+                .validate(&b.line)
+                .map_err(|(key, message)| invalid(file, &key, message))?;
         }
         if self.listeners.is_empty() {
             return Err(invalid(

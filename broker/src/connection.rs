@@ -75,6 +75,8 @@ pub struct Context {
     pub connect_timeout: Duration,
     /// Becomes true when the broker shuts down.
     pub shutdown: watch::Receiver<bool>,
+    /// The zenoh bridge to the other lines, once started (`[bridge]` configured).
+    pub bridge: std::sync::OnceLock<Arc<crate::bridge::Bridge>>,
 }
 
 /// What a listener decides for the connections it accepts.
@@ -323,7 +325,10 @@ impl Session {
                 client_id = format!("fbbus-{:016x}", rand_id());
                 assigned = Some(client_id.clone());
             }
-            if client_id == INTERNAL_CLIENT_ID || client_id.contains(['+', '#', '/', '$']) {
+            if client_id == INTERNAL_CLIENT_ID
+                || crate::bridge::is_bridge_client_id(&client_id)
+                || client_id.contains(['+', '#', '/', '$'])
+            {
                 return Err(refuse(
                     ConnectReturnCode::ClientIdentifierNotValid,
                     "invalid_client_id",
@@ -739,6 +744,13 @@ impl Session {
                 Ok(())
             }
             Packet::Unsubscribe(unsubscribe, properties) => {
+                if let Some(bridge) = self.ctx.bridge.get() {
+                    for f in &unsubscribe.filters {
+                        if self.subscriptions.contains_key(f) {
+                            bridge.unsubscribed(f);
+                        }
+                    }
+                }
                 self.remember_subscriptions(std::iter::empty(), &unsubscribe.filters);
                 self.to_router
                     .push(Packet::Unsubscribe(unsubscribe, properties));
@@ -988,6 +1000,11 @@ impl Session {
         let granted: Vec<&Filter> = granted.collect();
         for filter in &granted {
             self.ctx.fb.subscribed(&filter.path);
+            if let Some(bridge) = self.ctx.bridge.get() {
+                if !self.subscriptions.contains_key(&filter.path) {
+                    bridge.subscribed(&filter.path);
+                }
+            }
         }
         self.remember_subscriptions(granted.into_iter(), &[]);
         if refused.iter().all(Option::is_none) {
@@ -1411,6 +1428,15 @@ impl Session {
             self.ctx.fb.publish(self.fb.take_outbox());
         }
         self.ctx.sessions.close(&self.client_id, self.session);
+        // A clean session's subscriptions end with it; a persistent session's stay (the
+        // router keeps queueing for it), and so does the bridge's import of them.
+        if self.lifetime.clean_link {
+            if let Some(bridge) = self.ctx.bridge.get() {
+                for f in self.subscriptions.keys() {
+                    bridge.unsubscribed(f);
+                }
+            }
+        }
         if self.lifetime.clean_link {
             self.ctx.redeliveries.forget(&self.client_id);
         } else {

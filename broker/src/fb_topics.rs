@@ -210,6 +210,11 @@ impl FbSession {
         std::mem::take(&mut self.outbox)
     }
 
+    /// The interface this session checks against, if any.
+    pub fn interface(&self) -> Option<&Arc<Interface>> {
+        self.interface.as_ref()
+    }
+
     /// The interface the registry had for this device when it connected.
     pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
         self.interface = interface;

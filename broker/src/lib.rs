@@ -28,6 +28,8 @@
 //!   messages (wills, registry records, diagnostics).
 //! - [`config`]: the TOML file, its embedded default and the secure-by-default rules.
 //! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
+//! - [`bridge`]: one bus across lines: the zenoh bridge to the other lines' brokers
+//!   (`[bridge]` section), its imports, exports and registry federation.
 //! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`.
 //! - [`router`] and [`memory`]: the vendored rumqttd router's thread, its reports
 //!   (skipped messages, idle), and giving freed memory back to the OS.
@@ -37,6 +39,7 @@
 pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
+pub mod bridge;
 pub mod broker_publisher;
 pub mod codec;
 pub mod config;

@@ -95,6 +95,13 @@ pub struct Metrics {
     pub declarations: IntCounterVec,
     pub registry_devices: IntGaugeVec,
     pub registry_stale_ends: IntCounter,
+    /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
+    pub bridge_messages: IntCounterVec,
+    pub bridge_dropped: IntCounterVec,
+    pub bridge_remote_subscriptions: IntGauge,
+    pub bridge_imports: IntGauge,
+    pub bridge_liveliness: IntCounterVec,
+    pub bridge_retained_replayed: IntCounter,
 }
 
 impl Metrics {
@@ -145,7 +152,42 @@ impl Metrics {
             .register(Box::new(registry_devices.clone()))
             .expect("unique metric");
 
+        let gauge = |name: &str, help: &str| {
+            let g = IntGauge::new(name, help).expect("valid metric");
+            registry
+                .register(Box::new(g.clone()))
+                .expect("unique metric");
+            g
+        };
+
         Metrics {
+            bridge_messages: counter_vec(
+                "fbbus_bridge_messages_total",
+                "Messages carried by the zenoh bridge, by direction (export: to other lines, import: from them)",
+                &["direction"],
+            ),
+            bridge_dropped: counter_vec(
+                "fbbus_bridge_dropped_total",
+                "Bridged messages not delivered, by reason (duplicate, acl, type, filter, unbridgeable, zenoh_error)",
+                &["reason"],
+            ),
+            bridge_remote_subscriptions: gauge(
+                "fbbus_bridge_remote_subscriptions",
+                "(line, filter) pairs other lines subscribed to on this line",
+            ),
+            bridge_imports: gauge(
+                "fbbus_bridge_imports",
+                "Filters this line imports from other lines (its clients subscribed to them)",
+            ),
+            bridge_liveliness: counter_vec(
+                "fbbus_bridge_liveliness_changes_total",
+                "Liveliness changes seen on the bus, by kind (line_up, line_down, device_up, device_down)",
+                &["kind"],
+            ),
+            bridge_retained_replayed: counter(
+                "fbbus_bridge_retained_replayed_total",
+                "Retained messages fetched from other lines when this line started importing a filter",
+            ),
             connections,
             typed_accepted: counter(
                 "fbbus_typed_messages_accepted_total",

@@ -20,6 +20,14 @@
 //! whole registry at most every [`PERSIST_INTERVAL`] to a temporary file, syncs it and
 //! renames it over the old one, so a crash leaves either the old or the new file. After a
 //! restart every device is offline (reason `broker restart`) until it reconnects.
+//!
+//! **Other lines' devices.** With a `[bridge]`, the registry also holds the devices of the
+//! other lines on the bus (their `line` says where they live), learned from the bus
+//! (`bridge`): online and offline as their own line says, and **unreachable** while their
+//! line cannot be reached — a fact about the link, not the device, so it never overwrites
+//! the device's own last will reason. Remote records are never persisted: they are
+//! learned again from the bus after a restart. Local changes are handed to the bridge
+//! through [`Registry::observe`].
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -84,6 +92,8 @@ pub struct Registry {
     metrics: Arc<Metrics>,
     file: Option<PathBuf>,
     dirty: Notify,
+    /// Receives every change of a local device's record (the bridge announces them).
+    observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<Record>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -120,6 +130,7 @@ impl Registry {
             metrics,
             file: file.map(Path::to_owned),
             dirty: Notify::new(),
+            observer: std::sync::OnceLock::new(),
         });
         {
             let devices = registry.devices.lock().expect("lock poisoned");
@@ -231,6 +242,16 @@ impl Registry {
         self.devices.lock().expect("lock poisoned").get(id).cloned()
     }
 
+    /// The declared interface of `id` if it is a device of `line` (the bridge's typed
+    /// check of messages from that line: no record is cloned).
+    pub fn remote_interface(&self, id: &str, line: &str) -> Option<Arc<Interface>> {
+        let devices = self.devices.lock().expect("lock poisoned");
+        devices
+            .get(id)
+            .filter(|r| r.line == line)
+            .map(|r| Arc::clone(&r.interface))
+    }
+
     /// Every device, by id.
     pub fn list(&self) -> Vec<Record> {
         let mut all: Vec<Record> = self
@@ -244,6 +265,88 @@ impl Registry {
         all
     }
 
+    /// Every change of a local device's record from now on is sent to `observer`.
+    /// Returns the local records as they are now.
+    pub fn observe(&self, observer: tokio::sync::mpsc::UnboundedSender<Record>) -> Vec<Record> {
+        let devices = self.devices.lock().expect("lock poisoned");
+        let _ = self.observer.set(observer);
+        devices
+            .values()
+            .filter(|r| r.line == self.line)
+            .cloned()
+            .collect()
+    }
+
+    /// The local devices' records.
+    pub fn local(&self) -> Vec<Record> {
+        self.list()
+            .into_iter()
+            .filter(|r| r.line == self.line)
+            .collect()
+    }
+
+    /// Another line says this is its device's record. A device id is unique on the bus:
+    /// a local device of the same id wins.
+    pub fn remote_record(&self, record: Record) {
+        if record.line == self.line {
+            return;
+        }
+        let mut devices = self.devices.lock().expect("lock poisoned");
+        if devices.get(&record.id).is_some_and(|r| r.line == self.line) {
+            tracing::warn!(
+                device = record.id,
+                line = record.line,
+                "a device of this id lives on this line; the other line's record is ignored"
+            );
+            return;
+        }
+        if devices.get(&record.id) == Some(&record) {
+            return;
+        }
+        self.announce(&record);
+        devices.insert(record.id.clone(), record);
+        self.announce_count(&devices);
+    }
+
+    /// A remote device's status changed as seen from here (`Unreachable`, or back `Online`
+    /// when its liveliness token reappears).
+    pub fn remote_status(&self, line: &str, id: &str, status: Status) {
+        let mut devices = self.devices.lock().expect("lock poisoned");
+        let Some(record) = devices.get_mut(id).filter(|r| r.line == line) else {
+            return;
+        };
+        if record.status == status {
+            return;
+        }
+        record.status = status;
+        record.since = now();
+        let record = record.clone();
+        self.announce(&record);
+        self.announce_count(&devices);
+    }
+
+    /// `line` cannot be reached: every device of it is unreachable.
+    pub fn line_unreachable(&self, line: &str) {
+        if line == self.line {
+            return;
+        }
+        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut changed = Vec::new();
+        for record in devices.values_mut().filter(|r| r.line == line) {
+            if record.status != Status::Unreachable {
+                record.status = Status::Unreachable;
+                record.since = now();
+                changed.push(record.clone());
+            }
+        }
+        for record in &changed {
+            self.announce(record);
+        }
+        if !changed.is_empty() {
+            self.announce_count(&devices);
+        }
+    }
+
     /// Writes the registry now (at shutdown).
     pub fn flush(&self) {
         if let Some(path) = &self.file {
@@ -254,6 +357,11 @@ impl Registry {
     }
 
     fn announce(&self, record: &Record) {
+        if record.line == self.line {
+            if let Some(observer) = self.observer.get() {
+                let _ = observer.send(record.clone());
+            }
+        }
         let payload = serde_json::to_vec(record).expect("a record serializes");
         self.publisher.publish(Message::broker(
             topic::device_record(&record.id),
@@ -264,8 +372,12 @@ impl Registry {
 
     fn announce_count(&self, devices: &HashMap<String, Record>) {
         let mut counts = [0i64; 3];
+        let mut online_here = 0;
         for r in devices.values() {
             counts[r.status as usize] += 1;
+            if r.line == self.line && r.status == Status::Online {
+                online_here += 1;
+            }
         }
         for (status, count) in [Status::Online, Status::Offline, Status::Unreachable]
             .into_iter()
@@ -278,7 +390,7 @@ impl Registry {
         }
         self.publisher.publish(Message::broker(
             topic::line_online(&self.line),
-            counts[Status::Online as usize].to_string(),
+            online_here.to_string(),
             true,
         ));
     }
@@ -301,7 +413,7 @@ impl Registry {
     fn write(&self, path: &Path) -> std::io::Result<()> {
         let snapshot = File {
             version: 1,
-            devices: self.list(),
+            devices: self.local(),
         };
         let bytes = serde_json::to_vec_pretty(&snapshot).expect("the registry serializes");
         let tmp = path.with_extension("tmp");

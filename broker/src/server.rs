@@ -47,6 +47,8 @@ pub enum StartError {
     },
     #[error("router: {0}")]
     Router(String),
+    #[error(transparent)]
+    Bridge(#[from] crate::bridge::BridgeError),
 }
 
 /// A running broker.
@@ -59,6 +61,7 @@ pub struct Broker {
     ready: Arc<AtomicBool>,
     tasks: Vec<JoinHandle<()>>,
     registry: Arc<Registry>,
+    bridge: Option<Arc<crate::bridge::Bridge>>,
 }
 
 impl Broker {
@@ -124,7 +127,19 @@ impl Broker {
             max_inflight: config.broker.max_inflight,
             connect_timeout: config.connect_timeout(),
             shutdown: shutdown_rx.clone(),
+            bridge: Default::default(),
         });
+
+        let mut tasks = Vec::new();
+        let bridge = match &config.bridge {
+            Some(bus) => {
+                let (bridge, bridge_tasks) = crate::bridge::start(bus, Arc::clone(&ctx)).await?;
+                let _ = ctx.bridge.set(Arc::clone(&bridge));
+                tasks.extend(bridge_tasks);
+                Some(bridge)
+            }
+            None => None,
+        };
 
         let mut listeners = Vec::new();
         for (section, tls) in config.listeners.iter().zip(tls.drain(..)) {
@@ -147,7 +162,6 @@ impl Broker {
                 source,
             })?;
 
-        let mut tasks = Vec::new();
         let slots = Arc::new(Semaphore::new(config.broker.max_connections));
         let bound: Vec<_> = listeners
             .iter()
@@ -193,6 +207,7 @@ impl Broker {
             ready,
             tasks,
             registry,
+            bridge,
         })
     }
 
@@ -204,6 +219,9 @@ impl Broker {
         let deadline = tokio::time::Instant::now() + grace;
         while self.metrics.connections.get() > 0 && tokio::time::Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if let Some(bridge) = &self.bridge {
+            bridge.close().await;
         }
         for task in self.tasks {
             task.abort();

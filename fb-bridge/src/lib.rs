@@ -14,10 +14,14 @@
 //!   REQ→CNF, IND) over an MQTT 3.1.1 connection that declares, reconnects and
 //!   re-declares by itself.
 //!
+//! - [`bus`]: one bus across lines: the zenoh bridge between line brokers (the
+//!   network half behind the cargo feature `zenoh`).
+//!
 //! The broker uses this crate to check every publication on a typed topic; device
 //! software uses the same types through the client API. The device contract (topics,
 //! encodings, registry) is written down in this crate's README.
 
+pub mod bus;
 pub mod client;
 pub mod codec;
 pub mod interface;

@@ -1,0 +1,749 @@
+//! The line's end of the bus: fbbus's router on one side, zenoh (`fb_bridge::bus`) on
+//! the other. Runs inside `fbbus serve` when the configuration has a `[bridge]` section.
+//!
+//! ```text
+//!  local client SUBSCRIBE fb/X/..  ──► Bridge::subscribed ──► import: zenoh subscriber
+//!                                                               + interest token
+//!  other line's interest token ──► export: router link `fbbus:bridge-out` subscribes
+//!  local PUBLISH fb/<local>/.. ──► router ──► export ──► zenoh put (stamped)
+//!  zenoh sample ──► dedup ─► ACL ─► typed check ─► router link `fbbus:bridge-in`
+//! ```
+//!
+//! **Subscription-driven.** Nothing leaves a line unless another line's client subscribed
+//! to it: a subscription here declares a zenoh subscriber and a liveliness token naming
+//! the filter; the other lines' bridges see the token, put only the messages matching
+//! some line's interest, and zenoh sends each only to the lines whose subscribers match.
+//! While no other line is interested in anything, the exporter is not even subscribed on
+//! its router.
+//!
+//! **One hop, never more.** The exporter skips every message whose origin (the marker
+//! the packet path attaches, `origin`) is the import link: what came from the bus is
+//! never put back on it. With each line exporting only what its own clients published,
+//! no topology can loop or duplicate; the per-origin sequence numbers in each message's
+//! stamp ([`fb_bridge::bus::Dedup`]) drop the copies zenoh delivers once per overlapping
+//! import filter.
+//!
+//! **Same rules as local traffic.** A message from the bus enters the router only after
+//! this line's ACL allows its device (as username and client id) to publish on its topic
+//! and, once the registry knows the device's declared interface, after the same typed
+//! check as a local publication (which also re-encodes it for `dinasore/` and `fbdk/`
+//! subscribers). A line exports only topics its `export` filters allow and imports only
+//! what its `import` filters allow.
+//!
+//! **Delivery.** zenoh links are reliable and every put uses blocking congestion control:
+//! a slow link or a slow remote line slows the exporter down (and, behind it, the router's
+//! queue for the export link), it does not drop; a line that takes nothing for 5 s
+//! (zenoh's blocking limit) has its link closed, is marked unreachable and reconnects. Event ports travel at a higher zenoh
+//! priority than data ports, so events overtake queued data; each topic keeps its order.
+//! An MQTT QoS 1 message is acknowledged to the router only after zenoh took it, and is
+//! injected on the other line at QoS 1. What holds across failures: while both bridges
+//! and the link are up, every message reaches every subscribed line once, in order; a
+//! message in flight when a bridge or the link goes down may be lost (zenoh keeps no
+//! end-to-end acknowledgement), and nothing published while a line is cut off is queued
+//! for it. Retained messages are fetched again when a line (re)starts importing a filter,
+//! so retained state converges after a restart or a partition.
+//!
+//! **Registry federation.** The line announces itself and each online local device with
+//! liveliness tokens and puts every local record change on the bus; the other lines'
+//! records arrive the same way. A device whose token disappears without its line saying
+//! it went offline, and every device of a line whose token disappears, is marked
+//! unreachable (within the zenoh lease, `bridge.lease_ms`); they are online again when
+//! their tokens come back.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::Bytes;
+use fb_bridge::bus::link::{flume, zenoh, DeviceToken, Event, Import, Inbound, Link, LinkError};
+use fb_bridge::bus::{keys, BusConfig, Dedup};
+use fb_bridge::interface::OutputPort;
+use fb_bridge::topic::TypedTopic;
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{
+    Filter, Packet, PubAck, PubAckReason, QoS, RetainForwardRule, Subscribe, Unsubscribe,
+};
+use rumqttd::Notification;
+use security::Identity;
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::broker_publisher;
+use crate::connection::Context;
+use crate::fb_topics::{Check, FbSession};
+use crate::origin::{self, Origin};
+use crate::registry::{Record, Status};
+
+/// The router link messages from the bus enter through.
+pub const IMPORT_CLIENT_ID: &str = "fbbus:bridge-in";
+/// The router link the exporter subscribes with.
+pub const EXPORT_CLIENT_ID: &str = "fbbus:bridge-out";
+/// What the exporter subscribes to while another line is interested in anything.
+const EXPORT_FILTER: &str = "fb/#";
+
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("bridge: {0}")]
+    Link(#[from] LinkError),
+    #[error("bridge: router: {0}")]
+    Router(String),
+}
+
+/// What connections tell the bridge.
+enum Interest {
+    Add(String),
+    Remove(String),
+}
+
+/// The handle connections hold: local subscriptions become imports.
+pub struct Bridge {
+    import_filters: Vec<String>,
+    interest: mpsc::UnboundedSender<Interest>,
+    link: Arc<Link>,
+}
+
+impl Bridge {
+    /// A local client was granted `filter`.
+    pub fn subscribed(&self, filter: &str) {
+        for f in self.imports_for(filter) {
+            let _ = self.interest.send(Interest::Add(f));
+        }
+    }
+
+    /// A local client dropped `filter` (UNSUBSCRIBE, or its clean session ended).
+    pub fn unsubscribed(&self, filter: &str) {
+        for f in self.imports_for(filter) {
+            let _ = self.interest.send(Interest::Remove(f));
+        }
+    }
+
+    /// The filters to import for a local subscription to `filter`: the typed namespace
+    /// in the canonical `fb/` form (`dinasore/` and `fbdk/` are re-encoded here), narrowed
+    /// to the configured import filters.
+    fn imports_for(&self, filter: &str) -> Vec<String> {
+        let filter = match filter.strip_prefix("$share/") {
+            Some(rest) => rest.split_once('/').map_or("", |(_, f)| f),
+            None => filter,
+        };
+        let canonical = match filter.split_once('/') {
+            Some(("dinasore" | "fbdk", rest)) => format!("fb/{rest}"),
+            _ => filter.to_owned(),
+        };
+        let mut out = Vec::new();
+        for allowed in &self.import_filters {
+            if keys::covers(allowed, &canonical) {
+                if keys::bridgeable_filter(&canonical) {
+                    out.push(canonical);
+                }
+                return out;
+            }
+        }
+        for allowed in &self.import_filters {
+            if keys::covers(&canonical, allowed) {
+                out.push(allowed.clone());
+            }
+        }
+        out
+    }
+
+    /// Closes the zenoh session (other lines see this line go at once).
+    pub async fn close(&self) {
+        self.link.close().await;
+    }
+}
+
+/// Opens the link and starts the bridge's tasks.
+pub async fn start(
+    config: &BusConfig,
+    ctx: Arc<Context>,
+) -> Result<(Arc<Bridge>, Vec<JoinHandle<()>>), BridgeError> {
+    let line = ctx.fb.registry.line().to_owned();
+    let (link, inbox, events) = Link::open(config, &line).await?;
+    let link = Arc::new(link);
+    let metrics = Arc::clone(&ctx.metrics);
+
+    let router_link = |id: &str| {
+        tokio::task::block_in_place(|| ctx.router.link(id, true, 0))
+            .map_err(|e| BridgeError::Router(e.to_string()))
+    };
+    let import_link = router_link(IMPORT_CLIENT_ID)?;
+    let export_link = router_link(EXPORT_CLIENT_ID)?;
+
+    let (interest, interest_rx) = mpsc::unbounded_channel();
+    let (remote_interest, remote_interest_rx) = mpsc::unbounded_channel();
+    let (local_records, local_records_rx) = mpsc::unbounded_channel();
+    let local_now = ctx.fb.registry.observe(local_records);
+
+    let registry = Arc::clone(&ctx.fb.registry);
+    link.serve_records(move || {
+        registry
+            .local()
+            .into_iter()
+            .map(|r| {
+                (
+                    r.id.clone(),
+                    serde_json::to_vec(&r).expect("records serialize"),
+                )
+            })
+            .collect()
+    })
+    .await?;
+    let retained_queries = link.retained_queries().await?;
+    link.announce_line().await?;
+
+    let tasks = vec![
+        tokio::spawn(imports(Arc::clone(&link), interest_rx, Arc::clone(&ctx))),
+        tokio::spawn(inject_loop(
+            inbox,
+            Arc::clone(&ctx),
+            (import_link.0, import_link.1),
+            config.import.clone(),
+        )),
+        tokio::spawn(export_loop(
+            link.exporter(),
+            (export_link.0, export_link.1),
+            remote_interest_rx,
+            Arc::clone(&ctx),
+            config.export.clone(),
+        )),
+        tokio::spawn(bus_events(
+            Arc::clone(&link),
+            events,
+            remote_interest,
+            Arc::clone(&ctx),
+        )),
+        tokio::spawn(announce_local(
+            Arc::clone(&link),
+            local_now,
+            local_records_rx,
+        )),
+        tokio::spawn(serve_retained(
+            Arc::clone(&link),
+            retained_queries,
+            Arc::clone(&ctx),
+            config.export.clone(),
+        )),
+    ];
+    tracing::info!(line, mode = config.mode.as_str(), listen = ?config.listen, connect = ?config.connect,
+        "bridge to the other lines started (zenoh)");
+    metrics.bridge_imports.set(0);
+    Ok((
+        Arc::new(Bridge {
+            import_filters: config.import.clone(),
+            interest,
+            link,
+        }),
+        tasks,
+    ))
+}
+
+/// Keeps one zenoh import per filter local clients subscribed to, counted.
+async fn imports(
+    link: Arc<Link>,
+    mut interest: mpsc::UnboundedReceiver<Interest>,
+    ctx: Arc<Context>,
+) {
+    let mut active: HashMap<String, (usize, Import)> = HashMap::new();
+    while let Some(change) = interest.recv().await {
+        match change {
+            Interest::Add(filter) => {
+                if let Some((count, _)) = active.get_mut(&filter) {
+                    *count += 1;
+                    continue;
+                }
+                match link.import(&filter).await {
+                    Ok(import) => {
+                        tracing::debug!(filter, "importing from the other lines");
+                        active.insert(filter.clone(), (1, import));
+                        ctx.metrics.bridge_imports.set(active.len() as i64);
+                        // Retained messages of the other lines, published before this
+                        // line was listening.
+                        match link.query_retained(&filter).await {
+                            Ok(retained) => {
+                                for message in retained {
+                                    ctx.metrics.bridge_retained_replayed.inc();
+                                    link.requeue(message).await;
+                                }
+                            }
+                            Err(e) => {
+                                tracing::warn!(filter, error = %e, "retained messages of other lines not fetched")
+                            }
+                        }
+                    }
+                    Err(e) => {
+                        tracing::error!(filter, error = %e, "cannot import from the other lines")
+                    }
+                }
+            }
+            Interest::Remove(filter) => {
+                if let Some((count, _)) = active.get_mut(&filter) {
+                    *count -= 1;
+                    if *count == 0 {
+                        active.remove(&filter);
+                        ctx.metrics.bridge_imports.set(active.len() as i64);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Messages from the bus into the router, checked like local publications, through the
+/// import link. Whatever the inbox holds is taken at once (up to [`INJECT_BATCH`]) and
+/// handed to the router in one go: one router wake-up per batch, not per message.
+async fn inject_loop(
+    inbox: flume::Receiver<Inbound>,
+    ctx: Arc<Context>,
+    (mut tx, mut rx): (LinkTx, LinkRx),
+    import: Vec<String>,
+) {
+    // The router acknowledges QoS 1 messages to this link; nothing waits for them.
+    tokio::spawn(async move {
+        while let Ok(notification) = rx.next().await {
+            if matches!(notification, Some(Notification::Unschedule)) {
+                let _ = rx.wake().await;
+            }
+        }
+    });
+    let mut injector = Injector {
+        dedup: Dedup::default(),
+        devices: HashMap::new(),
+        import,
+        pkid: 0,
+        packets: Vec::new(),
+    };
+    while let Ok(first) = inbox.recv_async().await {
+        injector.take(&ctx, first);
+        for message in inbox.try_iter().take(INJECT_BATCH) {
+            injector.take(&ctx, message);
+        }
+        if let Some(last) = injector.packets.pop() {
+            tx.buffer().extend(injector.packets.drain(..));
+            if tx.send(last).await.is_err() {
+                tracing::error!("router gone: the bridge stops importing");
+                return;
+            }
+        }
+    }
+}
+
+/// Messages taken from the inbox at once before the router is woken.
+const INJECT_BATCH: usize = 256;
+
+/// The importing side's state: what it has seen, and each remote device's typed check.
+struct Injector {
+    dedup: Dedup,
+    /// Per remote device: the interface its session checks against.
+    devices: HashMap<String, (Arc<fb_bridge::Interface>, FbSession)>,
+    import: Vec<String>,
+    pkid: u16,
+    packets: Vec<Packet>,
+}
+
+impl Injector {
+    fn take(&mut self, ctx: &Context, message: Inbound) {
+        let dropped = |reason: &str| {
+            ctx.metrics
+                .bridge_dropped
+                .with_label_values(&[reason])
+                .inc()
+        };
+        if !self.dedup.first_time(&message.stamp) {
+            return dropped("duplicate");
+        }
+        if !BusConfig::allows(&self.import, &message.topic) {
+            return dropped("filter");
+        }
+        let Some(typed) = TypedTopic::parse(&message.topic) else {
+            return dropped("unbridgeable");
+        };
+        let device = typed.device;
+        let allowed = ctx.acl.as_ref().is_none_or(|acl| {
+            acl.get().can_publish(
+                Identity {
+                    username: Some(device),
+                    client_id: device,
+                },
+                &message.topic,
+            )
+        });
+        if !allowed {
+            tracing::debug!(
+                topic = message.topic,
+                line = message.stamp.line,
+                "message from another line refused by this line's ACL"
+            );
+            return dropped("acl");
+        }
+        let payload = Bytes::from(message.payload);
+        let routes = match ctx
+            .fb
+            .registry
+            .remote_interface(device, &message.stamp.line)
+        {
+            Some(interface) => {
+                let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
+                    (
+                        Arc::clone(&interface),
+                        FbSession::new(&ctx.fb, device, Some(device), 0),
+                    )
+                });
+                if !Arc::ptr_eq(&entry.0, &interface) || entry.1.interface().is_none() {
+                    entry.0 = Arc::clone(&interface);
+                    entry.1.set_interface(Some(interface));
+                }
+                let check = entry.1.check(&ctx.fb, &message.topic, &payload);
+                drop(entry.1.take_outbox());
+                match check {
+                    Check::Pass => vec![(message.topic, payload)],
+                    Check::Route(routes) => routes,
+                    Check::Consumed | Check::Refused(_) => return dropped("type"),
+                }
+            }
+            // The record has not arrived yet: the origin line checked the message against
+            // the same declaration; pass it as it came.
+            None => vec![(message.topic, payload)],
+        };
+        ctx.metrics
+            .bridge_messages
+            .with_label_values(&["import"])
+            .inc();
+        let qos = message.stamp.qos.min(1);
+        let origin = Origin {
+            qos,
+            retain: message.stamp.retain,
+            publisher: IMPORT_CLIENT_ID.to_owned(),
+        };
+        for (topic, payload) in routes {
+            let pkid = if qos > 0 {
+                self.pkid = self.pkid % u16::MAX + 1;
+                self.pkid
+            } else {
+                0
+            };
+            let publish = broker_publisher::publish_packet(
+                topic.as_bytes(),
+                &payload,
+                qos,
+                message.stamp.retain,
+                pkid,
+            );
+            let mut properties = None;
+            origin::mark(&mut properties, &origin);
+            self.packets.push(Packet::Publish(publish, properties));
+        }
+    }
+}
+
+/// Subscribes to what other lines want, and puts what this line's clients publish there.
+async fn export_loop(
+    mut exporter: fb_bridge::bus::link::Exporter,
+    (mut tx, mut rx): (LinkTx, LinkRx),
+    mut remote: mpsc::UnboundedReceiver<(bool, String, String)>,
+    ctx: Arc<Context>,
+    export: Vec<String>,
+) {
+    // filter -> lines interested in it
+    let mut interest: HashMap<String, std::collections::HashSet<String>> = HashMap::new();
+    let mut is_event: HashMap<String, bool> = HashMap::new();
+    loop {
+        tokio::select! {
+            change = remote.recv() => {
+                let Some((added, line, filter)) = change else { return };
+                if !keys::bridgeable_filter(&filter) {
+                    continue;
+                }
+                let was_empty = interest.is_empty();
+                let lines = interest.entry(filter.clone()).or_default();
+                let changed = if added { lines.insert(line) } else { lines.remove(&line) };
+                if lines.is_empty() {
+                    interest.remove(&filter);
+                }
+                if changed {
+                    ctx.metrics.bridge_remote_subscriptions.add(if added { 1 } else { -1 });
+                }
+                // One router subscription to the whole typed namespace while anyone is
+                // interested: one filter cannot deliver a message twice, which
+                // overlapping per-interest filters would. What leaves is decided per
+                // message against the interest set below, and zenoh sends each put only
+                // to the lines whose subscribers match.
+                let packet = if was_empty && !interest.is_empty() {
+                    Packet::Subscribe(Subscribe { pkid: 0, filters: vec![Filter {
+                        path: EXPORT_FILTER.to_owned(),
+                        qos: QoS::AtLeastOnce,
+                        nolocal: false,
+                        preserve_retain: true,
+                        retain_forward_rule: RetainForwardRule::Never,
+                    }] }, None)
+                } else if !was_empty && interest.is_empty() {
+                    Packet::Unsubscribe(Unsubscribe { pkid: 0, filters: vec![EXPORT_FILTER.to_owned()] }, None)
+                } else {
+                    continue;
+                };
+                if tx.send(packet).await.is_err() {
+                    return;
+                }
+            }
+            notification = rx.next() => {
+                let Ok(notification) = notification else { return };
+                match notification {
+                    Some(Notification::Forward(forward)) => {
+                        let mut publish = forward.publish;
+                        let mut properties = forward.properties;
+                        let origin = origin::take(&mut properties);
+                        let (routed_qos, pkid) = broker_publisher::qos_and_pkid(&publish);
+                        let from_bus = origin.as_ref().is_some_and(|o| o.publisher == IMPORT_CLIENT_ID);
+                        let topic = String::from_utf8_lossy(&publish.topic).into_owned();
+                        // rumqttd replays retained messages on every subscribe (it ignores
+                        // Retain Handling): those reach other lines by query, not here.
+                        let replay = publish.retain;
+                        let wanted = !from_bus && !replay
+                            && BusConfig::allows(&export, &topic)
+                            && interest.keys().any(|f| keys::filter_matches(f, &topic));
+                        if wanted {
+                            let event = *is_event.entry(topic.clone()).or_insert_with(|| event_port(&ctx, &topic));
+                            let qos = origin.as_ref().map_or(routed_qos, |o| o.qos.min(routed_qos));
+                            let retain = origin.as_ref().is_some_and(|o| o.retain);
+                            let payload = std::mem::take(&mut publish.payload);
+                            match exporter.export(&topic, payload, qos, retain, event).await {
+                                Ok(true) => ctx.metrics.bridge_messages.with_label_values(&["export"]).inc(),
+                                Ok(false) => ctx.metrics.bridge_dropped.with_label_values(&["unbridgeable"]).inc(),
+                                Err(e) => {
+                                    ctx.metrics.bridge_dropped.with_label_values(&["zenoh_error"]).inc();
+                                    tracing::warn!(topic, error = %e, "not exported");
+                                }
+                            }
+                        }
+                        if routed_qos > 0 {
+                            let ack = Packet::PubAck(PubAck { pkid, reason: PubAckReason::Success }, None);
+                            if tx.send(ack).await.is_err() {
+                                return;
+                            }
+                        }
+                        if is_event.len() > 100_000 {
+                            is_event.clear();
+                        }
+                    }
+                    Some(Notification::Unschedule) if rx.wake().await.is_err() => return,
+                    _ => {}
+                }
+            }
+        }
+    }
+}
+
+/// Whether `topic` is an event output of a local device (events travel at a higher
+/// priority than data).
+fn event_port(ctx: &Context, topic: &str) -> bool {
+    let Some(typed) = TypedTopic::parse(topic) else {
+        return false;
+    };
+    ctx.fb.registry.get(typed.device).is_some_and(|r| {
+        matches!(
+            r.interface.output(typed.fb, typed.port),
+            Some(OutputPort::Event(_))
+        )
+    })
+}
+
+/// Liveliness and records of the other lines: the registry, and the exporter's interest.
+async fn bus_events(
+    link: Arc<Link>,
+    events: flume::Receiver<Event>,
+    remote_interest: mpsc::UnboundedSender<(bool, String, String)>,
+    ctx: Arc<Context>,
+) {
+    let registry = &ctx.fb.registry;
+    let liveliness = |kind: &str| {
+        ctx.metrics
+            .bridge_liveliness
+            .with_label_values(&[kind])
+            .inc()
+    };
+    while let Ok(event) = events.recv_async().await {
+        match event {
+            Event::InterestAdded { line, filter } => {
+                let _ = remote_interest.send((true, line, filter));
+            }
+            Event::InterestRemoved { line, filter } => {
+                let _ = remote_interest.send((false, line, filter));
+            }
+            Event::LineUp(line) => {
+                liveliness("line_up");
+                tracing::info!(line, "line reachable");
+                // Every record of the line, online or not, in the background: the
+                // events keep flowing meanwhile.
+                let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
+                tokio::spawn(async move {
+                    match link.query_records(&line).await {
+                        Ok(records) => {
+                            for (_, _, json) in records {
+                                apply_record(&ctx, &json);
+                            }
+                        }
+                        Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
+                    }
+                });
+            }
+            Event::LineDown(line) => {
+                liveliness("line_down");
+                tracing::warn!(line, "line unreachable: its devices are marked unreachable");
+                registry.line_unreachable(&line);
+            }
+            Event::DeviceUp { line, device } => {
+                liveliness("device_up");
+                if registry.get(&device).is_some_and(|r| r.line == line) {
+                    registry.remote_status(&line, &device, Status::Online);
+                } else {
+                    let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
+                    tokio::spawn(async move {
+                        if let Ok(records) = link.query_records(&line).await {
+                            for (_, d, json) in records {
+                                if d == device {
+                                    apply_record(&ctx, &json);
+                                }
+                            }
+                        }
+                    });
+                }
+            }
+            Event::DeviceDown { line, device } => {
+                liveliness("device_down");
+                // Gone offline (its line put the record first) or cut off: a record that
+                // still says online means this line lost sight of it.
+                if registry
+                    .get(&device)
+                    .is_some_and(|r| r.line == line && r.status == Status::Online)
+                {
+                    registry.remote_status(&line, &device, Status::Unreachable);
+                }
+            }
+            Event::Record { json, .. } => apply_record(&ctx, &json),
+        }
+    }
+}
+
+fn apply_record(ctx: &Context, json: &[u8]) {
+    match serde_json::from_slice::<Record>(json) {
+        Ok(record) => ctx.fb.registry.remote_record(record),
+        Err(e) => tracing::warn!(error = %e, "unreadable registry record from another line"),
+    }
+}
+
+/// Puts each local record change on the bus and keeps a liveliness token per online
+/// local device.
+async fn announce_local(
+    link: Arc<Link>,
+    now: Vec<Record>,
+    mut changes: mpsc::UnboundedReceiver<Record>,
+) {
+    let mut tokens: HashMap<String, DeviceToken> = HashMap::new();
+    for record in now {
+        announce(&link, &mut tokens, record).await;
+    }
+    while let Some(record) = changes.recv().await {
+        announce(&link, &mut tokens, record).await;
+    }
+}
+
+async fn announce(link: &Link, tokens: &mut HashMap<String, DeviceToken>, record: Record) {
+    {
+        let json = serde_json::to_vec(&record).expect("records serialize");
+        // The record first: a line that sees the token go finds the device offline already.
+        if let Err(e) = link.put_record(&record.id, json).await {
+            tracing::warn!(device = record.id, error = %e, "record not put on the bus");
+        }
+        match record.status {
+            Status::Online if !tokens.contains_key(&record.id) => {
+                match link.device_online(&record.id).await {
+                    Ok(token) => {
+                        tokens.insert(record.id.clone(), token);
+                    }
+                    Err(e) => {
+                        tracing::warn!(device = record.id, error = %e, "liveliness token not declared")
+                    }
+                }
+            }
+            Status::Online => {}
+            _ => {
+                tokens.remove(&record.id);
+            }
+        }
+    }
+}
+
+static RETAINED_LINKS: AtomicU64 = AtomicU64::new(0);
+
+/// Answers other lines' queries for this line's retained messages: a short-lived router
+/// link subscribes to the filter and collects what the router replays as retained.
+async fn serve_retained(
+    link: Arc<Link>,
+    queries: zenoh::query::Queryable<flume::Receiver<zenoh::query::Query>>,
+    ctx: Arc<Context>,
+    export: Vec<String>,
+) {
+    while let Ok(query) = queries.recv_async().await {
+        let Some((_, filter)) = keys::parse_retained_query(query.key_expr().as_str()) else {
+            continue;
+        };
+        let messages = retained(&ctx, &filter, &export).await;
+        link.reply_retained(&query, messages).await;
+    }
+}
+
+async fn retained(ctx: &Context, filter: &str, export: &[String]) -> Vec<(String, Vec<u8>)> {
+    let id = format!(
+        "fbbus:bridge-retained-{}",
+        RETAINED_LINKS.fetch_add(1, Ordering::Relaxed)
+    );
+    let Ok((mut tx, mut rx, _)) = tokio::task::block_in_place(|| ctx.router.link(&id, true, 0))
+    else {
+        return Vec::new();
+    };
+    let subscribe = Packet::Subscribe(
+        Subscribe {
+            pkid: 1,
+            filters: vec![Filter {
+                path: filter.to_owned(),
+                qos: QoS::AtMostOnce,
+                nolocal: false,
+                preserve_retain: false,
+                retain_forward_rule: RetainForwardRule::OnEverySubscribe,
+            }],
+        },
+        None,
+    );
+    let mut out = Vec::new();
+    if tx.send(subscribe).await.is_ok() {
+        // The router replays retained messages right after the SUBACK; stop once it has
+        // been quiet for a moment.
+        let mut quiet = Duration::from_millis(500);
+        while let Ok(Ok(n)) = tokio::time::timeout(quiet, rx.next()).await {
+            match n {
+                Some(Notification::Forward(forward)) => {
+                    quiet = Duration::from_millis(50);
+                    let mut properties = forward.properties;
+                    let origin = origin::take(&mut properties);
+                    let own = origin.is_none_or(|o| o.retain && o.publisher != IMPORT_CLIENT_ID);
+                    let topic = String::from_utf8_lossy(&forward.publish.topic).into_owned();
+                    if own && BusConfig::allows(export, &topic) {
+                        out.push((topic, forward.publish.payload.to_vec()));
+                    }
+                }
+                Some(Notification::Unschedule) => {
+                    let _ = rx.wake().await;
+                }
+                Some(_) => quiet = Duration::from_millis(50),
+                None => {}
+            }
+        }
+    }
+    let _ = crate::router::unlink(tx).await;
+    out
+}
+
+/// Whether a client id is one of the bridge's own router links.
+pub fn is_bridge_client_id(id: &str) -> bool {
+    id.starts_with("fbbus:bridge")
+}

@@ -1,0 +1,719 @@
+//! One bus across lines: real `fbbus` brokers linked by their zenoh bridges on loopback.
+//!
+//! Each test starts two or three line brokers (child processes) with `[bridge]` sections on
+//! free loopback ports, devices and observers as real MQTT clients, and checks what the
+//! issue promises: location transparency with the device's types, QoS 1 across the hop,
+//! retained messages across lines, exactly one delivery in a chain and a full mesh, and
+//! remote devices marked unreachable when their line stops and back when it returns.
+//! Every wait is bounded; multicast scouting stays off (the default).
+
+mod common;
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+use common::clients::{V4, WAIT};
+use common::{free_port, http_get, Broker};
+
+const CONV: &str = r#"{"fbs": {"CONV": {
+    "type": "CONVEYOR",
+    "events_out": {"MOVED": {"with": ["POSITION"]}},
+    "data_out": {"POSITION": "INT", "ID": "STRING"}
+}}}"#;
+
+/// How long zenoh has to carry declarations and liveliness between lines on loopback.
+const PROPAGATION: Duration = Duration::from_secs(10);
+
+/// A line: its broker and the zenoh endpoint it listens on.
+struct Line {
+    broker: Broker,
+    name: String,
+    zenoh: String,
+}
+
+impl Line {
+    /// Starts line `name`, its bridge listening on a free port and connecting to `connect`.
+    fn start(name: &str, connect: &[&str], extra: &str) -> Line {
+        let zenoh = format!("tcp/127.0.0.1:{}", free_port());
+        Line::start_on(name, &zenoh, connect, extra, None)
+    }
+
+    /// `zenoh` empty: the bridge does not listen (zenoh client mode).
+    fn start_on(
+        name: &str,
+        zenoh: &str,
+        connect: &[&str],
+        extra: &str,
+        ports: Option<(SocketAddr, SocketAddr)>,
+    ) -> Line {
+        Line::start_full(name, zenoh, connect, extra, ports, |_| String::new())
+    }
+
+    /// `prepare` writes files into the broker's directory and returns TOML tables for
+    /// the top of the config (`[auth]`, ...).
+    fn start_with(
+        name: &str,
+        zenoh: &str,
+        connect: &[&str],
+        extra: &str,
+        prepare: impl FnOnce(&std::path::Path) -> String,
+    ) -> Line {
+        Line::start_full(name, zenoh, connect, extra, None, prepare)
+    }
+
+    fn start_full(
+        name: &str,
+        zenoh: &str,
+        connect: &[&str],
+        extra: &str,
+        ports: Option<(SocketAddr, SocketAddr)>,
+        prepare: impl FnOnce(&std::path::Path) -> String,
+    ) -> Line {
+        let listen: Vec<&str> = [zenoh].into_iter().filter(|z| !z.is_empty()).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let top = prepare(dir.path());
+        let (mqtt, admin) = ports.unwrap_or_else(|| {
+            (
+                format!("127.0.0.1:{}", free_port()).parse().unwrap(),
+                format!("127.0.0.1:{}", free_port()).parse().unwrap(),
+            )
+        });
+        let config = dir.path().join("fbbus.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[broker]\nline = \"{name}\"\n\n{top}\n\
+                 [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\n\
+                 [admin]\nbind = \"{admin}\"\n\n\
+                 [log]\nlevel = \"info,rumqttd=warn,zenoh=warn\"\n\n\
+                 [bridge]\nlisten = {listen:?}\nconnect = {connect:?}\nlease_ms = 1000\n{extra}\n",
+            ),
+        )
+        .unwrap();
+        Line {
+            broker: Broker::spawn(dir, config, mqtt, admin),
+            name: name.to_owned(),
+            zenoh: zenoh.to_owned(),
+        }
+    }
+
+    fn port(&self) -> u16 {
+        self.broker.port()
+    }
+
+    /// The registry record of `id` as this line's admin endpoint serves it.
+    fn record(&self, id: &str) -> Option<Value> {
+        let (code, body) = http_get(self.broker.admin, &format!("/api/v1/devices/{id}"))?;
+        (code == 200).then(|| serde_json::from_str(&body).unwrap())
+    }
+
+    /// Waits until this line's registry shows `id` with `status`; returns the record.
+    fn wait_record(&self, id: &str, status: &str, within: Duration) -> Value {
+        let deadline = Instant::now() + within;
+        loop {
+            let record = self.record(id);
+            if record.as_ref().is_some_and(|r| r["status"] == status) {
+                return record.unwrap();
+            }
+            if Instant::now() > deadline {
+                panic!(
+                    "line {}: device {id} not {status} within {within:?}: {record:?}\n{}",
+                    self.name,
+                    self.broker.log_text()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Waits until `series` reaches `min` on this line.
+    fn wait_metric(&self, series: &str, min: f64) {
+        let deadline = Instant::now() + PROPAGATION;
+        while self.broker.metric(series) < min {
+            assert!(
+                Instant::now() < deadline,
+                "line {}: {series} < {min}\n{}",
+                self.name,
+                self.broker.metrics()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+/// A device on `line`: connected, interface declared and accepted.
+async fn device(line: &Line, id: &str) -> V4 {
+    let mut dev = V4::connect(line.port(), id, None).await.unwrap();
+    dev.subscribe(&format!("fbbus/diag/{id}")).await;
+    dev.client
+        .publish(
+            format!("fbbus/declare/{id}"),
+            rumqttc::QoS::AtLeastOnce,
+            false,
+            CONV,
+        )
+        .await
+        .unwrap();
+    let answer = dev.next_publish(WAIT).await.expect("declaration answer");
+    let answer: Value = serde_json::from_slice(&answer.payload).unwrap();
+    assert_eq!(answer["ok"], true, "{answer}");
+    dev
+}
+
+async fn publish(dev: &V4, topic: &str, payload: String, retain: bool) {
+    dev.client
+        .publish(topic, rumqttc::QoS::AtLeastOnce, retain, payload)
+        .await
+        .unwrap();
+}
+
+/// Subscribes on `line` and waits until every line in `exporters` subscribed for it.
+async fn observe(line: &Line, id: &str, filters: &[&str], exporters: &[&Line]) -> V4 {
+    let before: Vec<f64> = exporters
+        .iter()
+        .map(|l| l.broker.metric("fbbus_bridge_remote_subscriptions"))
+        .collect();
+    let mut obs = V4::connect(line.port(), id, None).await.unwrap();
+    for f in filters {
+        obs.subscribe(f).await;
+    }
+    for (l, before) in exporters.iter().zip(before) {
+        l.wait_metric("fbbus_bridge_remote_subscriptions", before + 1.0);
+    }
+    // The exporter's router subscription is in place within a router turn.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    obs
+}
+
+/// Every publish received until `quiet` passes without one.
+async fn drain(obs: &mut V4, quiet: Duration) -> Vec<rumqttc::Publish> {
+    let mut out = Vec::new();
+    while let Some(p) = obs.next_publish(quiet).await {
+        out.push(p);
+    }
+    out
+}
+
+fn positions(received: &[rumqttc::Publish], topic: &str) -> Vec<i64> {
+    received
+        .iter()
+        .filter(|p| p.topic == topic)
+        .map(|p| serde_json::from_slice::<Value>(&p.payload).unwrap())
+        .map(|v| v.as_i64().unwrap())
+        .collect()
+}
+
+// ---------------------------------------------------------------- two lines
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_remote_device_is_subscribed_to_as_if_it_were_local() {
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let dev = device(&a, "conv-a").await;
+
+    // Line B's registry learns the device, its line and its interface.
+    let record = b.wait_record("conv-a", "online", PROPAGATION);
+    assert_eq!(record["line"], "line-a");
+    assert_eq!(
+        record["interface"]["fbs"]["CONV"]["data_out"]["POSITION"],
+        "INT"
+    );
+    // A retained value published before anyone on B listened.
+    publish(&dev, "fb/conv-a/CONV/ID", json!("belt-7").to_string(), true).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    let mut obs = observe(
+        &b,
+        "watch-b",
+        &["fb/conv-a/CONV/#", "dinasore/conv-a/CONV/MOVED"],
+        &[&a],
+    )
+    .await;
+    let retained = obs
+        .next_publish(WAIT)
+        .await
+        .expect("retained value from line A");
+    assert_eq!(retained.topic, "fb/conv-a/CONV/ID");
+    assert_eq!(&retained.payload[..], b"\"belt-7\"");
+
+    const N: i64 = 200;
+    for i in 0..N {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+        if i % 50 == 0 {
+            let event = json!({"seq": i, "ts": 1, "data": {"POSITION": i}});
+            publish(&dev, "fb/conv-a/CONV/MOVED", event.to_string(), false).await;
+        }
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert!(
+        received.iter().all(|p| p.topic != "fb/conv-a/CONV/ID"),
+        "the retained value once"
+    );
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..N).collect::<Vec<_>>(),
+        "every value once, in order"
+    );
+    assert!(received
+        .iter()
+        .filter(|p| p.topic.contains("POSITION"))
+        .all(|p| p.qos == rumqttc::QoS::AtLeastOnce));
+    // Typed across the hop: line B re-encodes events for its DINASORE subscriber from the
+    // declaration it learned from line A.
+    let dinasore: Vec<Value> = received
+        .iter()
+        .filter(|p| p.topic == "dinasore/conv-a/CONV/MOVED")
+        .map(|p| serde_json::from_slice(&p.payload).unwrap())
+        .collect();
+    assert_eq!(dinasore.len(), 4, "{received:?}");
+    assert_eq!(dinasore[1], json!({"POSITION": 50}));
+    assert_eq!(
+        received
+            .iter()
+            .filter(|p| p.topic == "fb/conv-a/CONV/MOVED")
+            .count(),
+        4
+    );
+
+    // Exactly what B asked for crossed: the retained value by query, the rest live.
+    let exported = a
+        .broker
+        .metric("fbbus_bridge_messages_total{direction=\"export\"}");
+    assert_eq!(exported, (N + 4) as f64, "{}", a.broker.metrics());
+    assert_eq!(
+        b.broker
+            .metric("fbbus_bridge_messages_total{direction=\"import\"}"),
+        (N + 4 + 1) as f64
+    );
+}
+
+// ---------------------------------------------------------------- three lines: no loops, no duplicates
+
+/// Starts a device on each line and an observer of everything (`fb/#`) on each, has
+/// each device publish `n` QoS 1 values, and checks that every observer received every
+/// device's values exactly once, in order, at QoS 1: the loop-prone case, since every
+/// line both imports and exports everything.
+async fn everyone_gets_everything_once(lines: &[&Line], n: i64) {
+    let mut observers = Vec::new();
+    for line in lines {
+        let mut obs = V4::connect(line.port(), &format!("watch-{}", line.name), None)
+            .await
+            .unwrap();
+        obs.subscribe("fb/#").await;
+        observers.push(obs);
+    }
+    let others = (lines.len() - 1) as f64;
+    for line in lines {
+        line.wait_metric("fbbus_bridge_remote_subscriptions", others);
+    }
+    let mut devices = Vec::new();
+    for line in lines {
+        devices.push(device(line, &format!("dev-{}", line.name)).await);
+    }
+    for line in lines {
+        for other in lines {
+            other.wait_record(&format!("dev-{}", line.name), "online", PROPAGATION);
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    for i in 0..n {
+        for (dev, line) in devices.iter().zip(lines) {
+            publish(
+                dev,
+                &format!("fb/dev-{}/CONV/POSITION", line.name),
+                i.to_string(),
+                false,
+            )
+            .await;
+        }
+    }
+    for (obs, at) in observers.iter_mut().zip(lines) {
+        let received = drain(obs, Duration::from_millis(1500)).await;
+        for line in lines {
+            let topic = format!("fb/dev-{}/CONV/POSITION", line.name);
+            assert_eq!(
+                positions(&received, &topic),
+                (0..n).collect::<Vec<_>>(),
+                "observer on {} for {topic}: every value exactly once, in order",
+                at.name
+            );
+        }
+        assert_eq!(
+            received.len() as i64,
+            n * lines.len() as i64,
+            "nothing else"
+        );
+        assert!(received.iter().all(|p| p.qos == rumqttc::QoS::AtLeastOnce));
+    }
+    for line in lines {
+        assert_eq!(
+            line.broker
+                .metric("fbbus_bridge_messages_total{direction=\"export\"}"),
+            n as f64,
+            "line {} exported its own device's messages once, nothing it imported",
+            line.name
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chain_of_three_lines_delivers_exactly_once() {
+    // A and C are zenoh clients of B, a zenoh router: everything between A and C goes
+    // through B's bridge process, which must not re-export what it carries.
+    let b = Line::start("line-b", &[], "mode = \"router\"");
+    let a = Line::start_on("line-a", "", &[&b.zenoh], "mode = \"client\"", None);
+    let c = Line::start_on("line-c", "", &[&b.zenoh], "mode = \"client\"", None);
+    everyone_gets_everything_once(&[&a, &b, &c], 100).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_mesh_of_three_lines_delivers_exactly_once() {
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let c = Line::start("line-c", &[&a.zenoh, &b.zenoh], "");
+    everyone_gets_everything_once(&[&a, &b, &c], 100).await;
+}
+
+// ---------------------------------------------------------------- registry federation
+
+/// `fbbus devices` against `line`'s admin endpoint: the row of `id`.
+fn devices_row(line: &Line, id: &str) -> String {
+    let (ok, out, err) = common::run(
+        std::process::Command::new(common::fbbus_bin()).args([
+            "devices",
+            "--admin",
+            &line.broker.admin.to_string(),
+        ]),
+        Duration::from_secs(10),
+    );
+    assert!(ok, "fbbus devices failed: {err}");
+    out.lines()
+        .find(|l| l.split_whitespace().next() == Some(id))
+        .unwrap_or_else(|| panic!("no row for {id}:\n{out}"))
+        .to_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn remote_devices_are_unreachable_while_their_line_is_down_and_back_after() {
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let dev = device(&a, "conv-a").await;
+    let quitter = device(&a, "quitter").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    b.wait_record("quitter", "online", PROPAGATION);
+    let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+
+    // A device's own end is "offline" with its reason, not "unreachable".
+    quitter.client.disconnect().await.unwrap();
+    let record = b.wait_record("quitter", "offline", PROPAGATION);
+    assert_eq!(record["last_will_reason"], "clean disconnect");
+    drop(quitter);
+
+    // Line A dies abruptly: within a few seconds (lease 1 s) B marks its devices
+    // unreachable, and says so in `fbbus devices`.
+    let (mqtt, admin, zenoh) = (a.broker.mqtt, a.broker.admin, a.zenoh.clone());
+    drop(dev);
+    let stopped = Instant::now();
+    drop(a);
+    b.wait_record("conv-a", "unreachable", Duration::from_secs(6));
+    b.wait_record("quitter", "unreachable", Duration::from_secs(6));
+    let took = stopped.elapsed();
+    let row = devices_row(&b, "conv-a");
+    assert!(
+        row.contains("line-a") && row.contains("unreachable"),
+        "{row}"
+    );
+    assert!(
+        b.broker
+            .metric("fbbus_bridge_liveliness_changes_total{kind=\"line_down\"}")
+            >= 1.0
+    );
+    eprintln!("conv-a unreachable on line B {took:?} after line A stopped");
+
+    // Line A comes back (same addresses) and its device reconnects: online again on B,
+    // and B's subscriber, subscribed all along, gets the device's messages again, once.
+    let a = Line::start_on("line-a", &zenoh, &[], "", Some((mqtt, admin)));
+    let dev = device(&a, "conv-a").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    for i in 0..50 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..50).collect::<Vec<_>>()
+    );
+}
+
+// ---------------------------------------------------------------- deploy example
+
+/// The multi-line example in deploy/ is what operators copy: it must stay valid.
+#[test]
+fn the_multi_line_deploy_example_passes_check_config() {
+    let root = env!("CARGO_MANIFEST_DIR").to_owned() + "/../deploy/multi-line";
+    for file in ["line-a.toml", "line-b.toml"] {
+        let (ok, out, err) = common::run(
+            std::process::Command::new(common::fbbus_bin())
+                .args(["check-config", &format!("{root}/{file}")]),
+            Duration::from_secs(10),
+        );
+        assert!(ok, "deploy/multi-line/{file}: {out}{err}");
+    }
+}
+
+// ---------------------------------------------------------------- Python eclipse-zenoh
+
+/// Whether Python's `eclipse-zenoh` is importable (`.ci/run` installs it).
+fn python_zenoh() -> bool {
+    std::process::Command::new("python3")
+        .args(["-c", "import zenoh"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_python_zenoh_application_reads_and_writes_the_bus() {
+    use std::io::{BufRead, Write};
+    if !python_zenoh() {
+        eprintln!("SKIPPED: Python eclipse-zenoh is not installed (pip install eclipse-zenoh==1.10.2; .ci/run does)");
+        return;
+    }
+    let a = Line::start("line-a", &[], "");
+    let dev = device(&a, "conv-a").await;
+    let mut obs = V4::connect(a.port(), "watch-a", None).await.unwrap();
+    obs.subscribe("fb/pydev/CONV/POSITION").await;
+    obs.subscribe("dinasore/pydev/CONV/POSITION").await;
+
+    let script = env!("CARGO_MANIFEST_DIR").to_owned() + "/tests/python/zenoh_interop.py";
+    let mut py = std::process::Command::new("python3")
+        .args([&script, &a.zenoh])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut stdin = py.stdin.take().unwrap();
+    let (lines_tx, lines) = std::sync::mpsc::channel::<String>();
+    let stdout = py.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = lines_tx.send(line);
+        }
+    });
+    let next_line = |within: Duration| lines.recv_timeout(within).ok();
+    let guard = scopeguard(&mut py);
+
+    assert_eq!(next_line(Duration::from_secs(20)).as_deref(), Some("ready"));
+    // The Python line announced itself and its device: line A's registry has its record
+    // (from the record queryable), so its messages are checked against INT.
+    let record = a.wait_record("pydev", "online", PROPAGATION);
+    assert_eq!(record["line"], "line-py");
+    a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+
+    // Python sees line A's device under the documented key, with its stamp.
+    let mut got = None;
+    for i in 0..100 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+        if let Some(line) = next_line(Duration::from_millis(100)) {
+            got = Some(line);
+            break;
+        }
+    }
+    let got = got.expect("Python received no fbbus message");
+    let words: Vec<&str> = got.split_whitespace().collect();
+    assert_eq!(words[0], "got", "{got}");
+    assert_eq!(words[1], "fbbus/line-a/fb/conv-a/CONV/POSITION");
+    assert!(words[2].parse::<i64>().is_ok(), "{got}");
+    assert_eq!(
+        (words[3], words[4]),
+        ("line-a", "1"),
+        "origin line and QoS: {got}"
+    );
+
+    // Python's puts reach line A's MQTT subscribers as typed messages, re-encoded for
+    // DINASORE; the ill-typed one is refused.
+    writeln!(stdin, "put").unwrap();
+    assert_eq!(next_line(Duration::from_secs(10)).as_deref(), Some("put"));
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/pydev/CONV/POSITION"),
+        vec![1, 2, 3],
+        "{received:?}"
+    );
+    let dinasore: Vec<Value> = received
+        .iter()
+        .filter(|p| p.topic == "dinasore/pydev/CONV/POSITION")
+        .map(|p| serde_json::from_slice(&p.payload).unwrap())
+        .collect();
+    assert_eq!(
+        dinasore,
+        vec![
+            json!({"POSITION": 1}),
+            json!({"POSITION": 2}),
+            json!({"POSITION": 3})
+        ]
+    );
+    assert_eq!(
+        a.broker
+            .metric("fbbus_bridge_dropped_total{reason=\"type\"}"),
+        1.0
+    );
+    // Registry queries across lines: line A answers for its device.
+    writeln!(stdin, "query").unwrap();
+    let records = next_line(Duration::from_secs(10)).expect("records");
+    assert!(
+        records.starts_with("records") && records.contains("conv-a@line-a:online"),
+        "{records}"
+    );
+    let _ = writeln!(stdin, "done");
+    drop(guard);
+}
+
+/// Kills the child when the test ends, however it ends.
+fn scopeguard(child: &mut std::process::Child) -> impl Drop + '_ {
+    struct Kill<'a>(&'a mut std::process::Child);
+    impl Drop for Kill<'_> {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    Kill(child)
+}
+
+// ---------------------------------------------------------------- security
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cross_line_traffic_obeys_the_acl_and_the_export_filters() {
+    // Line A exports only conv-a's ports; line B's ACL does not let conv-a write its ID
+    // port, exactly as it would refuse a local conv-a.
+    let a = Line::start("line-a", &[], "export = [\"fb/conv-a/#\"]");
+    let b = Line::start_with(
+        "line-b",
+        &format!("tcp/127.0.0.1:{}", free_port()),
+        &[&a.zenoh],
+        "",
+        |dir| {
+            let acl = dir.join("acl");
+            std::fs::write(
+                &acl,
+                "pattern write fb/%c/#\npattern read fb/#\npattern write fbbus/declare/%c\n\
+                 pattern read fbbus/diag/%c\nclient conv-a\ntopic deny fb/conv-a/CONV/ID\n",
+            )
+            .unwrap();
+            format!("[auth]\nacl_file = \"{}\"\n", acl.display())
+        },
+    );
+    let mut obs = observe(&b, "watch-b", &["fb/#"], &[&a]).await;
+    let conv = device(&a, "conv-a").await;
+    let other = device(&a, "conv-z").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    for i in 0..10 {
+        publish(&conv, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+        publish(&other, "fb/conv-z/CONV/POSITION", i.to_string(), false).await;
+    }
+    publish(&conv, "fb/conv-a/CONV/ID", json!("x").to_string(), false).await;
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..10).collect::<Vec<_>>()
+    );
+    assert!(
+        received.iter().all(|p| !p.topic.starts_with("fb/conv-z/")),
+        "line A does not export conv-z: {received:?}"
+    );
+    assert!(
+        received.iter().all(|p| p.topic != "fb/conv-a/CONV/ID"),
+        "line B's ACL refuses conv-a's ID"
+    );
+    assert_eq!(
+        b.broker
+            .metric("fbbus_bridge_dropped_total{reason=\"acl\"}"),
+        1.0
+    );
+}
+
+/// A CA and one certificate for 127.0.0.1/localhost usable as TLS server and client,
+/// as PEM strings: (ca, cert, key).
+fn bus_pki() -> (String, String, String) {
+    use rcgen::{
+        BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, KeyPair,
+        KeyUsagePurpose,
+    };
+    let ca_key = KeyPair::generate().unwrap();
+    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(DnType::CommonName, "fbbus bus test CA");
+    ca_params.key_usages = vec![
+        KeyUsagePurpose::KeyCertSign,
+        KeyUsagePurpose::DigitalSignature,
+    ];
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let key = KeyPair::generate().unwrap();
+    let mut params = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+    params.distinguished_name.push(DnType::CommonName, "line");
+    params.use_authority_key_identifier_extension = true;
+    params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+    params.extended_key_usages = vec![
+        ExtendedKeyUsagePurpose::ServerAuth,
+        ExtendedKeyUsagePurpose::ClientAuth,
+    ];
+    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    (ca.pem(), cert.pem(), key.serialize_pem())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_link_over_zenoh_tls_with_certificates_on_both_sides() {
+    let (ca, cert, key) = bus_pki();
+    let write = |dir: &std::path::Path| {
+        std::fs::write(dir.join("ca.crt"), &ca).unwrap();
+        std::fs::write(dir.join("line.crt"), &cert).unwrap();
+        std::fs::write(dir.join("line.key"), &key).unwrap();
+        String::new()
+    };
+    let tls = "[bridge.tls]\nroot_ca = \"ca.crt\"\ncert = \"line.crt\"\nkey = \"line.key\"\nmutual = true\n";
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let a = Line::start_full("line-a", &endpoint, &[], tls, None, write);
+    let b = Line::start_full(
+        "line-b",
+        &format!("tls/127.0.0.1:{}", free_port()),
+        &[&endpoint],
+        tls,
+        None,
+        write,
+    );
+    let dev = device(&a, "conv-a").await;
+    b.wait_record("conv-a", "online", PROPAGATION);
+    let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+    for i in 0..10 {
+        publish(&dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(
+        positions(&received, "fb/conv-a/CONV/POSITION"),
+        (0..10).collect::<Vec<_>>()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_line_started_before_its_peer_links_once_the_peer_is_up() {
+    // Line B starts while nothing listens on line A's endpoint yet: it keeps trying.
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let b = Line::start("line-b", &[&endpoint], "");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let a = Line::start_on("line-a", &endpoint, &[], "", None);
+    let _dev = device(&a, "conv-a").await;
+    let record = b.wait_record("conv-a", "online", Duration::from_secs(20));
+    assert_eq!(record["line"], "line-a");
+}

@@ -1,0 +1,546 @@
+//! The zenoh session of one line's bridge: everything that touches the network.
+//!
+//! The broker drives it (`broker/src/bridge.rs`); this module knows zenoh, not MQTT
+//! routers. What it offers:
+//!
+//! - [`Exporter::export`]: put one local message on its data key, stamped, reliable and
+//!   with blocking congestion control (a full link slows the exporter down, it never drops
+//!   a message); zenoh sends it only to lines that declared a matching subscriber;
+//! - [`Link::import`]: declare interest in an MQTT filter: a zenoh subscriber whose
+//!   samples arrive on the inbox, and a liveliness token that tells the exporting lines to
+//!   subscribe locally to the filter (nothing leaves a line nobody asked for);
+//! - liveliness of lines and devices ([`Event`]), registry records (put, queried) and
+//!   retained messages (queried when a line starts importing a filter).
+
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use zenoh::key_expr::KeyExpr;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::SampleKind;
+use zenoh::Session;
+
+use super::{keys, BusConfig, Stamp};
+
+/// The versions the link is built with, for the broker's tasks that hold its handles.
+pub use {flume, zenoh};
+
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    #[error("zenoh configuration `{key}`: {message}")]
+    Config { key: String, message: String },
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+fn zerr(e: impl std::fmt::Display) -> LinkError {
+    LinkError::Zenoh(e.to_string())
+}
+
+/// A message from another line, as it came off zenoh.
+#[derive(Debug, Clone)]
+pub struct Inbound {
+    pub stamp: Stamp,
+    pub topic: String,
+    pub payload: Vec<u8>,
+}
+
+/// A liveliness change seen on the bus (other lines only).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Event {
+    LineUp(String),
+    LineDown(String),
+    DeviceUp {
+        line: String,
+        device: String,
+    },
+    DeviceDown {
+        line: String,
+        device: String,
+    },
+    InterestAdded {
+        line: String,
+        filter: String,
+    },
+    InterestRemoved {
+        line: String,
+        filter: String,
+    },
+    /// A registry record another line put (its device changed).
+    Record {
+        line: String,
+        device: String,
+        json: Vec<u8>,
+    },
+}
+
+/// Samples and events, in arrival order, bounded: a full inbox blocks zenoh's receive
+/// path, which backs the link up to the sender (blocking congestion control) instead of
+/// dropping.
+pub const INBOX: usize = 8_192;
+
+pub struct Link {
+    session: Session,
+    line: String,
+    epoch: u64,
+    inbox: flume::Sender<Inbound>,
+    /// Declared by [`Link::announce_line`], once the line answers registry queries.
+    line_token: std::sync::Mutex<Option<LivelinessToken>>,
+}
+
+/// The interest of this line in one MQTT filter; dropping it undeclares both halves.
+pub struct Import {
+    _subscriber: Subscriber<()>,
+    _token: LivelinessToken,
+}
+
+/// A device announced online on the bus; dropping it announces it gone.
+pub struct DeviceToken(#[allow(dead_code)] LivelinessToken);
+
+/// Builds zenoh's configuration from the `[bridge]` section.
+pub fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
+    let mut c = zenoh::Config::default();
+    let mut set = |key: &str, value: String| {
+        c.insert_json5(key, &value).map_err(|e| LinkError::Config {
+            key: key.to_owned(),
+            message: e.to_string(),
+        })
+    };
+    let json = |v: &dyn erased::Json| v.json();
+    set("mode", json(&config.mode.as_str()))?;
+    set("listen/endpoints", json(&config.listen))?;
+    set("connect/endpoints", json(&config.connect))?;
+    if config.mode != super::Mode::Client {
+        // A line whose peers are down starts anyway and keeps trying in the background
+        // (a zero timeout would try once and give up). A client needs its zenoh router
+        // at start (zenoh fails `open` otherwise) and reconnects to it by itself later.
+        set("connect/timeout_ms", "-1".into())?;
+        set("connect/exit_on_failure", "false".into())?;
+    }
+    set(
+        "scouting/multicast/enabled",
+        config.multicast_scouting.to_string(),
+    )?;
+    set("transport/link/tx/lease", config.lease_ms.to_string())?;
+    set("transport/link/tx/keep_alive", "4".into())?;
+    if let Some(tls) = &config.tls {
+        let path = |p: &std::path::Path| json(&p.display().to_string());
+        set("transport/link/tls/root_ca_certificate", path(&tls.root_ca))?;
+        set("transport/link/tls/listen_certificate", path(&tls.cert))?;
+        set("transport/link/tls/listen_private_key", path(&tls.key))?;
+        if tls.mutual {
+            set("transport/link/tls/enable_mtls", "true".into())?;
+            set("transport/link/tls/connect_certificate", path(&tls.cert))?;
+            set("transport/link/tls/connect_private_key", path(&tls.key))?;
+        }
+    }
+    Ok(c)
+}
+
+mod erased {
+    pub trait Json {
+        fn json(&self) -> String;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn json(&self) -> String {
+            serde_json::to_string(self).expect("plain values serialize")
+        }
+    }
+}
+
+impl Link {
+    /// Opens the session and starts watching the bus (the line is announced separately,
+    /// [`Link::announce_line`]). Returns the
+    /// link, its inbox (messages of imported filters) and the liveliness events.
+    pub async fn open(
+        config: &BusConfig,
+        line: &str,
+    ) -> Result<(Link, flume::Receiver<Inbound>, flume::Receiver<Event>), LinkError> {
+        let session = zenoh::open(zenoh_config(config)?).await.map_err(zerr)?;
+        let epoch = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(1, |d| d.as_micros() as u64);
+        let (inbox, inbox_rx) = flume::bounded(INBOX);
+        let (events, events_rx) = flume::unbounded();
+
+        let own = line.to_owned();
+        let tx = events.clone();
+        session
+            .liveliness()
+            .declare_subscriber(format!("{}/line/*", keys::CONTROL))
+            .history(true)
+            .callback(move |sample| {
+                let Some(l) = keys::parse_line_token(sample.key_expr().as_str()) else {
+                    return;
+                };
+                if l == own {
+                    return;
+                }
+                let _ = tx.send(match sample.kind() {
+                    SampleKind::Put => Event::LineUp(l.to_owned()),
+                    SampleKind::Delete => Event::LineDown(l.to_owned()),
+                });
+            })
+            .background()
+            .await
+            .map_err(zerr)?;
+        let own = line.to_owned();
+        let tx = events.clone();
+        session
+            .liveliness()
+            .declare_subscriber(format!("{}/device/**", keys::CONTROL))
+            .history(true)
+            .callback(move |sample| {
+                let Some((l, device)) = keys::parse_line_item("device", sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                if l == own {
+                    return;
+                }
+                let (line, device) = (l.to_owned(), device.to_owned());
+                let _ = tx.send(match sample.kind() {
+                    SampleKind::Put => Event::DeviceUp { line, device },
+                    SampleKind::Delete => Event::DeviceDown { line, device },
+                });
+            })
+            .background()
+            .await
+            .map_err(zerr)?;
+        let own = line.to_owned();
+        let tx = events.clone();
+        session
+            .liveliness()
+            .declare_subscriber(format!("{}/interest/**", keys::CONTROL))
+            .history(true)
+            .callback(move |sample| {
+                let Some((l, filter)) = keys::parse_interest(sample.key_expr().as_str()) else {
+                    return;
+                };
+                if l == own {
+                    return;
+                }
+                let line = l.to_owned();
+                let _ = tx.send(match sample.kind() {
+                    SampleKind::Put => Event::InterestAdded { line, filter },
+                    SampleKind::Delete => Event::InterestRemoved { line, filter },
+                });
+            })
+            .background()
+            .await
+            .map_err(zerr)?;
+        let own = line.to_owned();
+        let tx = events;
+        session
+            .declare_subscriber(format!("{}/record/**", keys::CONTROL))
+            .callback(move |sample| {
+                let Some((l, device)) = keys::parse_line_item("record", sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                if l != own {
+                    let _ = tx.send(Event::Record {
+                        line: l.to_owned(),
+                        device: device.to_owned(),
+                        json: sample.payload().to_bytes().into_owned(),
+                    });
+                }
+            })
+            .background()
+            .await
+            .map_err(zerr)?;
+
+        Ok((
+            Link {
+                session,
+                line: line.to_owned(),
+                epoch,
+                inbox,
+                line_token: std::sync::Mutex::new(None),
+            },
+            inbox_rx,
+            events_rx,
+        ))
+    }
+
+    /// Tells the other lines this line is up. Call it once the records are served
+    /// ([`Link::serve_records`]): other lines query them as soon as they see the token.
+    pub async fn announce_line(&self) -> Result<(), LinkError> {
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(keys::line_token(&self.line))
+            .await
+            .map_err(zerr)?;
+        *self.line_token.lock().expect("lock poisoned") = Some(token);
+        Ok(())
+    }
+
+    pub fn line(&self) -> &str {
+        &self.line
+    }
+
+    /// The exporting half (owned by one task: it numbers the messages it sends).
+    pub fn exporter(&self) -> Exporter {
+        Exporter {
+            session: self.session.clone(),
+            line: self.line.clone(),
+            epoch: self.epoch,
+            seq: 0,
+            publishers: std::collections::HashMap::new(),
+        }
+    }
+
+    /// Puts a message (a retained reply) into the inbox, behind what is already there.
+    pub async fn requeue(&self, message: Inbound) {
+        let _ = self.inbox.send_async(message).await;
+    }
+
+    /// Declares this line's interest in `filter` (an MQTT filter within `fb/#`).
+    pub async fn import(&self, filter: &str) -> Result<Import, LinkError> {
+        let key = keys::import_key(filter).ok_or_else(|| LinkError::Config {
+            key: "filter".into(),
+            message: format!("`{filter}` cannot cross lines"),
+        })?;
+        let inbox = self.inbox.clone();
+        let own = self.line.clone();
+        let subscriber = self
+            .session
+            .declare_subscriber(key)
+            .callback(move |sample| {
+                let Some((line, topic)) = keys::parse_data_key(sample.key_expr().as_str()) else {
+                    return;
+                };
+                let Some(stamp) = sample.attachment().and_then(|a| Stamp::decode(&a.to_bytes()))
+                else {
+                    tracing::debug!(key = %sample.key_expr(), "bus sample without an fbbus stamp; ignored");
+                    return;
+                };
+                if line == own || stamp.line != line {
+                    return;
+                }
+                let _ = inbox.send(Inbound {
+                    stamp,
+                    topic: topic.to_owned(),
+                    payload: sample.payload().to_bytes().into_owned(),
+                });
+            })
+            .await
+            .map_err(zerr)?;
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(keys::interest_token(&self.line, filter))
+            .await
+            .map_err(zerr)?;
+        Ok(Import {
+            _subscriber: subscriber,
+            _token: token,
+        })
+    }
+
+    /// Announces a local device online until the token is dropped.
+    pub async fn device_online(&self, device: &str) -> Result<DeviceToken, LinkError> {
+        self.session
+            .liveliness()
+            .declare_token(keys::device_token(&self.line, device))
+            .await
+            .map(DeviceToken)
+            .map_err(zerr)
+    }
+
+    /// Publishes a local device's registry record to the other lines.
+    pub async fn put_record(&self, device: &str, json: Vec<u8>) -> Result<(), LinkError> {
+        self.session
+            .put(keys::record_key(&self.line, device), json)
+            .congestion_control(CongestionControl::Block)
+            .await
+            .map_err(zerr)
+    }
+
+    /// Answers registry queries (`fbbus/@/record/<line>/<device or *>`) with `records`'
+    /// answer: (device id, record JSON) of every local device.
+    pub async fn serve_records(
+        &self,
+        records: impl Fn() -> Vec<(String, Vec<u8>)> + Send + Sync + 'static,
+    ) -> Result<(), LinkError> {
+        let line = self.line.clone();
+        self.session
+            .declare_queryable(format!("{}/record/{}/*", keys::CONTROL, self.line))
+            .callback(move |query: Query| {
+                for (device, json) in records() {
+                    let key = keys::record_key(&line, &device);
+                    let Ok(k) = KeyExpr::try_from(key) else {
+                        continue;
+                    };
+                    if query.key_expr().intersects(&k) {
+                        let _ = zenoh::Wait::wait(query.reply(k, json));
+                    }
+                }
+            })
+            .background()
+            .await
+            .map_err(zerr)
+    }
+
+    /// The records `line` (`*`: every line) serves, as (line, device, JSON).
+    pub async fn query_records(
+        &self,
+        line: &str,
+    ) -> Result<Vec<(String, String, Vec<u8>)>, LinkError> {
+        let replies = self
+            .session
+            .get(format!("{}/record/{line}/*", keys::CONTROL))
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(zerr)?;
+        let mut out = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                if let Some((l, d)) = keys::parse_line_item("record", sample.key_expr().as_str()) {
+                    if l != self.line {
+                        out.push((
+                            l.to_owned(),
+                            d.to_owned(),
+                            sample.payload().to_bytes().into_owned(),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// The queryable other lines ask for this line's retained messages.
+    pub async fn retained_queries(&self) -> Result<Queryable<flume::Receiver<Query>>, LinkError> {
+        self.session
+            .declare_queryable(keys::retained_queryable(&self.line))
+            .with(flume::bounded(64))
+            .await
+            .map_err(zerr)
+    }
+
+    /// Retained messages of other lines matching `filter`.
+    pub async fn query_retained(&self, filter: &str) -> Result<Vec<Inbound>, LinkError> {
+        let Some(key) = keys::retained_query(filter) else {
+            return Ok(Vec::new());
+        };
+        let replies = self
+            .session
+            .get(key)
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(zerr)?;
+        let mut out = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            let Ok(sample) = reply.result() else { continue };
+            let Some((line, topic)) = keys::parse_retained_reply(sample.key_expr().as_str()) else {
+                continue;
+            };
+            let Some(stamp) = sample
+                .attachment()
+                .and_then(|a| Stamp::decode(&a.to_bytes()))
+            else {
+                continue;
+            };
+            if line != self.line {
+                out.push(Inbound {
+                    stamp,
+                    topic: topic.to_owned(),
+                    payload: sample.payload().to_bytes().into_owned(),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// Answers one retained-message query with `messages` (topic, payload).
+    pub async fn reply_retained(&self, query: &Query, messages: Vec<(String, Vec<u8>)>) {
+        for (topic, payload) in messages {
+            let Some(key) = keys::retained_reply(&self.line, &topic) else {
+                continue;
+            };
+            let stamp = Stamp {
+                line: self.line.clone(),
+                epoch: self.epoch,
+                seq: 0,
+                qos: 1,
+                retain: true,
+            };
+            let _ = query.reply(key, payload).attachment(stamp.encode()).await;
+        }
+    }
+
+    /// Closes the session: other lines see this line's tokens go at once.
+    pub async fn close(&self) {
+        let _ = self.session.close().await;
+    }
+}
+
+/// Publishes local messages on the bus, numbered per origin.
+pub struct Exporter {
+    session: Session,
+    line: String,
+    epoch: u64,
+    seq: u64,
+    publishers: std::collections::HashMap<String, Publisher<'static>>,
+}
+
+/// Publishers kept for repeated topics; past this many the cache starts over.
+const PUBLISHER_CACHE: usize = 10_000;
+
+impl Exporter {
+    /// Puts one message of this line; `event` ports travel at a higher priority than data
+    /// ports (events overtake queued data, each topic keeps its order). Returns false for
+    /// a topic that cannot cross (see [`keys::data_key`]).
+    pub async fn export(
+        &mut self,
+        topic: &str,
+        payload: impl Into<zenoh::bytes::ZBytes>,
+        qos: u8,
+        retain: bool,
+        event: bool,
+    ) -> Result<bool, LinkError> {
+        if !self.publishers.contains_key(topic) {
+            let Some(key) = keys::data_key(&self.line, topic) else {
+                return Ok(false);
+            };
+            if self.publishers.len() >= PUBLISHER_CACHE {
+                self.publishers.clear();
+            }
+            let publisher = self
+                .session
+                .declare_publisher(key)
+                .congestion_control(CongestionControl::Block)
+                .priority(if event {
+                    Priority::DataHigh
+                } else {
+                    Priority::Data
+                })
+                .await
+                .map_err(zerr)?;
+            self.publishers.insert(topic.to_owned(), publisher);
+        }
+        self.seq += 1;
+        let stamp = Stamp {
+            line: self.line.clone(),
+            epoch: self.epoch,
+            seq: self.seq,
+            qos,
+            retain,
+        };
+        let publisher = &self.publishers[topic];
+        publisher
+            .put(payload)
+            .attachment(stamp.encode())
+            .await
+            .map_err(zerr)?;
+        Ok(true)
+    }
+}
+
+/// Keeps `Arc` in scope for callers that share the link between tasks.
+pub type SharedLink = Arc<Link>;
