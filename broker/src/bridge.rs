@@ -163,12 +163,15 @@ pub async fn start(
     let link = Arc::new(link);
     let metrics = Arc::clone(&ctx.metrics);
 
-    let router_link = |id: &str| {
-        tokio::task::block_in_place(|| ctx.router.link(id, true, 0))
+    let router = &ctx.router;
+    let router_link = |id: &'static str| async move {
+        router
+            .link(id, true, 0)
+            .await
             .map_err(|e| BridgeError::Router(e.to_string()))
     };
-    let import_link = router_link(IMPORT_CLIENT_ID)?;
-    let export_link = router_link(EXPORT_CLIENT_ID)?;
+    let import_link = router_link(IMPORT_CLIENT_ID).await?;
+    let export_link = router_link(EXPORT_CLIENT_ID).await?;
 
     let (interest, interest_rx) = mpsc::unbounded_channel();
     let (remote_interest, remote_interest_rx) = mpsc::unbounded_channel();
@@ -697,8 +700,7 @@ async fn retained(ctx: &Context, filter: &str, export: &[String]) -> Vec<(String
         "fbbus:bridge-retained-{}",
         RETAINED_LINKS.fetch_add(1, Ordering::Relaxed)
     );
-    let Ok((mut tx, mut rx, _)) = tokio::task::block_in_place(|| ctx.router.link(&id, true, 0))
-    else {
+    let Ok((mut tx, mut rx, _)) = ctx.router.link(&id, true, 0).await else {
         return Vec::new();
     };
     let subscribe = Packet::Subscribe(
