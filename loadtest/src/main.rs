@@ -1,0 +1,322 @@
+//! `fbbus-loadtest`: see loadtest/README.md, or `fbbus-loadtest --help`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{bail, Context as _, Result};
+use clap::{Args, Parser, Subcommand};
+
+use loadtest::rig::RigConfig;
+use loadtest::scenario::connections::{Idle, Storm};
+use loadtest::scenario::flow::{Flow, FlowKind};
+use loadtest::scenario::study::{LossSearch, Perf, Stress};
+use loadtest::scenario::Scenario;
+use loadtest::target::{Mqtt, Target};
+use loadtest::{report, Plan};
+
+#[derive(Parser)]
+#[command(
+    name = "fbbus-loadtest",
+    version,
+    about = "Throughput, latency and loss of an MQTT broker: the JMeter study's stress, loss-search and perf tests, and more",
+    after_help = "The password is read from the environment variable MQTT_PASSWORD or from --password-file, never from the command line.\nExample: fbbus-loadtest --broker mqtt://127.0.0.1:1883 --compare mqtt://127.0.0.1:1884 stress"
+)]
+struct Cli {
+    #[command(flatten)]
+    common: Common,
+    #[command(subcommand)]
+    scenario: Command,
+}
+
+#[derive(Args)]
+struct Common {
+    /// The broker: mqtt://host:port or mqtts://host:port.
+    #[arg(
+        long,
+        global = true,
+        default_value = "mqtt://127.0.0.1:1883",
+        value_name = "URL"
+    )]
+    broker: String,
+    /// Compare mode: a second broker, run interleaved with the first (A B A B).
+    #[arg(long, global = true, value_name = "URL")]
+    compare: Option<String>,
+    /// Names of the brokers in tables and charts (default: detected).
+    #[arg(long, global = true, value_name = "NAME")]
+    name: Option<String>,
+    #[arg(long, global = true, value_name = "NAME")]
+    compare_name: Option<String>,
+    /// MQTT username; `{i}` is replaced by the device number in `storm`.
+    #[arg(long, global = true)]
+    username: Option<String>,
+    /// File whose first line is the password (else the MQTT_PASSWORD variable).
+    #[arg(long, global = true, value_name = "FILE")]
+    password_file: Option<PathBuf>,
+    /// CA certificate (PEM) for mqtts:// brokers.
+    #[arg(long, global = true, value_name = "FILE")]
+    ca: Option<PathBuf>,
+    /// MQTT protocol version: 3 (3.1.1) or 5.
+    #[arg(long, global = true, default_value_t = 3, value_parser = clap::value_parser!(u8).range(3..=5))]
+    mqtt: u8,
+    /// QoS of publications and subscriptions.
+    #[arg(long, global = true, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=2))]
+    qos: u8,
+    /// Message size in bytes (the study: 30; messages carry seq and a timestamp, so at
+    /// least 31).
+    #[arg(long, global = true, default_value_t = 30)]
+    payload: usize,
+    /// QoS 1/2 messages in flight per client.
+    #[arg(long, global = true, default_value_t = 100)]
+    inflight: u16,
+    /// A batch ends after this long without a delivery (ms).
+    #[arg(long, global = true, default_value_t = 1000)]
+    quiet_ms: u64,
+    /// A batch ends after this long in any case (s).
+    #[arg(long, global = true, default_value_t = 60)]
+    batch_limit_s: u64,
+    /// The whole run stops after this long (s); the report says so.
+    #[arg(long, global = true, default_value_t = 1800)]
+    time_limit_s: u64,
+    /// Client ids start with this.
+    #[arg(long, global = true, default_value = "lt")]
+    prefix: String,
+    /// Do not count at an FB subscriber (study tests on fbbus).
+    #[arg(long, global = true)]
+    no_fb: bool,
+    /// Messages for the harness's own ceiling (a trivial in-process sink); 0 skips it.
+    #[arg(long, global = true, default_value_t = 20_000)]
+    ceiling: u64,
+    /// Directory for report.json, batches.csv, batches.jtl and the SVG charts.
+    #[arg(
+        long,
+        global = true,
+        value_name = "DIR",
+        default_value = "loadtest-out"
+    )]
+    out: PathBuf,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// The study's stress test: bursts doubling from --start to --max, each --repeats times.
+    Stress {
+        #[arg(long, default_value_t = 10)]
+        start: u64,
+        #[arg(long, default_value_t = 5120)]
+        max: u64,
+        #[arg(long, default_value_t = 5)]
+        repeats: u32,
+    },
+    /// The study's loss mitigation: the largest burst delivered without loss, by search.
+    LossSearch {
+        #[arg(long, default_value_t = 10)]
+        start: u64,
+        #[arg(long, default_value_t = 81_920)]
+        max: u64,
+        #[arg(long, default_value_t = 5)]
+        repeats: u32,
+        /// Stop when lossless and lossy bursts are this close.
+        #[arg(long, default_value_t = 5)]
+        resolution: u64,
+    },
+    /// The study's performance test: batches of 1 .. --max messages, each --repeats times.
+    Perf {
+        #[arg(long, default_value_t = 1045)]
+        max: u64,
+        /// How many batch sizes between 1 and --max (evenly spaced).
+        #[arg(long, default_value_t = 20)]
+        points: u64,
+        #[arg(long, default_value_t = 10)]
+        repeats: u32,
+    },
+    /// --clients publishers -> 1 subscriber.
+    FanIn(FlowArgs),
+    /// 1 publisher -> --clients subscribers.
+    FanOut(FlowArgs),
+    /// --clients publisher/subscriber pairs, each on its own topic.
+    Pairs(FlowArgs),
+    /// Publisher on --broker (line A), subscriber on --subscribe-at (line B).
+    Bridge {
+        #[command(flatten)]
+        flow: FlowArgs,
+        /// Line B's broker.
+        #[arg(long, value_name = "URL")]
+        subscribe_at: String,
+    },
+    /// --connections idle clients (keep-alive 60 s) held for --hold-s; the broker's
+    /// memory per connection when it runs on this machine.
+    Idle {
+        #[arg(long, default_value_t = 1000)]
+        connections: usize,
+        #[arg(long, default_value_t = 5)]
+        hold_s: u64,
+        #[arg(long, default_value_t = 1)]
+        repeats: u32,
+    },
+    /// --devices clients connect at once, drop without DISCONNECT and reconnect at once.
+    Storm {
+        #[arg(long, default_value_t = 1045)]
+        devices: usize,
+        #[arg(long, default_value_t = 1)]
+        repeats: u32,
+    },
+}
+
+#[derive(Args)]
+struct FlowArgs {
+    #[arg(long, default_value_t = 10)]
+    clients: usize,
+    /// Messages per publisher per batch.
+    #[arg(long, default_value_t = 10_000)]
+    messages: u64,
+    /// Open-loop rate(s), messages/s over all publishers (comma-separated); without it
+    /// each batch is a closed-loop burst.
+    #[arg(long, value_delimiter = ',')]
+    rate: Vec<f64>,
+    #[arg(long, default_value_t = 3)]
+    repeats: u32,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("a tokio runtime");
+    match runtime.block_on(run(cli)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("fbbus-loadtest: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    let c = &cli.common;
+    let password = password(c)?;
+    let target = |url: &str| -> Result<Target> {
+        let mut t = Target::parse(url)?;
+        t.ca = c.ca.clone();
+        t.username = c.username.clone();
+        t.password = password.clone();
+        t.mqtt = if c.mqtt == 5 { Mqtt::V5 } else { Mqtt::V311 };
+        Ok(t)
+    };
+    let mut targets = vec![target(&c.broker)?];
+    if let Some(b) = &c.compare {
+        targets.push(target(b)?);
+    }
+    let mut subscribe_at = None;
+    let flow = |kind, a: &FlowArgs| {
+        Scenario::Flow(Flow {
+            kind,
+            clients: a.clients,
+            messages: a.messages,
+            rates: a.rate.clone(),
+            repeats: a.repeats,
+        })
+    };
+    let scenario = match &cli.scenario {
+        Command::Stress {
+            start,
+            max,
+            repeats,
+        } => Scenario::Stress(Stress {
+            start: *start,
+            max: *max,
+            repeats: *repeats,
+        }),
+        Command::LossSearch {
+            start,
+            max,
+            repeats,
+            resolution,
+        } => Scenario::LossSearch(LossSearch {
+            start: *start,
+            max: *max,
+            repeats: *repeats,
+            resolution: *resolution,
+        }),
+        Command::Perf {
+            max,
+            points,
+            repeats,
+        } => Scenario::Perf(Perf {
+            max: *max,
+            points: *points,
+            repeats: *repeats,
+        }),
+        Command::FanIn(a) => flow(FlowKind::FanIn, a),
+        Command::FanOut(a) => flow(FlowKind::FanOut, a),
+        Command::Pairs(a) => flow(FlowKind::Pairs, a),
+        Command::Bridge {
+            flow: a,
+            subscribe_at: b,
+        } => {
+            if c.compare.is_some() {
+                bail!("bridge measures line A -> line B; --compare does not apply");
+            }
+            subscribe_at = Some(target(b)?);
+            flow(FlowKind::Bridge, a)
+        }
+        Command::Idle {
+            connections,
+            hold_s,
+            repeats,
+        } => Scenario::Idle(Idle {
+            connections: *connections,
+            hold_s: *hold_s,
+            repeats: *repeats,
+        }),
+        Command::Storm { devices, repeats } => Scenario::Storm(Storm {
+            devices: *devices,
+            repeats: *repeats,
+        }),
+    };
+    let message_scenario = !matches!(scenario, Scenario::Idle(_) | Scenario::Storm(_));
+    let plan = Plan {
+        targets,
+        names: vec![c.name.clone(), c.compare_name.clone()],
+        subscribe_at,
+        scenario,
+        rig: RigConfig {
+            qos: c.qos,
+            payload: c.payload,
+            prefix: c.prefix.clone(),
+            inflight: c.inflight,
+            quiet: Duration::from_millis(c.quiet_ms),
+            batch_limit: Duration::from_secs(c.batch_limit_s),
+            timeout: Duration::from_secs(10),
+        },
+        fb: !c.no_fb,
+        ceiling_messages: (message_scenario && c.ceiling > 0).then_some(c.ceiling),
+        time_limit: Duration::from_secs(c.time_limit_s),
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+    };
+    let report = loadtest::run(&plan).await?;
+    print!("{}", report::table(&report));
+    let files = report::write_all(&report, &c.out)?;
+    println!("\nwrote {} files to {}", files.len(), c.out.display());
+    Ok(())
+}
+
+/// From --password-file or MQTT_PASSWORD; never from the command line.
+fn password(c: &Common) -> Result<Option<String>> {
+    if let Some(file) = &c.password_file {
+        let text = std::fs::read_to_string(file)
+            .with_context(|| format!("--password-file {}", file.display()))?;
+        let line = text.lines().next().unwrap_or_default().to_owned();
+        if line.is_empty() {
+            bail!(
+                "--password-file {}: the first line is empty",
+                file.display()
+            );
+        }
+        return Ok(Some(line));
+    }
+    Ok(std::env::var("MQTT_PASSWORD")
+        .ok()
+        .filter(|p| !p.is_empty()))
+}

@@ -1,0 +1,233 @@
+//! Connection scenarios: many idle connections (with the broker's resident memory when
+//! it runs on this machine) and connect/reconnect storms with authentication.
+//!
+//! Their batches count connections, not messages: `sent` is connections attempted,
+//! `delivered` connections up, latency is the time from starting a connection to its
+//! CONNACK.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use tokio::sync::Semaphore;
+
+use crate::client::{Client, ClientConfig};
+use crate::model::Batch;
+use crate::session::Session;
+use crate::target::Target;
+use crate::{broker_process, clock, tally};
+
+/// `idle`: `connections` clients connect (keep-alive 60 s) and stay idle for `hold`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Idle {
+    pub connections: usize,
+    pub hold_s: u64,
+    pub repeats: u32,
+}
+
+/// `storm`: `devices` clients connect at once, then all drop without DISCONNECT (power
+/// cut) and reconnect at once. With `--username`, device `i` logs in as the user of the
+/// same name with `{i}` replaced (`dev-{i}`), all with the one password given.
+#[derive(Debug, Clone, Serialize)]
+pub struct Storm {
+    pub devices: usize,
+    pub repeats: u32,
+}
+
+/// Connections opened at once, at most: the harness's own file-descriptor budget.
+const CONCURRENT_CONNECTS: usize = 512;
+
+/// One wave of concurrent connects and what came of it.
+struct Wave {
+    n: usize,
+    clients: Vec<Client>,
+    errors: Vec<String>,
+    /// Start of each connection to its CONNACK.
+    latency: hdrhistogram::Histogram<u64>,
+    /// First connect started to last CONNACK.
+    took: Duration,
+    started_ms: u64,
+}
+
+/// Connects `n` clients concurrently (at most [`CONCURRENT_CONNECTS`] in progress).
+async fn connect_many(target: &Target, prefix: &str, n: usize, timeout: Duration) -> Wave {
+    let gate = Arc::new(Semaphore::new(CONCURRENT_CONNECTS));
+    let started_ms = clock::now_ms();
+    let start = Instant::now();
+    let mut tasks = Vec::with_capacity(n);
+    for i in 0..n {
+        let mut target = target.clone();
+        if let Some(user) = &target.username {
+            target.username = Some(user.replace("{i}", &i.to_string()));
+        }
+        let gate = gate.clone();
+        let id = format!("{prefix}-{i}");
+        tasks.push(tokio::spawn(async move {
+            let _permit = gate.acquire_owned().await;
+            let mut config = ClientConfig::new(id);
+            config.timeout = timeout;
+            let t = Instant::now();
+            Client::connect(&target, &config, None)
+                .await
+                .map(|c| (c, t.elapsed()))
+        }));
+    }
+    let mut wave = Wave {
+        n,
+        clients: Vec::new(),
+        errors: Vec::new(),
+        latency: tally::histogram(),
+        took: Duration::ZERO,
+        started_ms,
+    };
+    for task in tasks {
+        match task.await {
+            Ok(Ok((client, took))) => {
+                wave.latency
+                    .saturating_record((took.as_micros() as u64).max(1));
+                wave.clients.push(client);
+            }
+            Ok(Err(e)) => wave.errors.push(e.to_string()),
+            Err(e) => wave.errors.push(e.to_string()),
+        }
+    }
+    wave.took = start.elapsed();
+    wave
+}
+
+impl Wave {
+    /// The wave as a batch: `up` connections counted as delivered.
+    fn batch(&self, target: &str, label: String, up: usize, repeat: u32) -> Batch {
+        let n = self.n;
+        let error = self.errors.first().map(|first| {
+            format!(
+                "{} of {n} connections failed; first: {first}",
+                self.errors.len()
+            )
+        });
+        Batch {
+            target: target.to_owned(),
+            label,
+            x: n as f64,
+            repeat,
+            started_ms: self.started_ms,
+            sent: n as u64,
+            delivered: up as u64,
+            expected: n as u64,
+            delivered_fb: None,
+            duplicates: 0,
+            out_of_order: 0,
+            send_us: self.took.as_micros() as u64,
+            processing_us: self.took.as_micros() as u64,
+            throughput: up as f64 / self.took.as_secs_f64().max(1e-9),
+            latency: tally::summarize(&self.latency),
+            ok: error.is_none(),
+            error,
+        }
+    }
+}
+
+impl Idle {
+    pub fn planned(&self, targets: usize) -> u64 {
+        (self.repeats as usize * targets) as u64
+    }
+
+    pub async fn run(&self, s: &mut Session, targets: &[Target], prefix: &str, timeout: Duration) {
+        for repeat in 1..=self.repeats {
+            for (rig, target) in targets.iter().enumerate() {
+                if s.out_of_time() {
+                    return;
+                }
+                let label = s.labels[rig].clone();
+                let pid = target
+                    .is_loopback()
+                    .then(|| broker_process::pid_listening_on(target.port))
+                    .flatten();
+                let before = pid.and_then(broker_process::rss_kib);
+                let id_prefix = format!("{prefix}-{}-idle{repeat}", label.to_lowercase());
+                let wave = connect_many(target, &id_prefix, self.connections, timeout).await;
+                tokio::time::sleep(Duration::from_secs(self.hold_s)).await;
+                let after = pid.and_then(broker_process::rss_kib);
+                let still_up = wave.clients.iter().filter(|c| c.alive()).count();
+                let mut batch = wave.batch(
+                    &label,
+                    format!("idle {}", self.connections),
+                    still_up,
+                    repeat,
+                );
+                if still_up < wave.clients.len() && batch.error.is_none() {
+                    batch.ok = false;
+                    batch.error = Some(format!(
+                        "{} connections dropped while idle",
+                        wave.clients.len() - still_up
+                    ));
+                }
+                s.record(rig, batch, &wave.latency);
+                s.figure(
+                    rig,
+                    "connects_per_s",
+                    wave.clients.len() as f64 / wave.took.as_secs_f64().max(1e-9),
+                    "conn/s",
+                );
+                match (before, after) {
+                    (Some(b), Some(a)) => {
+                        let per = (a as f64 - b as f64) / self.connections.max(1) as f64;
+                        s.figure(rig, "rss_kib_per_idle_connection", per, "KiB");
+                        s.figure(rig, "broker_rss_kib", a as f64, "KiB");
+                    }
+                    _ if repeat == 1 => s.notes.push(format!(
+                        "{label}: broker memory not measured: no process listening on port {} is visible on this machine",
+                        target.port
+                    )),
+                    _ => {}
+                }
+                for c in wave.clients {
+                    c.disconnect().await;
+                }
+            }
+        }
+    }
+}
+
+impl Storm {
+    pub fn planned(&self, targets: usize) -> u64 {
+        (2 * self.repeats as usize * targets) as u64
+    }
+
+    pub async fn run(&self, s: &mut Session, targets: &[Target], prefix: &str, timeout: Duration) {
+        for repeat in 1..=self.repeats {
+            for (rig, target) in targets.iter().enumerate() {
+                if s.out_of_time() {
+                    return;
+                }
+                let label = s.labels[rig].clone();
+                let id_prefix = format!("{prefix}-{}-dev", label.to_lowercase());
+                let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
+                let batch = wave.batch(
+                    &label,
+                    format!("connect storm {}", self.devices),
+                    wave.clients.len(),
+                    repeat,
+                );
+                s.record(rig, batch, &wave.latency);
+                s.figure(rig, "connect_storm_s", wave.took.as_secs_f64(), "s");
+                // Power cut: every device drops without DISCONNECT, then all come back.
+                for c in wave.clients {
+                    c.abort();
+                }
+                let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
+                let batch = wave.batch(
+                    &label,
+                    format!("reconnect storm {}", self.devices),
+                    wave.clients.len(),
+                    repeat,
+                );
+                s.record(rig, batch, &wave.latency);
+                s.figure(rig, "reconnect_storm_s", wave.took.as_secs_f64(), "s");
+                for c in wave.clients {
+                    c.disconnect().await;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,37 @@
+//! The scenarios: the study's three tests ([`study`]), many-client flows ([`flow`]) and
+//! connection scenarios ([`connections`]).
+
+pub mod connections;
+pub mod flow;
+pub mod study;
+
+use serde::Serialize;
+
+/// What to run.
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "scenario", rename_all = "kebab-case")]
+pub enum Scenario {
+    Stress(study::Stress),
+    LossSearch(study::LossSearch),
+    Perf(study::Perf),
+    Flow(flow::Flow),
+    Idle(connections::Idle),
+    Storm(connections::Storm),
+}
+
+impl Scenario {
+    /// The name used in reports and file names.
+    pub fn name(&self) -> String {
+        match self {
+            Scenario::Stress(_) => "stress".into(),
+            Scenario::LossSearch(_) => "loss-search".into(),
+            Scenario::Perf(_) => "perf".into(),
+            Scenario::Flow(f) => serde_json::to_value(f.kind)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_owned))
+                .unwrap_or_else(|| "flow".into()),
+            Scenario::Idle(_) => "idle".into(),
+            Scenario::Storm(_) => "storm".into(),
+        }
+    }
+}

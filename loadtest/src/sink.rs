@@ -1,0 +1,199 @@
+//! The ceiling's sink: the least an MQTT broker can do, so the harness can measure
+//! itself. It accepts MQTT 3.1.1 and 5 connections, grants every subscription (exact
+//! topics only, at QoS 0), answers PINGREQ, acknowledges QoS 1 publications and forwards
+//! each PUBLISH as QoS 0 to the connections subscribed to its exact topic. No sessions,
+//! no retained messages, no wildcards, no authentication: not a broker, a yardstick.
+//!
+//! It runs in the harness's process on 127.0.0.1. When a broker's figures come close to
+//! the sink's, the load generator, not the broker, is the limit.
+
+use std::collections::HashMap;
+use std::io;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+/// Exact topic -> (subscriber's writer, whether it speaks MQTT 5).
+type Subscribers = Arc<Mutex<HashMap<Vec<u8>, Vec<(mpsc::UnboundedSender<Arc<Vec<u8>>>, bool)>>>>;
+
+/// A running sink; stops when dropped.
+pub struct Sink {
+    pub addr: SocketAddr,
+    task: JoinHandle<()>,
+}
+
+impl Drop for Sink {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+impl Sink {
+    pub async fn start() -> io::Result<Sink> {
+        let listener = TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let subscribers: Subscribers = Arc::default();
+        let task = tokio::spawn(async move {
+            let mut connections = Vec::new();
+            while let Ok((stream, _)) = listener.accept().await {
+                let _ = stream.set_nodelay(true);
+                connections.push(AbortOnDrop(tokio::spawn(serve(
+                    stream,
+                    subscribers.clone(),
+                ))));
+            }
+        });
+        Ok(Sink { addr, task })
+    }
+}
+
+struct AbortOnDrop(JoinHandle<io::Result<()>>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Reads one packet: (first header byte, body).
+async fn read_packet(r: &mut (impl AsyncReadExt + Unpin)) -> io::Result<(u8, Vec<u8>)> {
+    let header = r.read_u8().await?;
+    let mut len = 0usize;
+    for shift in (0..28).step_by(7) {
+        let b = r.read_u8().await?;
+        len |= ((b & 0x7f) as usize) << shift;
+        if b & 0x80 == 0 {
+            let mut body = vec![0; len];
+            r.read_exact(&mut body).await?;
+            return Ok((header, body));
+        }
+    }
+    Err(io::Error::new(
+        io::ErrorKind::InvalidData,
+        "bad remaining length",
+    ))
+}
+
+fn packet(header: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = vec![header];
+    let mut len = body.len();
+    loop {
+        let mut b = (len % 128) as u8;
+        len /= 128;
+        if len > 0 {
+            b |= 0x80;
+        }
+        out.push(b);
+        if len == 0 {
+            break;
+        }
+    }
+    out.extend_from_slice(body);
+    out
+}
+
+/// Length of an MQTT 5 property block at `at` (its variable-byte length + the block).
+fn properties_len(body: &[u8], at: usize) -> usize {
+    let mut len = 0usize;
+    for (i, shift) in (0..28).step_by(7).enumerate() {
+        let Some(&b) = body.get(at + i) else { return i };
+        len |= ((b & 0x7f) as usize) << shift;
+        if b & 0x80 == 0 {
+            return i + 1 + len;
+        }
+    }
+    0
+}
+
+async fn serve(stream: TcpStream, subscribers: Subscribers) -> io::Result<()> {
+    let (mut rd, mut wr) = stream.into_split();
+    let (tx, mut rx) = mpsc::unbounded_channel::<Arc<Vec<u8>>>();
+    let writer = AbortOnDrop(tokio::spawn(async move {
+        while let Some(bytes) = rx.recv().await {
+            wr.write_all(&bytes).await?;
+        }
+        Ok(())
+    }));
+    let mut v5 = false;
+    loop {
+        let (header, body) = read_packet(&mut rd).await?;
+        match header >> 4 {
+            1 => {
+                // CONNECT: protocol level after the protocol name "MQTT".
+                v5 = body.get(6) == Some(&5);
+                let ack = if v5 { vec![0, 0, 0] } else { vec![0, 0] };
+                let _ = tx.send(Arc::new(packet(0x20, &ack)));
+            }
+            3 => {
+                let qos = (header >> 1) & 3;
+                let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+                let topic = body[2..2 + topic_len].to_vec();
+                let mut at = 2 + topic_len;
+                if qos > 0 {
+                    let id = [body[at], body[at + 1]];
+                    at += 2;
+                    let ack = if qos == 1 { 0x40 } else { 0x50 };
+                    let _ = tx.send(Arc::new(packet(ack, &id)));
+                }
+                let props = if v5 { properties_len(&body, at) } else { 0 };
+                let payload = &body[at + props..];
+                let mut out_body = Vec::with_capacity(2 + topic_len + 1 + payload.len());
+                out_body.extend_from_slice(&body[..2 + topic_len]);
+                let forwarded_v5 = packet(0x30, &[&out_body[..], &[0], payload].concat());
+                out_body.extend_from_slice(payload);
+                let forwarded = Arc::new(packet(0x30, &out_body));
+                let forwarded_v5 = Arc::new(forwarded_v5);
+                let subs = subscribers.lock().unwrap_or_else(|p| p.into_inner());
+                for (s, s_v5) in subs.get(&topic).into_iter().flatten() {
+                    // An MQTT 5 PUBLISH carries a (here empty) property block.
+                    let _ = s.send(if *s_v5 {
+                        forwarded_v5.clone()
+                    } else {
+                        forwarded.clone()
+                    });
+                }
+            }
+            6 => {
+                // PUBREL -> PUBCOMP
+                let _ = tx.send(Arc::new(packet(0x70, &body[..2])));
+            }
+            8 => {
+                let id = [body[0], body[1]];
+                let mut at = 2;
+                if v5 {
+                    at += properties_len(&body, at);
+                }
+                let mut granted = Vec::new();
+                while at + 2 <= body.len() {
+                    let len = u16::from_be_bytes([body[at], body[at + 1]]) as usize;
+                    let filter = body[at + 2..at + 2 + len].to_vec();
+                    at += 2 + len + 1;
+                    subscribers
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .entry(filter)
+                        .or_default()
+                        .push((tx.clone(), v5));
+                    granted.push(0u8);
+                }
+                let mut ack = id.to_vec();
+                if v5 {
+                    ack.push(0);
+                }
+                ack.extend(granted);
+                let _ = tx.send(Arc::new(packet(0x90, &ack)));
+            }
+            12 => {
+                let _ = tx.send(Arc::new(packet(0xD0, &[])));
+            }
+            14 => break,
+            _ => {}
+        }
+    }
+    drop(writer);
+    Ok(())
+}
