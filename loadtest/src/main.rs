@@ -9,6 +9,7 @@ use clap::{Args, Parser, Subcommand};
 
 use loadtest::rig::RigConfig;
 use loadtest::scenario::connections::{Idle, Storm};
+use loadtest::scenario::conveyor::Conveyor;
 use loadtest::scenario::flow::{Flow, FlowKind};
 use loadtest::scenario::study::{LossSearch, Perf, Stress};
 use loadtest::scenario::Scenario;
@@ -161,6 +162,20 @@ enum Command {
         #[arg(long, default_value_t = 1)]
         repeats: u32,
     },
+    /// The simulated conveyor line: --devices fb-bridge devices in a chain pass --parts
+    /// parts from the first to the last (fbbus only).
+    Conveyor {
+        /// Line lengths (comma-separated), each a point on the charts.
+        #[arg(long, value_delimiter = ',', default_value = "2,5,10")]
+        devices: Vec<usize>,
+        #[arg(long, default_value_t = 100)]
+        parts: u64,
+        /// Parts per second into the first conveyor (default: each after the previous CNF).
+        #[arg(long)]
+        rate: Option<f64>,
+        #[arg(long, default_value_t = 3)]
+        repeats: u32,
+    },
 }
 
 #[derive(Args)]
@@ -274,8 +289,22 @@ async fn run(cli: Cli) -> Result<()> {
             devices: *devices,
             repeats: *repeats,
         }),
+        Command::Conveyor {
+            devices,
+            parts,
+            rate,
+            repeats,
+        } => Scenario::Conveyor(Conveyor {
+            devices: devices.clone(),
+            parts: *parts,
+            rate: *rate,
+            repeats: *repeats,
+        }),
     };
-    let message_scenario = !matches!(scenario, Scenario::Idle(_) | Scenario::Storm(_));
+    let message_scenario = !matches!(
+        scenario,
+        Scenario::Idle(_) | Scenario::Storm(_) | Scenario::Conveyor(_)
+    );
     let plan = Plan {
         targets,
         names: vec![c.name.clone(), c.compare_name.clone()],

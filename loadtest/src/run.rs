@@ -46,7 +46,7 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
     };
 
     let mut session = match &plan.scenario {
-        Scenario::Idle(_) | Scenario::Storm(_) => {
+        Scenario::Idle(_) | Scenario::Storm(_) | Scenario::Conveyor(_) => {
             Session::new(labels.clone(), Vec::new(), plan.time_limit, planned(plan))
         }
         scenario => {
@@ -81,6 +81,11 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
         Scenario::Flow(s) => s.run(&mut session).await,
         Scenario::Idle(s) => s.run(&mut session, &plan.targets, prefix, timeout).await,
         Scenario::Storm(s) => s.run(&mut session, &plan.targets, prefix, timeout).await,
+        Scenario::Conveyor(s) => {
+            let quiet = plan.rig.quiet;
+            s.run(&mut session, &plan.targets, prefix, timeout, quiet)
+                .await
+        }
     }
     let (batches, summaries, ratios, notes) = session.finish().await;
 
@@ -120,6 +125,7 @@ fn planned(plan: &Plan) -> Option<u64> {
         Scenario::Flow(s) => Some(s.planned(n)),
         Scenario::Idle(s) => Some(s.planned(n)),
         Scenario::Storm(s) => Some(s.planned(n)),
+        Scenario::Conveyor(s) => Some(s.planned(n)),
     }
 }
 

@@ -155,7 +155,7 @@ impl Session {
             rig.close().await;
         }
         let ratios = match summaries.as_slice() {
-            [a, b] => ratios(a, b),
+            [a, b] if a.batches > 0 && b.batches > 0 => ratios(a, b),
             _ => Vec::new(),
         };
         (self.batches, summaries, ratios, self.notes)

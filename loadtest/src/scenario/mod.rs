@@ -1,7 +1,9 @@
 //! The scenarios: the study's three tests ([`study`]), many-client flows ([`flow`]) and
-//! connection scenarios ([`connections`]).
+//! connection scenarios ([`connections`]) and the
+//! simulated conveyor line ([`conveyor`]).
 
 pub mod connections;
+pub mod conveyor;
 pub mod flow;
 pub mod study;
 
@@ -17,6 +19,7 @@ pub enum Scenario {
     Flow(flow::Flow),
     Idle(connections::Idle),
     Storm(connections::Storm),
+    Conveyor(conveyor::Conveyor),
 }
 
 impl Scenario {
@@ -32,6 +35,7 @@ impl Scenario {
                 .unwrap_or_else(|| "flow".into()),
             Scenario::Idle(_) => "idle".into(),
             Scenario::Storm(_) => "storm".into(),
+            Scenario::Conveyor(_) => "conveyor".into(),
         }
     }
 }
