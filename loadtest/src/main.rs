@@ -88,6 +88,10 @@ struct Common {
     /// Messages for the harness's own ceiling (a trivial in-process sink); 0 skips it.
     #[arg(long, global = true, default_value_t = 20_000)]
     ceiling: u64,
+    /// Allow brokers that are not on this machine (not 127.0.0.0/8, ::1, localhost).
+    /// Off by default: a load test against a live line's broker can starve its devices.
+    #[arg(long, global = true)]
+    allow_remote: bool,
     /// Directory for report.json, batches.csv, batches.jtl and the SVG charts.
     #[arg(
         long,
@@ -223,6 +227,9 @@ async fn run(cli: Cli) -> Result<()> {
     if let Some(b) = &c.compare {
         targets.push(target(b)?);
     }
+    for t in &targets {
+        refuse_remote(t, c.allow_remote)?;
+    }
     let mut subscribe_at = None;
     let flow = |kind, a: &FlowArgs| {
         Scenario::Flow(Flow {
@@ -273,7 +280,9 @@ async fn run(cli: Cli) -> Result<()> {
             if c.compare.is_some() {
                 bail!("bridge measures line A -> line B; --compare does not apply");
             }
-            subscribe_at = Some(target(b)?);
+            let b = target(b)?;
+            refuse_remote(&b, c.allow_remote)?;
+            subscribe_at = Some(b);
             flow(FlowKind::Bridge, a)
         }
         Command::Idle {
@@ -328,6 +337,19 @@ async fn run(cli: Cli) -> Result<()> {
     print!("{}", report::table(&report));
     let files = report::write_all(&report, &c.out)?;
     println!("\nwrote {} files to {}", files.len(), c.out.display());
+    Ok(())
+}
+
+/// A load test can starve a live line's devices: a broker on another host needs
+/// --allow-remote.
+fn refuse_remote(t: &Target, allow_remote: bool) -> Result<()> {
+    if !t.is_loopback() && !allow_remote {
+        bail!(
+            "{} is not on this machine: loading a live line's broker can starve its devices; \
+             if this broker is yours to load (a test line, a staging broker), add --allow-remote",
+            t.address
+        );
+    }
     Ok(())
 }
 
