@@ -202,29 +202,26 @@ impl Storm {
                 }
                 let label = s.labels[rig].clone();
                 let id_prefix = format!("{prefix}-{}-dev", label.to_lowercase());
-                let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
-                let batch = wave.batch(
-                    &label,
-                    format!("connect storm {}", self.devices),
-                    wave.clients.len(),
-                    repeat,
-                );
-                s.record(rig, batch, &wave.latency);
-                s.figure(rig, "connect_storm_s", wave.took.as_secs_f64(), "s");
-                // Power cut: every device drops without DISCONNECT, then all come back.
-                for c in wave.clients {
-                    c.abort();
+                // All connect at once; then a power cut: every device drops without
+                // DISCONNECT, and all come back at once.
+                let mut up: Vec<Client> = Vec::new();
+                for kind in ["connect", "reconnect"] {
+                    for c in up.drain(..) {
+                        c.abort();
+                    }
+                    let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
+                    let name = format!("{kind} storm {}", self.devices);
+                    let batch = wave.batch(&label, name, wave.clients.len(), repeat);
+                    s.record(rig, batch, &wave.latency);
+                    s.figure(
+                        rig,
+                        &format!("{kind}_storm_s"),
+                        wave.took.as_secs_f64(),
+                        "s",
+                    );
+                    up = wave.clients;
                 }
-                let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
-                let batch = wave.batch(
-                    &label,
-                    format!("reconnect storm {}", self.devices),
-                    wave.clients.len(),
-                    repeat,
-                );
-                s.record(rig, batch, &wave.latency);
-                s.figure(rig, "reconnect_storm_s", wave.took.as_secs_f64(), "s");
-                for c in wave.clients {
+                for c in up {
                     c.disconnect().await;
                 }
             }
