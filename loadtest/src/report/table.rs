@@ -98,24 +98,24 @@ fn batches(r: &Report, out: &mut String) {
     .map(String::from)
     .to_vec()];
     for x in xs {
+        // Every point at this x: a storm's connect and reconnect waves share one x.
         for (name, pts) in &per_target {
-            let Some(p) = pts.iter().find(|p| p.x == x) else {
-                continue;
-            };
-            rows.push(vec![
-                p.label.clone(),
-                name.clone(),
-                p.repeats.to_string(),
-                p.failed.to_string(),
-                count(p.sent),
-                count(p.delivered),
-                count(p.lost),
-                format!("{:.1}", p.delivery_pct),
-                compact(p.throughput),
-                ms(p.lat_p50_us),
-                ms(p.lat_p99_us),
-                ms(p.lat_max_us as f64),
-            ]);
+            for p in pts.iter().filter(|p| p.x == x) {
+                rows.push(vec![
+                    p.label.clone(),
+                    name.clone(),
+                    p.repeats.to_string(),
+                    p.failed.to_string(),
+                    count(p.sent),
+                    count(p.delivered),
+                    count(p.lost),
+                    format!("{:.1}", p.delivery_pct),
+                    compact(p.throughput),
+                    ms(p.lat_p50_us),
+                    ms(p.lat_p99_us),
+                    ms(p.lat_max_us as f64),
+                ]);
+            }
         }
     }
     if rows.len() == 1 {
