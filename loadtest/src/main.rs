@@ -335,6 +335,7 @@ async fn run(cli: Cli) -> Result<()> {
     };
     let report = loadtest::run(&plan).await?;
     print!("{}", report::table(&report));
+    clear_old_outputs(&c.out);
     let files = report::write_all(&report, &c.out)?;
     println!("\nwrote {} files to {}", files.len(), c.out.display());
     Ok(())
@@ -351,6 +352,24 @@ fn refuse_remote(t: &Target, allow_remote: bool) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Removes an earlier run's outputs from `dir`, so no chart of another scenario is left
+/// next to this run's. Only the harness's own files: report.json, batches.*, *.svg.
+fn clear_old_outputs(dir: &std::path::Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let ours = name == report::JSON_FILE
+            || name == report::CSV_FILE
+            || name == report::JTL_FILE
+            || name.ends_with(".svg");
+        if ours {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
 }
 
 /// From --password-file or MQTT_PASSWORD; never from the command line.

@@ -167,6 +167,10 @@ impl Rig {
             });
         }
 
+        if subscribe_at.is_some() {
+            across_the_bridge(&publishers, &subscribers, config).await?;
+        }
+
         let (fb, fb_note) = if !shape.fb {
             (None, None)
         } else if !speaks_fbbus {
@@ -382,6 +386,41 @@ impl Rig {
             fb.stop().await;
         }
     }
+}
+
+/// How long a subscription on line B may take to reach line A over the bridge.
+const BRIDGE_SETTLE: Duration = Duration::from_secs(15);
+
+/// Waits until messages cross from the publishers' broker to the subscribers'.
+///
+/// fbbus's bridge is subscription-driven: line A forwards a topic once line B's
+/// subscription has reached it over zenoh, some milliseconds after line B's SUBACK. Until
+/// then a batch would be lost for a reason that is not load. So before the first batch
+/// every publisher sends probes (seq 0, which no batch uses: counted as stale) until each
+/// subscriber has seen one, bounded by [`BRIDGE_SETTLE`].
+async fn across_the_bridge(
+    publishers: &[Publisher],
+    subscribers: &[Subscriber],
+    config: &RigConfig,
+) -> Result<(), Error> {
+    let deadline = Instant::now() + BRIDGE_SETTLE;
+    while Instant::now() < deadline {
+        for p in publishers {
+            let probe = message::encode(0, clock::now_us(), config.payload);
+            p.client.publish(&p.topic, client::qos(1), probe).await?;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        if subscribers
+            .iter()
+            .all(|s| contract::lock(&s.tally).counts().stale > 0)
+        {
+            return Ok(());
+        }
+    }
+    Err(Error::Timeout {
+        waited: BRIDGE_SETTLE,
+        what: "a probe message to cross from --broker to --subscribe-at (is [bridge] configured on both lines, with the same zenoh network?)".into(),
+    })
 }
 
 fn client_config(id: &str, config: &RigConfig) -> ClientConfig {
