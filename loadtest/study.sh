@@ -34,7 +34,7 @@ wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/n
 start_fbbus() {
   local dir=$WORK/$1; mkdir -p "$dir"; FB_PORT=$(free_port)
   cat > "$dir/fbbus.toml" <<TOML
-$2
+${2:-}
 [[listener]]
 name = "line"
 bind = "127.0.0.1:$FB_PORT"

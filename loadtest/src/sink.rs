@@ -12,7 +12,7 @@ use std::io;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
@@ -110,11 +110,23 @@ fn properties_len(body: &[u8], at: usize) -> usize {
 }
 
 async fn serve(stream: TcpStream, subscribers: Subscribers) -> io::Result<()> {
-    let (mut rd, mut wr) = stream.into_split();
+    let (rd, mut wr) = stream.into_split();
+    // Buffered both ways: one read and one write system call per batch of packets, not
+    // per packet (let alone per byte), as a broker would.
+    let mut rd = BufReader::with_capacity(64 * 1024, rd);
     let (tx, mut rx) = mpsc::unbounded_channel::<Arc<Vec<u8>>>();
     let writer = AbortOnDrop(tokio::spawn(async move {
+        let mut out = Vec::with_capacity(64 * 1024);
         while let Some(bytes) = rx.recv().await {
-            wr.write_all(&bytes).await?;
+            out.extend_from_slice(&bytes);
+            while out.len() < 64 * 1024 {
+                match rx.try_recv() {
+                    Ok(more) => out.extend_from_slice(&more),
+                    Err(_) => break,
+                }
+            }
+            wr.write_all(&out).await?;
+            out.clear();
         }
         Ok(())
     }));
