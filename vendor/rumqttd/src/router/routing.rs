@@ -439,7 +439,10 @@ impl Router {
         let client_id = match &self.obufs.get(id) {
             Some(v) => v.client_id.clone(),
             None => {
-                error!("no-connection id {} is already gone", id);
+                // fbbus: debug, not error: a second disconnect of a connection already
+                // removed (a DISCONNECT packet, then the link's own Disconnect event) is
+                // the normal end of a connection, as the comment above says.
+                debug!("no-connection id {} is already gone", id);
                 return;
             }
         };
@@ -549,7 +552,13 @@ impl Router {
         let incoming = match self.ibufs.get_mut(id) {
             Some(v) => v,
             None => {
-                error!("no-connection id {} is already gone", id);
+                // fbbus: debug, not error. Every `LinkTx::send` queues its packet and then
+                // a `DeviceData` event; the router takes everything queued on the first
+                // event. When a connection's last batch and its Disconnect are both queued
+                // before the router wakes, the first event handles both and ends the
+                // connection, and the second event finds it gone: the normal end of a
+                // connection that published just before disconnecting.
+                debug!("no-connection id {} is already gone", id);
                 return;
             }
         };
