@@ -89,6 +89,13 @@ impl BrokerPublisher {
         Arc::new(BrokerPublisher { queue })
     }
 
+    /// A publisher whose messages go to the returned queue instead of a router (tests).
+    #[cfg(test)]
+    pub fn detached() -> (Arc<BrokerPublisher>, mpsc::UnboundedReceiver<Message>) {
+        let (queue, messages) = mpsc::unbounded_channel();
+        (Arc::new(BrokerPublisher { queue }), messages)
+    }
+
     /// Queues `message`; it is published after every message queued before it.
     pub fn publish(&self, message: Message) {
         // Fails only once the task ended with the router, when nothing can be published.

@@ -5,7 +5,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::clients::{V4, WAIT};
+use common::clients::{p5, V4, V5, WAIT};
 use common::raw::{self, RawClient};
 use common::Broker;
 
@@ -485,4 +485,123 @@ async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
     // End the session.
     c.send(&raw::DISCONNECT);
     connect_v5(port, "dup-sub", true, 0);
+}
+
+/// Retained PUBLISHes arriving within `within` (payloads), after a SUBSCRIBE.
+async fn retained_within(c: &mut V5, within: Duration) -> Vec<Vec<u8>> {
+    let deadline = tokio::time::Instant::now() + within;
+    let mut got = Vec::new();
+    while let Some(p) = c.next_publish(deadline - tokio::time::Instant::now()).await {
+        if p.retain {
+            got.push(p.payload.to_vec());
+        }
+    }
+    got
+}
+
+/// Subscribes `c` to `filter` with a Retain Handling, waiting for the SUBACK.
+async fn subscribe_rh(c: &mut V5, filter: &str, rule: p5::RetainForwardRule) {
+    let mut f = p5::Filter::new(filter, rumqttc::v5::mqttbytes::QoS::AtLeastOnce);
+    f.retain_forward_rule = rule;
+    c.client.subscribe_many([f]).await.unwrap();
+    c.next(WAIT, |p| match p {
+        p5::Packet::SubAck(s) => Some(s.return_codes),
+        _ => None,
+    })
+    .await
+    .expect("SUBACK");
+}
+
+/// Retain Handling [MQTT-3.3.1-9..11], [MQTT-3.8.4-4]: 0 sends the retained messages on
+/// every SUBSCRIBE, a repeated one of an existing filter too (conformance row 7a); 1 only
+/// when the subscription is new (7b); 2 never (7c). Replacing the subscription loses no
+/// live message.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retain_handling_decides_the_retained_messages_of_every_subscribe() {
+    use p5::RetainForwardRule::{Never, OnEverySubscribe, OnNewSubscribe};
+    let broker = Broker::start();
+    let port = broker.port();
+    let publisher = V5::connect(port, "rh-publisher", None).await.unwrap();
+    publisher
+        .client
+        .publish(
+            "rh/t",
+            rumqttc::v5::mqttbytes::QoS::AtLeastOnce,
+            true,
+            "kept",
+        )
+        .await
+        .unwrap();
+    // The retained message is stored once a new subscriber gets it.
+    let mut probe = V5::connect(port, "rh-probe", None).await.unwrap();
+    subscribe_rh(&mut probe, "rh/#", OnEverySubscribe).await;
+    let stored = probe
+        .next_publish(WAIT)
+        .await
+        .expect("the retained message");
+    assert!(stored.retain && &stored.payload[..] == b"kept");
+
+    let window = Duration::from_millis(800);
+    for (rule, expected) in [
+        (OnEverySubscribe, (1, 1)),
+        (OnNewSubscribe, (1, 0)),
+        (Never, (0, 0)),
+    ] {
+        let mut c = V5::connect(port, &format!("rh-{rule:?}"), None)
+            .await
+            .unwrap();
+        subscribe_rh(&mut c, "rh/#", rule.clone()).await;
+        let first = retained_within(&mut c, window).await.len();
+        subscribe_rh(&mut c, "rh/#", rule.clone()).await;
+        let second = retained_within(&mut c, window).await.len();
+        assert_eq!(
+            (first, second),
+            expected,
+            "{rule:?}: retained copies on the first/second SUBSCRIBE"
+        );
+        // The subscription was replaced, not lost: live messages still arrive, once.
+        let live = format!("live {rule:?}");
+        publisher
+            .client
+            .publish(
+                "rh/live",
+                rumqttc::v5::mqttbytes::QoS::AtLeastOnce,
+                false,
+                live.clone(),
+            )
+            .await
+            .unwrap();
+        let mut got = Vec::new();
+        while let Some(p) = c.next_publish(window).await {
+            got.push(String::from_utf8_lossy(&p.payload).into_owned());
+        }
+        assert_eq!(
+            got,
+            [live],
+            "{rule:?}: live delivery after the repeated SUBSCRIBE"
+        );
+    }
+}
+
+/// MQTT 3.1.1 [MQTT-3.8.4-3]: a repeated SUBSCRIBE re-sends the retained messages.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mqtt311_repeated_subscribe_resends_retained_messages() {
+    let broker = Broker::start();
+    let port = broker.port();
+    let publisher = V4::connect(port, "rs-publisher", None).await.unwrap();
+    publisher
+        .client
+        .publish("rs/t", rumqttc::QoS::AtLeastOnce, true, "kept")
+        .await
+        .unwrap();
+    let mut c = V4::connect(port, "rs-sub", None).await.unwrap();
+    for round in ["first", "second"] {
+        c.subscribe("rs/#").await;
+        let m = c.next_publish(WAIT).await;
+        assert!(
+            m.as_ref()
+                .is_some_and(|m| m.retain && &m.payload[..] == b"kept"),
+            "{round} SUBSCRIBE: retained message not sent ({m:?})"
+        );
+    }
 }

@@ -1,7 +1,7 @@
 use crate::protocol::{
     ConnAck, ConnAckProperties, ConnectReturnCode, Disconnect, DisconnectReasonCode, LastWill,
     LastWillProperties, Packet, PingResp, PubAck, PubAckReason, PubComp, PubCompReason, PubRec,
-    PubRecReason, PubRel, PubRelReason, Publish, PublishProperties, QoS, SubAck,
+    PubRecReason, PubRel, PubRelReason, Publish, PublishProperties, QoS, RetainForwardRule, SubAck,
     SubscribeReasonCode, UnsubAck, UnsubAckReason,
 };
 use crate::router::alertlog::alert;
@@ -439,7 +439,10 @@ impl Router {
         let client_id = match &self.obufs.get(id) {
             Some(v) => v.client_id.clone(),
             None => {
-                error!("no-connection id {} is already gone", id);
+                // fbbus: debug, not error: a second disconnect of a connection already
+                // removed (a DISCONNECT packet, then the link's own Disconnect event) is
+                // the normal end of a connection, as the comment above says.
+                debug!("no-connection id {} is already gone", id);
                 return;
             }
         };
@@ -549,7 +552,13 @@ impl Router {
         let incoming = match self.ibufs.get_mut(id) {
             Some(v) => v,
             None => {
-                error!("no-connection id {} is already gone", id);
+                // fbbus: debug, not error. Every `LinkTx::send` queues its packet and then
+                // a `DeviceData` event; the router takes everything queued on the first
+                // event. When a connection's last batch and its Disconnect are both queued
+                // before the router wakes, the first event handles both and ends the
+                // connection, and the second event finds it gone: the normal end of a
+                // connection that published just before disconnecting.
+                debug!("no-connection id {} is already gone", id);
                 return;
             }
         };
@@ -986,11 +995,48 @@ impl Router {
             self.scheduler.track(id, request);
             self.scheduler.reschedule(id, ScheduleReason::NewFilter);
             debug_assert!(self.scheduler.check_tracker_duplicates(id).is_none())
+        } else if forward_retained
+            && filter.retain_forward_rule == RetainForwardRule::OnEverySubscribe
+        {
+            // fbbus: a repeated SUBSCRIBE of a filter the connection already has gets the
+            // retained messages again when its Retain Handling is 0 (MQTT 5 [MQTT-3.3.1-9],
+            // [MQTT-3.8.4-4]; MQTT 3.1.1 [MQTT-3.8.4-3], which the v4 parser maps to
+            // `OnEverySubscribe`). Upstream sent them only for a new filter.
+            self.forward_retained_again(id, filter_path);
         }
 
         // TODO: figure out how we can update existing DataRequest
         // helpful in re-subscriptions and forwarding retained messages on
         // every subscribe
+    }
+
+    /// fbbus: marks the connection's existing data request for `filter_path` to forward
+    /// the retained messages on its next read, and schedules the connection. The request
+    /// is in one of three places: the connection's tracker (scheduled, or paused for its
+    /// in-flight window or a full buffer), the filter's waiters (caught up, parked), or the
+    /// router's notification queue (woken by a publish earlier in this batch).
+    fn forward_retained_again(&mut self, id: ConnectionId, filter_path: &Filter) {
+        let in_tracker = self.scheduler.trackers.get_mut(id).and_then(|tracker| {
+            tracker
+                .data_requests
+                .iter_mut()
+                .find(|r| r.filter == *filter_path)
+        });
+        if let Some(request) = in_tracker {
+            request.forward_retained = true;
+        } else if let Some((_, request)) = self
+            .notifications
+            .iter_mut()
+            .find(|(owner, r)| *owner == id && r.filter == *filter_path)
+        {
+            request.forward_retained = true;
+        } else if let Some(mut request) = self.datalog.remove_waiters_for_id(id, filter_path) {
+            request.forward_retained = true;
+            self.scheduler.track(id, request);
+        } else {
+            return;
+        }
+        self.scheduler.reschedule(id, ScheduleReason::NewFilter);
     }
 
     /// When a connection is ready, it should sweep native data from 'datalog',
