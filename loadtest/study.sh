@@ -28,7 +28,7 @@ cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; rm -r
 trap cleanup EXIT
 
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
-wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/null && return 0; sleep 0.1; done; echo "study: nothing listens on $1" >&2; exit 1; }
+wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/null && return 0; sleep 0.1; done; echo "study: nothing listens on $1" >&2; tail -n 5 "$WORK"/*/*.log >&2; exit 1; }
 
 # start_fbbus NAME [extra TOML]: fbbus on a fresh registry; sets FB_PORT.
 start_fbbus() {
@@ -46,7 +46,7 @@ bind = "127.0.0.1:$(free_port)"
 [fb]
 registry_file = "$dir/registry.json"
 TOML
-  "$FBBUS" serve --config "$dir/fbbus.toml" > "$dir/log" 2>&1 &
+  "$FBBUS" serve --config "$dir/fbbus.toml" > "$dir/fbbus.log" 2>&1 &
   PIDS+=($!); wait_port "$FB_PORT"
 }
 
@@ -54,7 +54,7 @@ TOML
 start_mosquitto() {
   local dir=$WORK/$1; mkdir -p "$dir"; MQ_PORT=$(free_port)
   printf 'listener %s 127.0.0.1\nset_tcp_nodelay true\n%s\n' "$MQ_PORT" "${2:-allow_anonymous true}" > "$dir/mosquitto.conf"
-  "$MOSQUITTO" -c "$dir/mosquitto.conf" > "$dir/log" 2>&1 &
+  "$MOSQUITTO" -c "$dir/mosquitto.conf" > "$dir/mosquitto.log" 2>&1 &
   PIDS+=($!); wait_port "$MQ_PORT"
 }
 
@@ -76,6 +76,7 @@ start_fbbus main; start_mosquitto main
 want stress && run stress stress
 want stress-81920 && run stress-81920 stress --max 81920
 want loss-search && run loss-search loss-search
+want loss-search-raw && run loss-search-raw --no-fb loss-search
 want perf && run perf perf
 want qos1 && run stress-qos1 --qos 1 stress --max 81920 --repeats 3
 want fan-in && run fan-in fan-in --clients 10 --messages 10000
@@ -101,6 +102,9 @@ if want storm; then
     mosquitto_passwd -b "$WORK/storm/mosquitto.passwd" "dev-$i" "$pw"
   done
   chmod 600 "$WORK/storm/fbbus.passwd"
+  # Mosquitto started as root reads its password file as the user `mosquitto`.
+  chmod 755 "$WORK" "$WORK/storm"
+  chown mosquitto: "$WORK/storm/mosquitto.passwd" 2>/dev/null || chmod 644 "$WORK/storm/mosquitto.passwd"
   start_fbbus storm "[auth]
 password_file = \"$WORK/storm/fbbus.passwd\"" false
   start_mosquitto storm "allow_anonymous false
@@ -124,14 +128,19 @@ line = \"line-b\"
 listen = [\"tcp/127.0.0.1:$zb\"]
 connect = [\"tcp/127.0.0.1:$za\"]"
   B=$FB_PORT
-  sleep 2
-  mkdir -p "$OUT/bridge" "$OUT/bridge-local"
-  echo "== bridge: line A -> line B"
-  "$LT" --broker "mqtt://127.0.0.1:$A" --out "$OUT/bridge" bridge --subscribe-at "mqtt://127.0.0.1:$B" \
-    --messages 10000 --repeats 5 | tee "$OUT/bridge/summary.txt"
-  echo "== bridge: the same within line A"
-  "$LT" --broker "mqtt://127.0.0.1:$A" --out "$OUT/bridge-local" bridge --subscribe-at "mqtt://127.0.0.1:$A" \
-    --messages 10000 --repeats 5 | tee "$OUT/bridge-local/summary.txt"
+  # First the traffic within line A alone (nobody on line B subscribes yet, so line A
+  # exports nothing), then the same from line A to line B. Bursts for throughput,
+  # open-loop rates for the hop's latency.
+  for kind in local hop; do
+    sub=$B; [ $kind = local ] && sub=$A
+    for pace in burst rate; do
+      args=(--messages 20000 --repeats 5); [ $pace = rate ] && args=(--messages 5000 --rate 1000,10000 --repeats 3)
+      mkdir -p "$OUT/bridge-$kind-$pace"
+      echo "== bridge ($kind, $pace)"
+      "$LT" --broker "mqtt://127.0.0.1:$A" --out "$OUT/bridge-$kind-$pace" bridge \
+        --subscribe-at "mqtt://127.0.0.1:$sub" "${args[@]}" | tee "$OUT/bridge-$kind-$pace/summary.txt"
+    done
+  done
   stop_all
 fi
 echo "study: results in $OUT"

@@ -231,6 +231,10 @@ async fn sys_version(target: &Target, plan: &Plan) -> Option<String> {
     let on_publish: client::OnPublish = std::sync::Arc::new(move |_t: &[u8], payload: &[u8]| {
         let _ = tx.send(String::from_utf8_lossy(payload).into_owned());
     });
+    // A storm's `dev-{i}` user: probe as device 0.
+    let mut target = target.clone();
+    target.username = target.username.map(|u| u.replace("{i}", "0"));
+    let target = &target;
     let mut config = client::ClientConfig::new(format!("{}-probe", plan.rig.prefix));
     config.timeout = Duration::from_secs(2);
     let mut c = client::Client::connect(target, &config, Some(on_publish))
