@@ -180,6 +180,12 @@ enum Command {
         #[arg(long, default_value_t = 3)]
         repeats: u32,
     },
+    /// Writes the table, CSV, JTL and charts again from an earlier run's report.json
+    /// (into --out, default: the report's own directory).
+    Render {
+        #[arg(value_name = "REPORT_JSON")]
+        report: PathBuf,
+    },
 }
 
 #[derive(Args)]
@@ -214,6 +220,9 @@ fn main() -> ExitCode {
 
 async fn run(cli: Cli) -> Result<()> {
     let c = &cli.common;
+    if let Command::Render { report: path } = &cli.scenario {
+        return render(path, c);
+    }
     let password = password(c)?;
     let target = |url: &str| -> Result<Target> {
         let mut t = Target::parse(url)?;
@@ -298,6 +307,7 @@ async fn run(cli: Cli) -> Result<()> {
             devices: *devices,
             repeats: *repeats,
         }),
+        Command::Render { .. } => unreachable!("handled above"),
         Command::Conveyor {
             devices,
             parts,
@@ -351,6 +361,24 @@ fn refuse_remote(t: &Target, allow_remote: bool) -> Result<()> {
             t.address
         );
     }
+    Ok(())
+}
+
+/// `render`: the outputs of a recorded run, from its report.json.
+fn render(path: &std::path::Path, c: &Common) -> Result<()> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("{}", path.display()))?;
+    let report: loadtest::model::Report = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a fbbus-loadtest report.json", path.display()))?;
+    let default_out = PathBuf::from("loadtest-out");
+    let out = if c.out == default_out {
+        path.parent().map_or(default_out, |p| p.to_path_buf())
+    } else {
+        c.out.clone()
+    };
+    print!("{}", report::table(&report));
+    clear_old_outputs(&out);
+    let files = report::write_all(&report, &out)?;
+    println!("\nwrote {} files to {}", files.len(), out.display());
     Ok(())
 }
 

@@ -59,9 +59,13 @@ pub struct Target {
 }
 
 /// The harness against a trivial sink: the most it can generate and count on this
-/// machine. A broker figure near this is the harness's limit, not the broker's.
+/// machine, with the scenario's clients and pace. A broker figure near this is the
+/// harness's limit, not the broker's.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Ceiling {
+    /// The batch run through the sink (`burst 20000`, `rate 1000/s`).
+    #[serde(default)]
+    pub label: String,
     pub messages: u64,
     pub throughput: f64,
     pub latency: Latency,

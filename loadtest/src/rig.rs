@@ -250,22 +250,35 @@ impl Rig {
         for (p, &(base, n)) in self.publishers.iter().zip(&ranges) {
             let (client, topic) = (p.client.clone(), p.topic.clone());
             let (qos, size) = (client::qos(self.config.qos), self.config.payload);
-            senders.push(tokio::spawn(async move {
-                for k in 0..n {
-                    let ts = match per_publisher_rate {
-                        None => clock::now_us(),
-                        Some(rate) => {
+            let sender = match per_publisher_rate {
+                None => tokio::spawn(async move {
+                    for k in 0..n {
+                        let payload = message::encode(base + k, clock::now_us(), size);
+                        client.publish(&topic, qos, payload).await?;
+                    }
+                    Ok::<u64, Error>(n)
+                }),
+                // Open loop on a thread of its own: tokio's timers tick in whole
+                // milliseconds, so a message due at 0.3 ms would leave at 1 ms and, stamped
+                // with its due time, show the timer's lateness as broker latency. A thread
+                // sleeps to within the kernel's timer slack (~50 us).
+                Some(rate) => {
+                    let runtime = tokio::runtime::Handle::current();
+                    tokio::task::spawn_blocking(move || {
+                        for k in 0..n {
                             let due = start + Duration::from_secs_f64(k as f64 / rate);
-                            tokio::time::sleep_until(due.into()).await;
-                            clock::at_us(due)
+                            let now = Instant::now();
+                            if due > now {
+                                std::thread::sleep(due - now);
+                            }
+                            let payload = message::encode(base + k, clock::at_us(due), size);
+                            runtime.block_on(client.publish(&topic, qos, payload))?;
                         }
-                    };
-                    client
-                        .publish(&topic, qos, message::encode(base + k, ts, size))
-                        .await?;
+                        Ok::<u64, Error>(n)
+                    })
                 }
-                Ok::<u64, Error>(n)
-            }));
+            };
+            senders.push(sender);
         }
         let mut send_error = None;
         let mut sent = 0;

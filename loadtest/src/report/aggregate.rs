@@ -20,6 +20,10 @@ pub(crate) struct Point {
     pub failed: usize,
     pub sent: f64,
     pub delivered: f64,
+    /// Mean delivered at the FB subscriber, and that as % of sent (pooled); `None` when
+    /// no repeat had an FB subscriber.
+    pub delivered_fb: Option<f64>,
+    pub fb_pct: Option<f64>,
     pub lost: f64,
     /// Pooled delivered / expected, in percent.
     pub delivery_pct: f64,
@@ -52,6 +56,11 @@ fn point(repeats: &[&Batch]) -> Point {
     let mean = |f: &dyn Fn(&Batch) -> f64| repeats.iter().map(|b| f(b)).sum::<f64>() / n;
     let expected: u64 = repeats.iter().map(|b| b.expected).sum();
     let delivered: u64 = repeats.iter().map(|b| b.delivered).sum();
+    // The FB subscriber counts one copy per message sent.
+    let fb = repeats.iter().all(|b| b.delivered_fb.is_some()).then(|| {
+        let d: u64 = repeats.iter().filter_map(|b| b.delivered_fb).sum();
+        (d, repeats.iter().map(|b| b.sent).sum::<u64>())
+    });
     Point {
         x: repeats[0].x,
         label: repeats[0].label.clone(),
@@ -59,6 +68,14 @@ fn point(repeats: &[&Batch]) -> Point {
         failed: repeats.iter().filter(|b| !b.ok).count(),
         sent: mean(&|b| b.sent as f64),
         delivered: mean(&|b| b.delivered as f64),
+        delivered_fb: fb.map(|(d, _)| d as f64 / n),
+        fb_pct: fb.map(|(d, sent)| {
+            if sent == 0 {
+                100.0
+            } else {
+                100.0 * d as f64 / sent as f64
+            }
+        }),
         lost: mean(&|b| b.lost() as f64),
         delivery_pct: if expected == 0 {
             100.0

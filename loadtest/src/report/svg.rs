@@ -151,6 +151,20 @@ fn charts(report: &Report) -> Vec<Chart> {
             })
             .collect()
     };
+    // A target's FB subscriber, when it had one: its own line, in the next colour.
+    let fb_lines = |f: fn(&Point) -> Option<f64>| -> Vec<Series> {
+        per_target
+            .iter()
+            .enumerate()
+            .filter(|(_, (_, _, pts))| pts.iter().any(|p| f(p).is_some()))
+            .map(|(i, (name, _, pts))| Series {
+                name: format!("{name} FB subscriber"),
+                color: PALETTE[(i + per_target.len()) % PALETTE.len()],
+                points: pts.iter().filter_map(|p| Some((p.x, f(p)?))).collect(),
+                dashed: false,
+            })
+            .collect()
+    };
     let brokers = per_target
         .iter()
         .map(|(name, _, _)| name.as_str())
@@ -187,9 +201,11 @@ fn charts(report: &Report) -> Vec<Chart> {
                 XScale::Log2 => "burst size (messages, log2 scale)",
                 _ => "burst size (messages)",
             };
-            // The reference first, so the brokers' lines are drawn over it.
+            // The reference first, so the brokers' lines are drawn over it; then the FB
+            // subscribers where there were any (the study counted there).
             let mut delivered = vec![reference(report)];
             delivered.extend(lines(|p| p.delivered));
+            delivered.extend(fb_lines(|p| p.delivered_fb));
             charts.push(chart(
                 "stress.svg",
                 "messages delivered per burst",
@@ -204,7 +220,10 @@ fn charts(report: &Report) -> Vec<Chart> {
                 burst,
                 "delivered (% of expected)",
                 scale,
-                lines(|p| p.delivery_pct),
+                lines(|p| p.delivery_pct)
+                    .into_iter()
+                    .chain(fb_lines(|p| p.fb_pct))
+                    .collect(),
             );
             rate.y_min_top = 100.0;
             rate.legend = SeriesLabelPosition::LowerLeft;

@@ -56,7 +56,12 @@ fn header(r: &Report, out: &mut String) {
     if let Some(c) = &r.ceiling {
         let _ = writeln!(
             out,
-            "harness ceiling (trivial sink): {} msg, {} msg/s, latency p50 {} p99 {} ms",
+            "harness ceiling (trivial sink{}): {} msg, {} msg/s, latency p50 {} p99 {} ms",
+            if c.label.is_empty() {
+                String::new()
+            } else {
+                format!(", {}", c.label)
+            },
             c.messages,
             compact(c.throughput),
             ms(c.latency.p50_us as f64),

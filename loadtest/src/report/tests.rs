@@ -85,6 +85,7 @@ fn report(scenario: &str, targets: Vec<Target>, batches: Vec<Batch>) -> Report {
         params: serde_json::json!({"start": 10, "repeats": 2}),
         targets,
         ceiling: Some(Ceiling {
+            label: "burst 20000".into(),
             messages: 100_000,
             throughput: 500_000.0,
             latency: latency(100),
