@@ -173,6 +173,12 @@ impl Rig {
 
         let (fb, fb_note) = if !shape.fb {
             (None, None)
+        } else if sub_target.tls {
+            let note = format!(
+                "{label}: no FB subscriber: fb-bridge's client speaks plain MQTT only, and {} is TLS; delivery is counted at the raw MQTT subscriber only",
+                sub_target.address
+            );
+            (None, Some(note))
         } else if !speaks_fbbus {
             let note = format!(
                 "{label}: no FB subscriber: {} did not answer the fbbus declaration (not an fbbus broker), so delivery is counted at the raw MQTT subscriber only",

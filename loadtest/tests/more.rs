@@ -1,0 +1,168 @@
+//! The conveyor scenario, TLS targets and `render`, against real brokers on loopback.
+
+mod common;
+
+use std::path::Path;
+
+use common::{loadtest, svg_series, Fbbus, Mosquitto};
+use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair, KeyUsagePurpose};
+
+/// A line of fb-bridge devices passes every part to its end; a broker without the fbbus
+/// device contract runs no line and the report says why.
+#[test]
+fn conveyor_passes_every_part_and_skips_a_plain_broker() {
+    let fbbus = Fbbus::start();
+    let Some(mosquitto) = Mosquitto::start() else {
+        return;
+    };
+    let run = loadtest(
+        &[
+            "--broker",
+            &fbbus.url(),
+            "--compare",
+            &mosquitto.url(),
+            "conveyor",
+            "--devices",
+            "2,3",
+            "--parts",
+            "20",
+            "--repeats",
+            "1",
+        ],
+        &[],
+    );
+    let r = run.ok();
+    assert_eq!(r.scenario, "conveyor");
+    let a: Vec<_> = r.batches.iter().filter(|b| b.target == "A").collect();
+    assert_eq!(a.iter().map(|b| b.x as u64).collect::<Vec<_>>(), vec![2, 3]);
+    for b in &a {
+        assert_eq!((b.sent, b.expected, b.delivered), (20, 20, 20), "{b:?}");
+        assert_eq!(b.delivered_fb, Some(20));
+        assert!(b.ok && b.duplicates == 0 && b.out_of_order == 0, "{b:?}");
+        assert_eq!(b.latency.count, 20);
+    }
+    assert!(r.batches.iter().all(|b| b.target == "A"), "B ran a line");
+    assert!(
+        r.notes
+            .iter()
+            .any(|n| n.starts_with("B: no conveyor line") && n.contains("device contract")),
+        "{:?}",
+        r.notes
+    );
+    // No ratios against a broker that ran nothing.
+    assert!(r.ratios.is_empty(), "{:?}", r.ratios);
+    let svg = run.file("throughput.svg");
+    assert_eq!(svg_series(&svg, "fbbus").map(|p| p.len()), Some(2));
+}
+
+/// Writes a CA and a server certificate for localhost/127.0.0.1 into `dir`.
+fn write_pki(dir: &Path) {
+    let ca_key = KeyPair::generate().unwrap();
+    let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca.distinguished_name
+        .push(DnType::CommonName, "loadtest test CA");
+    ca.key_usages = vec![
+        KeyUsagePurpose::KeyCertSign,
+        KeyUsagePurpose::DigitalSignature,
+    ];
+    let ca = ca.self_signed(&ca_key).unwrap();
+    let key = KeyPair::generate().unwrap();
+    let mut server = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+    server
+        .distinguished_name
+        .push(DnType::CommonName, "localhost");
+    server.use_authority_key_identifier_extension = true;
+    let server = server.signed_by(&key, &ca, &ca_key).unwrap();
+    std::fs::write(dir.join("ca.crt"), ca.pem()).unwrap();
+    std::fs::write(dir.join("server.crt"), server.pem()).unwrap();
+    std::fs::write(dir.join("server.key"), key.serialize_pem()).unwrap();
+}
+
+/// `mqtts://` with `--ca`: every message delivered over TLS; the FB subscriber (plain
+/// MQTT only) is left out with a note instead of failing the run; without the CA the run
+/// refuses with advice.
+#[test]
+fn tls_target_with_ca() {
+    let fbbus = Fbbus::start_with(
+        "tls",
+        "",
+        "[listener.tls]\ncert = \"server.crt\"\nkey = \"server.key\"\n",
+        "",
+        write_pki,
+    );
+    let url = fbbus.url().replace("mqtt://127.0.0.1", "mqtts://localhost");
+    let ca = fbbus.dir.path().join("ca.crt");
+    let run = loadtest(
+        &[
+            "--broker",
+            &url,
+            "--ca",
+            ca.to_str().unwrap(),
+            "--mqtt",
+            "5",
+            "--qos",
+            "1",
+            "stress",
+            "--max",
+            "20",
+            "--repeats",
+            "1",
+        ],
+        &[],
+    );
+    let r = run.ok();
+    assert_eq!(r.targets[0].address, url);
+    assert_eq!(r.batches.len(), 2);
+    for b in &r.batches {
+        assert_eq!(
+            (b.sent, b.delivered, b.delivered_fb),
+            (b.x as u64, b.x as u64, None),
+            "{b:?}"
+        );
+        assert!(b.ok);
+    }
+    assert!(
+        r.notes.iter().any(|n| n.contains("plain MQTT only")),
+        "{:?}",
+        r.notes
+    );
+
+    let refused = loadtest(&["--broker", &url, "stress", "--max", "10"], &[]);
+    assert!(!refused.success);
+    assert!(refused.stderr.contains("--ca"), "{}", refused.stderr);
+}
+
+/// `render` writes the same files again from a report.json, and the table.
+#[test]
+fn render_rebuilds_the_outputs_from_report_json() {
+    let fbbus = Fbbus::start();
+    let run = loadtest(
+        &[
+            "--broker",
+            &fbbus.url(),
+            "stress",
+            "--max",
+            "20",
+            "--repeats",
+            "1",
+        ],
+        &[],
+    );
+    run.ok();
+    // Into the helper's own --out directory: a different one.
+    let rendered = loadtest(&["render", run.path("report.json").to_str().unwrap()], &[]);
+    assert!(rendered.success, "{}", rendered.stderr);
+    assert!(rendered.stdout.contains("burst 20"), "{}", rendered.stdout);
+    for file in [
+        "batches.csv",
+        "batches.jtl",
+        "stress.svg",
+        "delivery-rate.svg",
+    ] {
+        let original = run.file(file);
+        let copy = rendered.file(file);
+        assert_eq!(original, copy, "{file} differs after render");
+    }
+    assert_eq!(rendered.report().scenario, "stress");
+}
