@@ -40,6 +40,12 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
         .map(|l| l.to_string())
         .collect();
 
+    // Every broker must at least accept a TCP connection: otherwise a connection scenario
+    // would "measure" nothing but refused connects.
+    for target in plan.targets.iter().chain(&plan.subscribe_at) {
+        reachable(target, plan.rig.timeout).await?;
+    }
+
     let ceiling = match plan.ceiling_messages {
         Some(n) => Some(ceiling(n, plan).await?),
         None => None,
@@ -114,6 +120,23 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
         ratios,
         notes,
     })
+}
+
+async fn reachable(target: &Target, timeout: Duration) -> Result<(), Error> {
+    let connect = tokio::net::TcpStream::connect((target.host.as_str(), target.port));
+    match tokio::time::timeout(timeout, connect).await {
+        Ok(Ok(_)) => Ok(()),
+        Ok(Err(e)) => Err(Error::Connect {
+            id: "the harness".into(),
+            address: target.address.clone(),
+            reason: e.to_string(),
+        }),
+        Err(_) => Err(Error::Connect {
+            id: "the harness".into(),
+            address: target.address.clone(),
+            reason: format!("no TCP connection within {timeout:?}"),
+        }),
+    }
 }
 
 fn planned(plan: &Plan) -> Option<u64> {

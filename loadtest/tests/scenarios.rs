@@ -970,6 +970,15 @@ fn bad_targets_fail_with_advice() {
     );
     assert!(!run.path("report.json").exists());
 
+    // The same for connection scenarios: nothing to measure without a broker.
+    let run = loadtest(&["--broker", &url, "storm", "--devices", "3"], &[]);
+    assert!(!run.success, "{}", run.context());
+    assert!(
+        run.stderr.contains("cannot connect") && run.stderr.contains(&url),
+        "{}",
+        run.context()
+    );
+
     // A broker on another machine needs --allow-remote.
     let run = loadtest(&["--broker", "mqtt://192.0.2.1:1883", "stress"], &[]);
     assert!(!run.success, "{}", run.context());
