@@ -205,6 +205,8 @@ struct FlowArgs {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // mqtts:// targets: one crypto provider for the whole process (see Cargo.toml).
+    let _ = rustls::crypto::ring::default_provider().install_default();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
