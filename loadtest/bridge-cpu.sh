@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# CPU time per 100,000 messages of two fbbus lines linked by the zenoh bridge, for one or
+# more fbbus binaries, alternating (RESULTS.md, "Where the CPU goes"). For each binary and
+# round: start line A and line B on free loopback ports, send 5 bursts of 20,000 messages
+# from A to a subscriber on B, then the same within A, and print the utime + stime each
+# line's process spent (from /proc/<pid>/stat, in seconds).
+#
+#   bash loadtest/bridge-cpu.sh target/release/fbbus [other/fbbus ...]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+[ $# -ge 1 ] || { echo "usage: $0 FBBUS_BINARY [FBBUS_BINARY ...]" >&2; exit 2; }
+cargo build --release -p fbbus-loadtest >/dev/null
+LT=$PWD/target/release/fbbus-loadtest
+ROUNDS=${ROUNDS:-3}
+WORK=$(mktemp -d)
+PIDS=()
+cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$WORK"; }
+trap cleanup EXIT
+
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/null && return 0; sleep 0.1; done; echo "nothing listens on $1" >&2; exit 1; }
+cpu_s() { awk '{printf "%.2f", ($14+$15)/100}' "/proc/$1/stat"; }
+sub() { awk -v a="$1" -v b="$2" 'BEGIN{printf "%.2f", b-a}'; }
+
+line() { # line NAME MQTT_PORT ZENOH_LISTEN ZENOH_CONNECT BINARY
+  cat > "$WORK/$1.toml" <<TOML
+[broker]
+line = "$1"
+[bridge]
+listen = ["tcp/127.0.0.1:$3"]
+connect = ["tcp/127.0.0.1:$4"]
+[[listener]]
+name = "line"
+bind = "127.0.0.1:$2"
+allow_anonymous = true
+[admin]
+bind = "127.0.0.1:$(free_port)"
+[fb]
+registry_file = "$WORK/$1-registry.json"
+TOML
+  rm -f "$WORK/$1-registry.json"
+  "$5" serve --config "$WORK/$1.toml" > "$WORK/$1.log" 2>&1 &
+  PIDS+=($!)
+}
+
+burst() { "$LT" --ceiling 0 --broker "mqtt://127.0.0.1:$1" --out "$WORK/out" bridge \
+            --subscribe-at "mqtt://127.0.0.1:$2" --messages "${3:-20000}" --repeats "${4:-5}" >/dev/null; }
+
+for round in $(seq "$ROUNDS"); do
+  for bin in "$@"; do
+    pa=$(free_port); pb=$(free_port); za=$(free_port); zb=$(free_port)
+    line line-a "$pa" "$za" "$zb" "$bin"; A=${PIDS[-1]}
+    line line-b "$pb" "$zb" "$za" "$bin"; B=${PIDS[-1]}
+    wait_port "$pa"; wait_port "$pb"
+    burst "$pa" "$pb" 1000 1            # warm-up: the bridge's routes exist
+    a0=$(cpu_s "$A"); b0=$(cpu_s "$B")
+    burst "$pa" "$pb"
+    a1=$(cpu_s "$A"); b1=$(cpu_s "$B")
+    burst "$pa" "$pa"
+    a2=$(cpu_s "$A")
+    echo "round $round $bin: across the bridge line A $(sub "$a0" "$a1") s, line B $(sub "$b0" "$b1") s; within line A $(sub "$a1" "$a2") s (per 100,000 messages)"
+    kill "$A" "$B"; wait "$A" "$B" 2>/dev/null || true
+    PIDS=()
+  done
+done
