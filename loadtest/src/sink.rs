@@ -96,6 +96,19 @@ fn packet(header: u8, body: &[u8]) -> Vec<u8> {
     out
 }
 
+/// `body[from..to]`, or an error that ends the connection: a malformed packet must not
+/// panic the sink.
+fn part(body: &[u8], from: usize, to: usize) -> io::Result<&[u8]> {
+    body.get(from..to)
+        .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidData, "packet shorter than its fields"))
+}
+
+/// The big-endian u16 at `at`.
+fn u16_at(body: &[u8], at: usize) -> io::Result<usize> {
+    let b = part(body, at, at + 2)?;
+    Ok(u16::from_be_bytes([b[0], b[1]]) as usize)
+}
+
 /// Length of an MQTT 5 property block at `at` (its variable-byte length + the block).
 fn properties_len(body: &[u8], at: usize) -> usize {
     let mut len = 0usize;
@@ -142,19 +155,19 @@ async fn serve(stream: TcpStream, subscribers: Subscribers) -> io::Result<()> {
             }
             3 => {
                 let qos = (header >> 1) & 3;
-                let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
-                let topic = body[2..2 + topic_len].to_vec();
+                let topic_len = u16_at(&body, 0)?;
+                let topic = part(&body, 2, 2 + topic_len)?.to_vec();
                 let mut at = 2 + topic_len;
                 if qos > 0 {
-                    let id = [body[at], body[at + 1]];
+                    let id = part(&body, at, at + 2)?.to_vec();
                     at += 2;
                     let ack = if qos == 1 { 0x40 } else { 0x50 };
                     let _ = tx.send(Arc::new(packet(ack, &id)));
                 }
                 let props = if v5 { properties_len(&body, at) } else { 0 };
-                let payload = &body[at + props..];
+                let payload = part(&body, at + props, body.len())?;
                 let mut out_body = Vec::with_capacity(2 + topic_len + 1 + payload.len());
-                out_body.extend_from_slice(&body[..2 + topic_len]);
+                out_body.extend_from_slice(part(&body, 0, 2 + topic_len)?);
                 let forwarded_v5 = packet(0x30, &[&out_body[..], &[0], payload].concat());
                 out_body.extend_from_slice(payload);
                 let forwarded = Arc::new(packet(0x30, &out_body));
@@ -171,18 +184,18 @@ async fn serve(stream: TcpStream, subscribers: Subscribers) -> io::Result<()> {
             }
             6 => {
                 // PUBREL -> PUBCOMP
-                let _ = tx.send(Arc::new(packet(0x70, &body[..2])));
+                let _ = tx.send(Arc::new(packet(0x70, part(&body, 0, 2)?)));
             }
             8 => {
-                let id = [body[0], body[1]];
+                let id = part(&body, 0, 2)?.to_vec();
                 let mut at = 2;
                 if v5 {
                     at += properties_len(&body, at);
                 }
                 let mut granted = Vec::new();
                 while at + 2 <= body.len() {
-                    let len = u16::from_be_bytes([body[at], body[at + 1]]) as usize;
-                    let filter = body[at + 2..at + 2 + len].to_vec();
+                    let len = u16_at(&body, at)?;
+                    let filter = part(&body, at + 2, at + 2 + len)?.to_vec();
                     at += 2 + len + 1;
                     subscribers
                         .lock()
@@ -208,4 +221,36 @@ async fn serve(stream: TcpStream, subscribers: Subscribers) -> io::Result<()> {
     }
     drop(writer);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A malformed packet ends its own connection, not the sink.
+    #[tokio::test]
+    async fn a_malformed_packet_closes_only_its_connection() {
+        let sink = Sink::start().await.unwrap();
+        let connect = packet(0x10, b"\x00\x04MQTT\x04\x02\x00\x3c\x00\x01x");
+        let mut bad = TcpStream::connect(sink.addr).await.unwrap();
+        bad.write_all(&connect).await.unwrap();
+        let mut ack = [0u8; 4];
+        bad.read_exact(&mut ack).await.unwrap();
+        // A PUBLISH whose topic length points past its end.
+        bad.write_all(&packet(0x30, &[0x00, 0x09, b'a']))
+            .await
+            .unwrap();
+        let mut rest = Vec::new();
+        let closed = tokio::time::timeout(
+            std::time::Duration::from_secs(5),
+            bad.read_to_end(&mut rest),
+        )
+        .await;
+        assert!(matches!(closed, Ok(Ok(0))), "{closed:?}");
+
+        let mut good = TcpStream::connect(sink.addr).await.unwrap();
+        good.write_all(&connect).await.unwrap();
+        good.read_exact(&mut ack).await.unwrap();
+        assert_eq!(ack, [0x20, 2, 0, 0]);
+    }
 }
