@@ -7,12 +7,12 @@
 
 use std::sync::Arc;
 
-use bytes::{BufMut, Bytes, BytesMut};
+use bytes::Bytes;
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Packet, Publish, PublishProperties};
 use tokio::sync::mpsc;
 
-use crate::origin::{self, Origin};
+use crate::origin;
 
 /// The client id of the broker's own router link; clients may not use it.
 pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
@@ -69,16 +69,12 @@ impl BrokerPublisher {
                 pkid = pkid % u16::MAX + 1;
                 let topic = String::from_utf8_lossy(&message.topic).into_owned();
                 let qos = message.qos.min(1);
-                let publish =
-                    publish_packet(&message.topic, &message.payload, qos, message.retain, pkid);
-                let mut properties = message.properties;
+                let mut publish =
+                    publish_packet(message.topic, message.payload, qos, message.retain, pkid);
+                let properties = message.properties;
                 origin::mark(
-                    &mut properties,
-                    &Origin {
-                        qos,
-                        retain: message.retain,
-                        publisher: message.publisher,
-                    },
+                    &mut publish,
+                    origin::new(qos, message.retain, &message.publisher.into()),
                 );
                 if let Err(e) = tx.send(Packet::Publish(publish, properties)).await {
                     tracing::error!(topic, error = %e, "router gone: broker message not published");
@@ -103,34 +99,18 @@ impl BrokerPublisher {
     }
 }
 
-/// The QoS and packet id of a `Publish` (crate-private in rumqttd: read back from its
-/// serialisation, like [`publish_packet`] writes them).
+/// The QoS (0, 1, 2) and packet id of a `Publish`.
 pub fn qos_and_pkid(publish: &Publish) -> (u8, u16) {
-    use rumqttd::protocol::{v4::V4, Protocol};
-    // `Publish::len` counts a packet id only for QoS 1 and 2.
-    if publish.len() == 2 + publish.topic.len() + publish.payload.len() {
-        return (0, 0);
-    }
-    let mut header = publish.clone();
-    header.payload = Bytes::new();
-    let mut buf = BytesMut::new();
-    if V4.write(Packet::Publish(header, None), &mut buf).is_err() {
-        return (0, 0);
-    }
-    crate::frame::check(&buf, usize::MAX)
-        .ok()
-        .and_then(|h| crate::frame::publish_qos_and_pkid(&buf, &h))
-        .unwrap_or((0, 0))
+    publish.qos_and_pkid()
 }
 
-/// Builds a `Publish` with a QoS and packet id. rumqttd keeps those fields crate-private;
-/// its public, stable serialisation format is the way to set them.
-pub fn publish_packet(topic: &[u8], payload: &[u8], qos: u8, retain: bool, pkid: u16) -> Publish {
-    let mut raw = BytesMut::with_capacity(5 + topic.len() + payload.len());
-    raw.put_u8(0b0011_0000 | (qos << 1) | retain as u8);
-    raw.put_u16(pkid);
-    raw.put_u16(topic.len() as u16);
-    raw.extend_from_slice(topic);
-    raw.extend_from_slice(payload);
-    Publish::deserialize(raw.freeze())
+/// Builds a `Publish` with a QoS and packet id (no copy of topic or payload).
+pub fn publish_packet(
+    topic: impl Into<Bytes>,
+    payload: impl Into<Bytes>,
+    qos: u8,
+    retain: bool,
+    pkid: u16,
+) -> Publish {
+    Publish::with_qos(topic.into(), payload.into(), qos, retain, pkid)
 }

@@ -51,7 +51,7 @@ use crate::fb_topics::{Check, FbSession, FbTopics, Refusal};
 use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
-use crate::origin::{self, Origin};
+use crate::origin;
 use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
@@ -213,7 +213,7 @@ impl End {
 struct Session {
     io: Io,
     peer: SocketAddr,
-    client_id: String,
+    client_id: Arc<str>,
     username: Option<String>,
     version: Version,
     keep_alive: Option<Duration>,
@@ -515,7 +515,7 @@ impl Session {
         Some(Session {
             io,
             peer,
-            client_id: accepted.client_id,
+            client_id: accepted.client_id.into(),
             username: accepted.username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
@@ -625,7 +625,7 @@ impl Session {
                 Err(ReadError::Oversized { size, max }) => {
                     self.ctx.metrics.oversized_packets.inc();
                     tracing::warn!(
-                        client_id = self.client_id,
+                        client_id = &*self.client_id,
                         size,
                         max,
                         "packet over max_packet_bytes; connection closed"
@@ -634,7 +634,7 @@ impl Session {
                 }
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
-                    tracing::warn!(client_id = self.client_id, error = %e, "malformed packet; connection closed");
+                    tracing::warn!(client_id = &*self.client_id, error = %e, "malformed packet; connection closed");
                     return Err(End::Malformed);
                 }
             };
@@ -644,7 +644,7 @@ impl Session {
                 Ok(packet) => self.inbound(packet, qos_pkid).err(),
                 Err(ReadError::ServerOnlyType(t)) => {
                     tracing::warn!(
-                        client_id = self.client_id,
+                        client_id = &*self.client_id,
                         packet_type = t,
                         "server-only packet type from a client; connection closed"
                     );
@@ -652,7 +652,7 @@ impl Session {
                 }
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
-                    tracing::warn!(client_id = self.client_id, error = %e, "malformed packet; connection closed");
+                    tracing::warn!(client_id = &*self.client_id, error = %e, "malformed packet; connection closed");
                     Some(End::Malformed)
                 }
             };
@@ -766,7 +766,7 @@ impl Session {
             }),
             Packet::Connect(..) => {
                 tracing::warn!(
-                    client_id = self.client_id,
+                    client_id = &*self.client_id,
                     "second CONNECT; connection closed"
                 );
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
@@ -815,7 +815,7 @@ impl Session {
         if qos > 0 {
             self.inflight_in += 1;
             if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
-                tracing::warn!(client_id = self.client_id, receive_maximum = self.ctx.max_inflight,
+                tracing::warn!(client_id = &*self.client_id, receive_maximum = self.ctx.max_inflight,
                     "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
                 return Err(End::ProtocolError(
                     DisconnectReasonCode::ReceiveMaximumExceeded,
@@ -829,11 +829,7 @@ impl Session {
             publish.topic = topic.into();
         }
         let retain = publish.retain;
-        let origin = Origin {
-            qos,
-            retain,
-            publisher: self.client_id.clone(),
-        };
+        let origin = origin::new(qos, retain, &self.client_id);
         self.ctx.metrics.messages_in.inc();
         let mut routes = routes.into_iter();
         if let Some((topic, payload)) = routes.next() {
@@ -841,21 +837,16 @@ impl Session {
             // packet id (the router acknowledges it), the re-encodings as QoS 0 copies
             // carrying the same origin, so subscribers get them at the same delivery QoS.
             for (topic, payload) in routes {
-                let copy = crate::broker_publisher::publish_packet(
-                    topic.as_bytes(),
-                    &payload,
-                    0,
-                    retain,
-                    0,
-                );
-                let mut copy_properties = properties.clone();
-                origin::mark(&mut copy_properties, &origin);
-                self.to_router.push(Packet::Publish(copy, copy_properties));
+                let copy = crate::broker_publisher::publish_packet(topic, payload, 0, retain, 0);
+                let mut copy = copy;
+                origin::mark(&mut copy, origin.clone());
+                self.to_router
+                    .push(Packet::Publish(copy, properties.clone()));
             }
             publish.topic = topic.into();
             publish.payload = payload;
         }
-        origin::mark(&mut properties, &origin);
+        origin::mark(&mut publish, origin);
         self.to_router.push(Packet::Publish(publish, properties));
         Ok(())
     }
@@ -915,7 +906,7 @@ impl Session {
             (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
         };
         if !security::acl::valid_topic(&topic) {
-            tracing::warn!(client_id = self.client_id, %topic, "invalid topic name in PUBLISH; connection closed");
+            tracing::warn!(client_id = &*self.client_id, %topic, "invalid topic name in PUBLISH; connection closed");
             return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid));
         }
         Ok(topic)
@@ -1077,7 +1068,7 @@ impl Session {
         }
         if logged.insert((action, topic.to_owned())) {
             tracing::warn!(
-                client_id = self.client_id,
+                client_id = &*self.client_id,
                 username = self.username.as_deref().unwrap_or(""),
                 action,
                 topic,
@@ -1132,7 +1123,7 @@ impl Session {
         let _ = self.io.flush().await;
         if self.ctx.sessions.is_current(&self.client_id, self.session) {
             tracing::warn!(
-                client_id = self.client_id,
+                client_id = &*self.client_id,
                 "the router ended the connection"
             );
             End::Router
@@ -1221,30 +1212,24 @@ impl Session {
     ///
     /// Whatever the client is not sent at the router's QoS is acknowledged to the router
     /// for it ([`Session::ack_for_client`]).
-    fn deliver_publish(&mut self, mut publish: Publish, mut properties: Option<PublishProperties>) {
-        let origin = origin::take(&mut properties);
+    fn deliver_publish(&mut self, mut publish: Publish, properties: Option<PublishProperties>) {
+        let origin = origin::take(&mut publish);
         let published = origin.as_ref().map(|o| o.qos);
         let (deliver, retain_as_published) = self.subscription_options(&publish, origin.as_ref());
         if retain_as_published {
             publish.retain = true;
         }
-        // `Publish::len` counts a packet id only when the router's QoS is not 0.
         let (topic, payload, retain) = (
             publish.topic.clone(),
             publish.payload.clone(),
             publish.retain,
         );
-        let routed_above_zero = publish.len() != 2 + topic.len() + payload.len();
-        let may_lower = routed_above_zero && matches!(published, Some(0 | 1));
+        let (routed_qos, pkid) = publish.qos_and_pkid();
+        let may_lower = routed_qos > 0 && matches!(published, Some(0 | 1));
         let kept_properties = if may_lower { properties.clone() } else { None };
 
         let before = self.io.write.len();
         self.io.queue(Packet::Publish(publish, properties));
-        let encoded = &self.io.write[before..];
-        let (routed_qos, pkid) = frame::check(encoded, usize::MAX)
-            .ok()
-            .and_then(|h| frame::publish_qos_and_pkid(encoded, &h))
-            .unwrap_or((0, 0));
 
         if routed_qos > 0 {
             self.ack_order.delivered(pkid);
@@ -1258,8 +1243,13 @@ impl Session {
         if may_lower && qos < routed_qos {
             self.io.write.truncate(before);
             let lower_pkid = if qos == 0 { 0 } else { pkid };
-            let lower =
-                crate::broker_publisher::publish_packet(&topic, &payload, qos, retain, lower_pkid);
+            let lower = crate::broker_publisher::publish_packet(
+                topic.clone(),
+                payload.clone(),
+                qos,
+                retain,
+                lower_pkid,
+            );
             self.io.queue(Packet::Publish(lower, kept_properties));
             if qos == 0 {
                 self.ack_for_client(routed_qos, pkid);
@@ -1284,7 +1274,7 @@ impl Session {
                     .with_label_values(&["client_max_packet_size"])
                     .inc();
                 tracing::debug!(
-                    client_id = self.client_id,
+                    client_id = &*self.client_id,
                     size,
                     max,
                     "delivery larger than the client's maximum packet size; dropped"
@@ -1315,7 +1305,11 @@ impl Session {
     /// with RETAIN set is a retained message sent at subscribe time (the router clears
     /// RETAIN on live deliveries). When several subscriptions match, the delivery is sent
     /// unless every matching one excludes it.
-    fn subscription_options(&self, publish: &Publish, origin: Option<&Origin>) -> (bool, bool) {
+    fn subscription_options(
+        &self,
+        publish: &Publish,
+        origin: Option<&origin::Origin>,
+    ) -> (bool, bool) {
         if !self.special_subscriptions {
             return (true, false);
         }
@@ -1462,7 +1456,7 @@ impl Session {
         self.ctx.metrics.connections.dec();
         tracing::info!(
             peer = %self.peer,
-            client_id = self.client_id,
+            client_id = &*self.client_id,
             reason = end.reason().label(),
             "client disconnected"
         );

@@ -6,98 +6,84 @@
 //! - No Local [MQTT-3.8.3-3]: the router does not know who published a message;
 //! - Retain As Published [MQTT-3.3.1-12]: the router clears RETAIN on live deliveries.
 //!
-//! The packet path therefore attaches the [`Origin`] as a user property the router stores
-//! and forwards with the message (retained copies included), and takes it off again
-//! before the message leaves the broker: no client ever sees it.
+//! The packet path therefore attaches the [`Origin`] to the message as it enters the
+//! router, the router stores and forwards it with the message (retained copies included),
+//! and the delivery path takes it off again. It is a field of the vendored router's
+//! `Publish` (`vendor/rumqttd/FBBUS-CHANGES.md`), never encoded on the wire: no client
+//! can set or see it, and carrying it costs a reference count per delivery. (It used to
+//! be a user property: five allocations per message and per delivery, a fifth of a
+//! bridged line's CPU.)
 
-use rumqttd::protocol::PublishProperties;
+use std::sync::Arc;
 
-/// A name no client can spoof: fbbus replaces any client-sent one and strips it on the way out.
-const MARKER: &str = "\u{0}fbbus:origin";
+pub use rumqttd::protocol::Origin;
+use rumqttd::protocol::Publish;
 
-/// How a message entered the broker.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Origin {
-    pub qos: u8,
-    pub retain: bool,
-    /// The publishing client's id.
-    pub publisher: String,
-}
-
-/// Attaches `origin` (as the last user property).
-pub fn mark(properties: &mut Option<PublishProperties>, origin: &Origin) {
-    let props = properties.get_or_insert_with(PublishProperties::default);
-    props.user_properties.retain(|(k, _)| k != MARKER);
-    let value = format!(
-        "{}{}{}",
-        origin.qos.min(2),
-        if origin.retain { 'r' } else { '-' },
-        origin.publisher
-    );
-    props.user_properties.push((MARKER.to_owned(), value));
-}
-
-/// Removes the marker; returns the origin if the message carried one. Properties that
-/// only existed for the marker become `None` again.
-pub fn take(properties: &mut Option<PublishProperties>) -> Option<Origin> {
-    let props = properties.as_mut()?;
-    let at = props
-        .user_properties
-        .iter()
-        .rposition(|(k, _)| k == MARKER)?;
-    let (_, value) = props.user_properties.remove(at);
-    if *props == PublishProperties::default() {
-        *properties = None;
-    }
-    let mut chars = value.chars();
-    let qos = chars.next()?.to_digit(10)? as u8;
-    let retain = chars.next()? == 'r';
-    Some(Origin {
-        qos,
+/// The origin of a message `publisher` published at `qos` with `retain`.
+pub fn new(qos: u8, retain: bool, publisher: &Arc<str>) -> Origin {
+    Origin {
+        qos: qos.min(2),
         retain,
-        publisher: chars.as_str().to_owned(),
-    })
+        publisher: Arc::clone(publisher),
+    }
+}
+
+/// Attaches `origin` to a message entering the router.
+pub fn mark(publish: &mut Publish, origin: Origin) {
+    publish.origin = Some(origin);
+}
+
+/// Takes the origin off a message leaving the router, if it carried one.
+pub fn take(publish: &mut Publish) -> Option<Origin> {
+    publish.origin.take()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn origin(qos: u8, retain: bool) -> Origin {
-        Origin {
-            qos,
-            retain,
-            publisher: "plc-1".into(),
-        }
-    }
+    use bytes::BytesMut;
+    use rumqttd::protocol::{v5::V5, Packet, Protocol, PublishProperties};
 
     #[test]
     fn round_trip_leaves_no_trace() {
-        let mut none = None;
-        mark(&mut none, &origin(1, true));
-        assert_eq!(take(&mut none), Some(origin(1, true)));
-        assert_eq!(none, None);
-
-        let mut some = Some(PublishProperties {
-            user_properties: vec![("k".into(), "v".into())],
-            ..Default::default()
-        });
-        mark(&mut some, &origin(0, false));
-        assert_eq!(take(&mut some), Some(origin(0, false)));
+        let mut publish = Publish::new("fb/plc-1/x", "1", false);
+        let plain = publish.clone();
+        mark(&mut publish, new(1, true, &"plc-1".into()));
         assert_eq!(
-            some.unwrap().user_properties,
-            vec![("k".to_owned(), "v".to_owned())]
+            take(&mut publish),
+            Some(Origin {
+                qos: 1,
+                retain: true,
+                publisher: "plc-1".into()
+            })
         );
+        assert_eq!(publish, plain);
     }
 
     #[test]
-    fn a_client_supplied_marker_is_replaced() {
-        let mut p = Some(PublishProperties {
-            user_properties: vec![(MARKER.into(), "2rother".into())],
+    fn no_client_can_send_or_see_an_origin() {
+        let mut publish = Publish::new("t", "p", false);
+        mark(&mut publish, new(2, false, &"plc-1".into()));
+        let properties = PublishProperties {
+            user_properties: vec![("\u{0}fbbus:origin".into(), "2rother".into())],
             ..Default::default()
-        });
-        mark(&mut p, &origin(0, false));
-        assert_eq!(take(&mut p), Some(origin(0, false)));
-        assert_eq!(p, None);
+        };
+        let mut wire = BytesMut::new();
+        V5.write(
+            Packet::Publish(publish, Some(properties.clone())),
+            &mut wire,
+        )
+        .unwrap();
+        assert!(
+            !wire.windows(5).any(|w| w == b"plc-1"),
+            "origin on the wire"
+        );
+        let Packet::Publish(read, read_properties) = V5.read_mut(&mut wire, usize::MAX).unwrap()
+        else {
+            panic!("not a publish")
+        };
+        assert_eq!(read.origin, None);
+        // A client's user property of any name is just a user property.
+        assert_eq!(read_properties, Some(properties));
     }
 }

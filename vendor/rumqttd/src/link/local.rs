@@ -262,6 +262,7 @@ impl LinkTx {
             topic: topic.into(),
             pkid: 0,
             payload: payload.into(),
+            origin: None, // fbbus
         };
 
         let len = self.push(Packet::Publish(publish, None))?;
@@ -281,6 +282,7 @@ impl LinkTx {
             topic: topic.into(),
             pkid: 0,
             payload: payload.into(),
+            origin: None, // fbbus
         };
 
         let len = self.try_push(Packet::Publish(publish, None))?;

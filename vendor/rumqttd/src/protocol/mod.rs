@@ -175,6 +175,23 @@ pub struct Publish {
     pub retain: bool,
     pub topic: Bytes,
     pub payload: Bytes,
+    // fbbus: see `Origin`.
+    pub origin: Option<Origin>,
+}
+
+// fbbus: where and how a message was published, set by the embedding broker as the
+// message enters the router and carried with it (commit log, retained store) to every
+// delivery; never encoded on the wire (broker/src/origin.rs, FBBUS-CHANGES.md). Cloning
+// it is a reference count, not an allocation.
+/// How a message entered the broker.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Origin {
+    /// The QoS it was published at (0, 1, 2).
+    pub qos: u8,
+    /// Its RETAIN flag as published.
+    pub retain: bool,
+    /// The publishing client's id.
+    pub publisher: std::sync::Arc<str>,
 }
 
 impl Publish {
@@ -188,7 +205,29 @@ impl Publish {
             retain,
             topic: topic.into(),
             payload: payload.into(),
+            origin: None, // fbbus
         }
+    }
+
+    // fbbus: the embedding broker sets and reads QoS and packet id directly instead of
+    // through a `serialize`/`deserialize` round trip (FBBUS-CHANGES.md).
+    /// A publish with the given QoS (0, 1 or 2; anything else is 0) and packet id.
+    pub fn with_qos(topic: Bytes, payload: Bytes, qos_num: u8, retain: bool, pkid: u16) -> Publish {
+        Publish {
+            dup: false,
+            qos: qos(qos_num).unwrap_or(QoS::AtMostOnce),
+            pkid,
+            retain,
+            topic,
+            payload,
+            origin: None, // fbbus
+        }
+    }
+
+    // fbbus: see `with_qos`.
+    /// The QoS (0, 1 or 2) and packet id.
+    pub fn qos_and_pkid(&self) -> (u8, u16) {
+        (self.qos as u8, self.pkid)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -239,6 +278,7 @@ impl Publish {
             topic,
             pkid,
             payload,
+            origin: None, // fbbus
         }
     }
 }

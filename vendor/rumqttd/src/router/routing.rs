@@ -1235,6 +1235,7 @@ impl Router {
             topic: will.topic,
             pkid: 0,
             payload: will.message,
+            origin: None, // fbbus
         };
 
         let properties = will_props.map(|props| PublishProperties {

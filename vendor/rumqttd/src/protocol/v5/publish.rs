@@ -52,6 +52,7 @@ pub fn read(
         pkid,
         topic,
         payload: bytes,
+        origin: None, // fbbus
     };
 
     Ok((publish, properties))
