@@ -43,6 +43,11 @@
 //! for it. Retained messages are fetched again when a line (re)starts importing a filter,
 //! so retained state converges after a restart or a partition.
 //!
+//! **Starting alone.** A line never waits for the bus: a peer or router starts with its
+//! peers down and links when they answer; a zenoh client (`mode = "client"`), whose zenoh
+//! `open` waits for its router, opens in the background (`start`), serves its own devices
+//! meanwhile, and imports the subscriptions its clients made once it is linked.
+//!
 //! **Registry federation.** The line announces itself and each online local device with
 //! liveliness tokens and puts every local record change on the bus; the other lines'
 //! records arrive the same way. A device whose token disappears without its line saying
@@ -52,12 +57,14 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
 use bytes::Bytes;
-use fb_bridge::bus::link::{flume, zenoh, DeviceToken, Event, Import, Inbound, Link, LinkError};
-use fb_bridge::bus::{keys, BusConfig, Dedup};
+use fb_bridge::bus::link::{
+    flume, zenoh, DeviceToken, Event, Import, Inbound, Link, LinkError, RouteKeys,
+};
+use fb_bridge::bus::{keys, BusConfig, Dedup, Mode};
 use fb_bridge::interface::OutputPort;
 use fb_bridge::topic::TypedTopic;
 use rumqttd::local::{LinkRx, LinkTx};
@@ -72,7 +79,7 @@ use tokio::task::JoinHandle;
 use crate::broker_publisher;
 use crate::connection::Context;
 use crate::fb_topics::{Check, FbSession};
-use crate::origin::{self, Origin};
+use crate::origin;
 use crate::registry::{Record, Status};
 
 /// The router link messages from the bus enter through.
@@ -100,7 +107,9 @@ enum Interest {
 pub struct Bridge {
     import_filters: Vec<String>,
     interest: mpsc::UnboundedSender<Interest>,
-    link: Arc<Link>,
+    /// Set once zenoh is open: at start, or for a zenoh client, once its router answers.
+    link: OnceLock<Arc<Link>>,
+    tasks: Mutex<Vec<JoinHandle<()>>>,
 }
 
 impl Bridge {
@@ -147,19 +156,82 @@ impl Bridge {
         out
     }
 
-    /// Closes the zenoh session (other lines see this line go at once).
+    /// Whether zenoh is open (a zenoh client: its router answered once).
+    pub fn linked(&self) -> bool {
+        self.link.get().is_some()
+    }
+
+    /// Closes the zenoh session (other lines see this line go at once) and stops the
+    /// bridge's tasks.
     pub async fn close(&self) {
-        self.link.close().await;
+        if let Some(link) = self.link.get() {
+            link.close().await;
+        }
+        for task in self.tasks.lock().expect("lock poisoned").drain(..) {
+            task.abort();
+        }
     }
 }
 
-/// Opens the link and starts the bridge's tasks.
-pub async fn start(
+/// How long a zenoh client waits for its router before the line says it serves alone.
+const ROUTER_PATIENCE: Duration = Duration::from_secs(2);
+
+/// Starts the bridge. A peer or router opens zenoh here (its listeners bind, its peers
+/// are tried in the background); a client (`mode = "client"`) opens it in the background,
+/// because zenoh's `open` waits for the client's router: the line must serve its own
+/// devices while the plant's router is down, and link up when it answers. Local
+/// subscriptions made meanwhile are imported then.
+pub async fn start(config: &BusConfig, ctx: Arc<Context>) -> Result<Arc<Bridge>, BridgeError> {
+    // A bad `[bridge]` section fails the start whatever the mode.
+    fb_bridge::bus::link::zenoh_config(config)?;
+    let (interest, interest_rx) = mpsc::unbounded_channel();
+    let bridge = Arc::new(Bridge {
+        import_filters: config.import.clone(),
+        interest,
+        link: OnceLock::new(),
+        tasks: Mutex::new(Vec::new()),
+    });
+    let line = ctx.fb.registry.line().to_owned();
+    if config.mode != Mode::Client {
+        let opened = Link::open(config, &line).await?;
+        run(&bridge, opened, config, ctx, interest_rx).await?;
+        return Ok(bridge);
+    }
+    let (config, weak) = (config.clone(), Arc::downgrade(&bridge));
+    let opener = tokio::spawn(async move {
+        let opening = Link::open(&config, &line);
+        tokio::pin!(opening);
+        let opened = match tokio::time::timeout(ROUTER_PATIENCE, &mut opening).await {
+            Ok(opened) => opened,
+            Err(_) => {
+                tracing::warn!(connect = ?config.connect,
+                    "zenoh router not reachable: the line serves its own devices and links to the other lines once it answers");
+                opening.await
+            }
+        };
+        let started = match (opened, weak.upgrade()) {
+            (Ok(opened), Some(bridge)) => run(&bridge, opened, &config, ctx, interest_rx).await,
+            (Ok(_), None) => Ok(()),
+            (Err(e), _) => Err(e.into()),
+        };
+        if let Err(e) = started {
+            tracing::error!(error = %e, "bridge to the other lines not started");
+        }
+    });
+    bridge.tasks.lock().expect("lock poisoned").push(opener);
+    Ok(bridge)
+}
+
+/// The bridge's work once zenoh is open: its router links, registry federation, retained
+/// queries, and the import, export and event tasks.
+async fn run(
+    bridge: &Bridge,
+    (link, inbox, events): (Link, flume::Receiver<Inbound>, flume::Receiver<Event>),
     config: &BusConfig,
     ctx: Arc<Context>,
-) -> Result<(Arc<Bridge>, Vec<JoinHandle<()>>), BridgeError> {
-    let line = ctx.fb.registry.line().to_owned();
-    let (link, inbox, events) = Link::open(config, &line).await?;
+    interest_rx: mpsc::UnboundedReceiver<Interest>,
+) -> Result<(), BridgeError> {
+    let line = link.line().to_owned();
     let link = Arc::new(link);
     let metrics = Arc::clone(&ctx.metrics);
 
@@ -173,7 +245,6 @@ pub async fn start(
     let import_link = router_link(IMPORT_CLIENT_ID).await?;
     let export_link = router_link(EXPORT_CLIENT_ID).await?;
 
-    let (interest, interest_rx) = mpsc::unbounded_channel();
     let (remote_interest, remote_interest_rx) = mpsc::unbounded_channel();
     let (local_records, local_records_rx) = mpsc::unbounded_channel();
     let local_now = ctx.fb.registry.observe(local_records);
@@ -195,10 +266,11 @@ pub async fn start(
     let retained_queries = link.retained_queries().await?;
     link.announce_line().await?;
 
-    let tasks = vec![
+    let tasks = [
         tokio::spawn(imports(Arc::clone(&link), interest_rx, Arc::clone(&ctx))),
         tokio::spawn(inject_loop(
             inbox,
+            link.route_keys(),
             Arc::clone(&ctx),
             (import_link.0, import_link.1),
             config.import.clone(),
@@ -228,17 +300,12 @@ pub async fn start(
             config.export.clone(),
         )),
     ];
+    bridge.tasks.lock().expect("lock poisoned").extend(tasks);
+    let _ = bridge.link.set(link);
     tracing::info!(line, mode = config.mode.as_str(), listen = ?config.listen, connect = ?config.connect,
         "bridge to the other lines started (zenoh)");
     metrics.bridge_imports.set(0);
-    Ok((
-        Arc::new(Bridge {
-            import_filters: config.import.clone(),
-            interest,
-            link,
-        }),
-        tasks,
-    ))
+    Ok(())
 }
 
 /// Keeps one zenoh import per filter local clients subscribed to, counted.
@@ -297,6 +364,7 @@ async fn imports(
 /// handed to the router in one go: one router wake-up per batch, not per message.
 async fn inject_loop(
     inbox: flume::Receiver<Inbound>,
+    route_keys: RouteKeys,
     ctx: Arc<Context>,
     (mut tx, mut rx): (LinkTx, LinkRx),
     import: Vec<String>,
@@ -311,6 +379,8 @@ async fn inject_loop(
     });
     let mut injector = Injector {
         dedup: Dedup::default(),
+        route_keys,
+        publisher: IMPORT_CLIENT_ID.into(),
         devices: HashMap::new(),
         import,
         pkid: 0,
@@ -337,6 +407,9 @@ const INJECT_BATCH: usize = 256;
 /// The importing side's state: what it has seen, and each remote device's typed check.
 struct Injector {
     dedup: Dedup,
+    route_keys: RouteKeys,
+    /// The origin's publisher of every message from the bus: the import link.
+    publisher: Arc<str>,
     /// Per remote device: the interface its session checks against.
     devices: HashMap<String, (Arc<fb_bridge::Interface>, FbSession)>,
     import: Vec<String>,
@@ -355,6 +428,7 @@ impl Injector {
         if !self.dedup.first_time(&message.stamp) {
             return dropped("duplicate");
         }
+        self.route_keys.note(&message.stamp.line, &message.topic);
         if !BusConfig::allows(&self.import, &message.topic) {
             return dropped("filter");
         }
@@ -413,11 +487,7 @@ impl Injector {
             .with_label_values(&["import"])
             .inc();
         let qos = message.stamp.qos.min(1);
-        let origin = Origin {
-            qos,
-            retain: message.stamp.retain,
-            publisher: IMPORT_CLIENT_ID.to_owned(),
-        };
+        let origin = origin::new(qos, message.stamp.retain, &self.publisher);
         for (topic, payload) in routes {
             let pkid = if qos > 0 {
                 self.pkid = self.pkid % u16::MAX + 1;
@@ -425,16 +495,10 @@ impl Injector {
             } else {
                 0
             };
-            let publish = broker_publisher::publish_packet(
-                topic.as_bytes(),
-                &payload,
-                qos,
-                message.stamp.retain,
-                pkid,
-            );
-            let mut properties = None;
-            origin::mark(&mut properties, &origin);
-            self.packets.push(Packet::Publish(publish, properties));
+            let mut publish =
+                broker_publisher::publish_packet(topic, payload, qos, message.stamp.retain, pkid);
+            origin::mark(&mut publish, origin.clone());
+            self.packets.push(Packet::Publish(publish, None));
         }
     }
 }
@@ -493,10 +557,9 @@ async fn export_loop(
                 match notification {
                     Some(Notification::Forward(forward)) => {
                         let mut publish = forward.publish;
-                        let mut properties = forward.properties;
-                        let origin = origin::take(&mut properties);
+                        let origin = origin::take(&mut publish);
                         let (routed_qos, pkid) = broker_publisher::qos_and_pkid(&publish);
-                        let from_bus = origin.as_ref().is_some_and(|o| o.publisher == IMPORT_CLIENT_ID);
+                        let from_bus = origin.as_ref().is_some_and(|o| &*o.publisher == IMPORT_CLIENT_ID);
                         let topic = String::from_utf8_lossy(&publish.topic).into_owned();
                         // rumqttd replays retained messages on every subscribe (it ignores
                         // Retain Handling): those reach other lines by query, not here.
@@ -725,12 +788,12 @@ async fn retained(ctx: &Context, filter: &str, export: &[String]) -> Vec<(String
             match n {
                 Some(Notification::Forward(forward)) => {
                     quiet = Duration::from_millis(50);
-                    let mut properties = forward.properties;
-                    let origin = origin::take(&mut properties);
-                    let own = origin.is_none_or(|o| o.retain && o.publisher != IMPORT_CLIENT_ID);
-                    let topic = String::from_utf8_lossy(&forward.publish.topic).into_owned();
+                    let mut publish = forward.publish;
+                    let origin = origin::take(&mut publish);
+                    let own = origin.is_none_or(|o| o.retain && &*o.publisher != IMPORT_CLIENT_ID);
+                    let topic = String::from_utf8_lossy(&publish.topic).into_owned();
                     if own && BusConfig::allows(export, &topic) {
-                        out.push((topic, forward.publish.payload.to_vec()));
+                        out.push((topic, publish.payload.to_vec()));
                     }
                 }
                 Some(Notification::Unschedule) => {

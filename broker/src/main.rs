@@ -154,7 +154,7 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
         .thread_name("fbbus")
         .build()
         .context("cannot start the tokio runtime")?;
-    runtime.block_on(async move {
+    let served = runtime.block_on(async move {
         match &config_path {
             Some(p) => tracing::info!(config = %p.display(), line = config.broker.line, "starting"),
             None => tracing::info!(
@@ -171,7 +171,11 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
         }
         broker.shutdown(Duration::from_secs(5)).await;
         Ok(())
-    })
+    });
+    // A zenoh client still waiting for its router holds a blocking thread (zenoh's `open`
+    // cannot be cancelled): do not wait for it.
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    served
 }
 
 fn passwd(args: PasswdArgs) -> Result<()> {

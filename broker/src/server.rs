@@ -133,9 +133,8 @@ impl Broker {
         let mut tasks = Vec::new();
         let bridge = match &config.bridge {
             Some(bus) => {
-                let (bridge, bridge_tasks) = crate::bridge::start(bus, Arc::clone(&ctx)).await?;
+                let bridge = crate::bridge::start(bus, Arc::clone(&ctx)).await?;
                 let _ = ctx.bridge.set(Arc::clone(&bridge));
-                tasks.extend(bridge_tasks);
                 Some(bridge)
             }
             None => None,

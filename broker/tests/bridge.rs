@@ -717,3 +717,45 @@ async fn a_line_started_before_its_peer_links_once_the_peer_is_up() {
     let record = b.wait_record("conv-a", "online", Duration::from_secs(20));
     assert_eq!(record["line"], "line-a");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_zenoh_client_line_serves_alone_while_its_router_is_down_and_links_when_it_answers() {
+    // Line A is a zenoh client of a router that is not there yet (the plant's zenohd
+    // down at start). It must serve its own devices at once and say why it is alone.
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let a = Line::start_on("line-a", "", &[&router], "mode = \"client\"", None);
+    let mut local = V4::connect(a.port(), "obs-a", None).await.unwrap();
+    local.subscribe("fb/#").await;
+    let dev_a = device(&a, "conv-a").await;
+    publish(&dev_a, "fb/conv-a/CONV/POSITION", "1".into(), false).await;
+    let got = local
+        .next_publish(WAIT)
+        .await
+        .expect("local delivery without a router");
+    assert_eq!(got.topic, "fb/conv-a/CONV/POSITION");
+    let deadline = Instant::now() + PROPAGATION;
+    while !a.broker.log_text().contains("zenoh router not reachable") {
+        assert!(
+            Instant::now() < deadline,
+            "no warning:\n{}",
+            a.broker.log_text()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+
+    // The router comes up (a line in router mode), and line B, another client, with it.
+    let r = Line::start_on("line-r", &router, &[], "mode = \"router\"", None);
+    let b = Line::start_on("line-b", "", &[&router], "mode = \"client\"", None);
+    assert_eq!(
+        b.wait_record("conv-a", "online", Duration::from_secs(20))["line"],
+        "line-a"
+    );
+    // obs-a subscribed to fb/# before line A was linked: that interest reached the bus.
+    let dev_b = device(&b, "conv-b").await;
+    b.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    publish(&dev_b, "fb/conv-b/CONV/POSITION", "7".into(), false).await;
+    let received = drain(&mut local, Duration::from_millis(1500)).await;
+    assert_eq!(positions(&received, "fb/conv-b/CONV/POSITION"), vec![7]);
+    drop(r);
+}
