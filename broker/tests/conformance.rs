@@ -605,3 +605,39 @@ async fn mqtt311_repeated_subscribe_resends_retained_messages() {
         );
     }
 }
+
+/// [MQTT-3.8.4-3]: a repeated SUBSCRIBE of the same filter replaces the subscription, its
+/// maximum QoS included (rumqttd 0.20 kept the first one's).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_repeated_subscribe_replaces_the_maximum_qos() {
+    use rumqttc::QoS::{AtLeastOnce, AtMostOnce, ExactlyOnce};
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "resub", None).await.unwrap();
+    let publisher = V4::connect(broker.port(), "resub-pub", None).await.unwrap();
+    for (round, qos) in [AtMostOnce, AtLeastOnce, ExactlyOnce, AtMostOnce]
+        .into_iter()
+        .enumerate()
+    {
+        sub.client.subscribe("rq/t", qos).await.unwrap();
+        sub.next(WAIT, |p| {
+            matches!(p, rumqttc::Packet::SubAck(_)).then_some(())
+        })
+        .await
+        .unwrap();
+        publisher
+            .client
+            .publish("rq/t", ExactlyOnce, false, format!("{round}"))
+            .await
+            .unwrap();
+        let m = sub
+            .next_publish(WAIT)
+            .await
+            .unwrap_or_else(|| panic!("round {round}: nothing delivered"));
+        assert_eq!(m.payload[..], *format!("{round}").as_bytes());
+        assert_eq!(
+            m.qos, qos,
+            "round {round}: delivered at the latest subscription's QoS"
+        );
+        assert!(sub.next_publish(Duration::from_millis(300)).await.is_none());
+    }
+}

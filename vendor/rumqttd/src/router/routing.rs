@@ -1012,14 +1012,16 @@ impl Router {
             self.scheduler.track(id, request);
             self.scheduler.reschedule(id, ScheduleReason::NewFilter);
             debug_assert!(self.scheduler.check_tracker_duplicates(id).is_none())
-        } else if forward_retained
-            && filter.retain_forward_rule == RetainForwardRule::OnEverySubscribe
-        {
-            // fbbus: a repeated SUBSCRIBE of a filter the connection already has gets the
-            // retained messages again when its Retain Handling is 0 (MQTT 5 [MQTT-3.3.1-9],
-            // [MQTT-3.8.4-4]; MQTT 3.1.1 [MQTT-3.8.4-3], which the v4 parser maps to
-            // `OnEverySubscribe`). Upstream sent them only for a new filter.
-            self.forward_retained_again(id, filter_path);
+        } else {
+            // fbbus: a repeated SUBSCRIBE of a filter the connection already has replaces
+            // the subscription [MQTT-3.8.4-3]: its maximum QoS is the new one (upstream
+            // kept the first), and it gets the retained messages again when its Retain
+            // Handling is 0 (MQTT 5 [MQTT-3.3.1-9], [MQTT-3.8.4-4]; MQTT 3.1.1
+            // [MQTT-3.8.4-3], which the v4 parser maps to `OnEverySubscribe`). Upstream
+            // sent them only for a new filter.
+            let retained_again = forward_retained
+                && filter.retain_forward_rule == RetainForwardRule::OnEverySubscribe;
+            self.replace_request(id, filter_path, filter.qos as u8, retained_again);
         }
 
         // TODO: figure out how we can update existing DataRequest
@@ -1027,33 +1029,50 @@ impl Router {
         // every subscribe
     }
 
-    /// fbbus: marks the connection's existing data request for `filter_path` to forward
-    /// the retained messages on its next read, and schedules the connection. The request
-    /// is in one of three places: the connection's tracker (scheduled, or paused for its
-    /// in-flight window or a full buffer), the filter's waiters (caught up, parked), or the
-    /// router's notification queue (woken by a publish earlier in this batch).
-    fn forward_retained_again(&mut self, id: ConnectionId, filter_path: &Filter) {
+    /// fbbus: updates the connection's existing data request for `filter_path` wherever
+    /// it is (the connection's tracker, the router's notification queue, or parked among
+    /// the filter's waiters): the subscription's new maximum `qos`, and, with
+    /// `retained_again`, the retained messages to forward once more. The request keeps its
+    /// cursor, so no live message is lost or repeated.
+    fn replace_request(
+        &mut self,
+        id: ConnectionId,
+        filter_path: &Filter,
+        qos: u8,
+        retained_again: bool,
+    ) {
+        let update = |request: &mut DataRequest| {
+            request.qos = qos;
+            request.forward_retained |= retained_again;
+        };
         let in_tracker = self.scheduler.trackers.get_mut(id).and_then(|tracker| {
             tracker
                 .data_requests
                 .iter_mut()
                 .find(|r| r.filter == *filter_path)
         });
-        if let Some(request) = in_tracker {
-            request.forward_retained = true;
+        let unparked = if let Some(request) = in_tracker {
+            update(request);
+            false
         } else if let Some((_, request)) = self
             .notifications
             .iter_mut()
             .find(|(owner, r)| *owner == id && r.filter == *filter_path)
         {
-            request.forward_retained = true;
+            update(request);
+            false
         } else if let Some(mut request) = self.datalog.remove_waiters_for_id(id, filter_path) {
-            request.forward_retained = true;
+            // Parked until new data: back to the tracker and scheduled, so it is read
+            // again (nothing new to read parks it again).
+            update(&mut request);
             self.scheduler.track(id, request);
+            true
         } else {
             return;
+        };
+        if retained_again || unparked {
+            self.scheduler.reschedule(id, ScheduleReason::NewFilter);
         }
-        self.scheduler.reschedule(id, ScheduleReason::NewFilter);
     }
 
     /// When a connection is ready, it should sweep native data from 'datalog',
