@@ -13,6 +13,7 @@
 //! response time does not reveal which user names exist.
 
 use std::net::IpAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -22,6 +23,29 @@ use tokio::sync::Semaphore;
 use crate::config::AuthSection;
 use crate::metrics::Metrics;
 use crate::watched_file::WatchedFile;
+
+/// One login counted in `Authenticator::verifying` from before it queues for a
+/// verification slot until it is dropped (verified, or abandoned while queued).
+struct Verifying(Arc<AtomicUsize>);
+
+impl Verifying {
+    fn new(count: &Arc<AtomicUsize>) -> Verifying {
+        count.fetch_add(1, Ordering::AcqRel);
+        Verifying(Arc::clone(count))
+    }
+
+    /// Whether no login queues for a verification slot (at most `slots` are counted: this
+    /// one and others verifying).
+    fn none_queued(&self, slots: usize) -> bool {
+        self.0.load(Ordering::Acquire) <= slots
+    }
+}
+
+impl Drop for Verifying {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
 
 /// The result of a login attempt.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,6 +64,9 @@ pub struct Authenticator {
     cache: CredentialCache,
     throttle: LoginThrottle,
     verify_slots: Semaphore,
+    /// Logins queued for or in an argon2 verification.
+    verifying: Arc<AtomicUsize>,
+    verify_concurrency: usize,
     rehash_legacy: bool,
     /// Serialises rewrites of the password file by the broker itself.
     rewrite: Mutex<()>,
@@ -63,6 +90,8 @@ impl Authenticator {
             cache: CredentialCache::new(auth.cache_capacity),
             throttle: LoginThrottle::new(throttle),
             verify_slots: Semaphore::new(auth.verify_concurrency),
+            verifying: Arc::new(AtomicUsize::new(0)),
+            verify_concurrency: auth.verify_concurrency,
             rehash_legacy: auth.rehash_legacy,
             rewrite: Mutex::new(()),
             metrics,
@@ -112,6 +141,8 @@ impl Authenticator {
         }
 
         let started = Instant::now();
+        let verifying = Verifying::new(&self.verifying);
+        let slots = self.verify_concurrency;
         let verdict = {
             let _slot = self
                 .verify_slots
@@ -122,6 +153,12 @@ impl Authenticator {
             let file = Arc::clone(&file);
             tokio::task::spawn_blocking(move || {
                 let verdict = file.verify(&user, password.as_bytes());
+                // At the end of a storm (nobody queued behind the verifications running)
+                // the argon2 memory kept for the next verification (8 MiB each) is freed.
+                if verifying.none_queued(slots) {
+                    security::hash::release_verify_buffers();
+                }
+                drop(verifying);
                 if let Verification::Accepted { legacy } = verdict {
                     if let Some(stored) = file.get(&user) {
                         this.cache.insert(&user, password.as_bytes(), stored);
@@ -194,5 +231,22 @@ impl Authenticator {
     /// Drops every cached verification (used when the password file is reloaded).
     pub fn forget_cached(&self) {
         self.cache.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn logins_count_as_queued_until_dropped_however_they_end() {
+        let count = Arc::new(AtomicUsize::new(0));
+        let (a, b) = (Verifying::new(&count), Verifying::new(&count));
+        let queued = Verifying::new(&count);
+        assert!(!a.none_queued(2), "three logins, two slots: one queues");
+        drop(queued); // gave up while queued (the client went away)
+        assert!(a.none_queued(2));
+        drop((a, b));
+        assert_eq!(count.load(Ordering::Acquire), 0);
     }
 }

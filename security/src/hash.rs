@@ -13,7 +13,7 @@
 
 use std::fmt;
 use std::hint::black_box;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 use argon2::password_hash::{PasswordHash, PasswordHasher, SaltString};
 use argon2::{Algorithm, Argon2, Params, Version};
@@ -237,19 +237,36 @@ impl fmt::Debug for StoredHash {
     }
 }
 
-/// Verifies an argon2id hash in a memory buffer kept per thread.
+/// argon2id working memory (`m` KiB each) of finished verifications, for the next ones.
+static BUFFERS: Mutex<Vec<Vec<argon2::Block>>> = Mutex::new(Vec::new());
+
+/// Frees the argon2id working memory kept for the next verifications (`m` KiB per
+/// verification that ran at the same time, 8 MiB each by default).
+///
+/// The memory is kept between verifications so a reconnect storm stays CPU-bound (see
+/// `verify_argon2id`); a caller that knows no other verification is waiting calls this so
+/// that it goes back to the OS as soon as the storm is over.
+pub fn release_verify_buffers() {
+    BUFFERS.lock().expect("lock poisoned").clear();
+}
+
+/// How many argon2id working buffers are kept for the next verifications.
+pub fn kept_verify_buffers() -> usize {
+    BUFFERS.lock().expect("lock poisoned").len()
+}
+
+/// Verifies an argon2id hash in reused working memory.
 ///
 /// argon2's own `verify_password` allocates its `m` KiB of blocks on every call. On the
 /// broker's verification threads (not the main thread) glibc returns that memory to the
 /// kernel after each call, so every login page-faulted 8 MiB in again: measured 12 ms
-/// per verification instead of 3.4 ms. Reusing the buffer keeps a reconnect storm CPU-bound
-/// on argon2 itself. The buffer holds no secret worth keeping: it is overwritten by the next
-/// verification on that thread.
+/// per verification instead of 3.4 ms. Reusing buffers keeps a reconnect storm CPU-bound
+/// on argon2 itself. There are never more buffers than verifications that ran at once
+/// (the broker bounds those), and they are not tied to a thread: a thread pool that used
+/// many threads over a storm does not keep a buffer in each. A buffer holds no secret worth
+/// keeping: the next verification overwrites it, or it is freed
+/// ([`release_verify_buffers`]).
 fn verify_argon2id(password: &[u8], parsed: &PasswordHash<'_>) -> bool {
-    use std::cell::RefCell;
-    thread_local! {
-        static BLOCKS: RefCell<Vec<argon2::Block>> = const { RefCell::new(Vec::new()) };
-    }
     let (Ok(params), Some(expected)) = (Params::try_from(parsed), parsed.hash) else {
         return false;
     };
@@ -266,16 +283,20 @@ fn verify_argon2id(password: &[u8], parsed: &PasswordHash<'_>) -> bool {
         .unwrap_or_default();
     let argon = Argon2::new(Algorithm::Argon2id, version, params);
     let mut out = vec![0u8; expected.len()];
-    BLOCKS.with(|blocks| {
-        let mut blocks = blocks.borrow_mut();
-        let needed = argon.params().block_count();
-        if blocks.len() < needed {
-            blocks.resize(needed, argon2::Block::default());
-        }
-        argon
-            .hash_password_into_with_memory(password, salt, &mut out, &mut blocks[..needed])
-            .is_ok()
-    }) && bool::from(out.as_slice().ct_eq(expected.as_bytes()))
+    let mut blocks = BUFFERS
+        .lock()
+        .expect("lock poisoned")
+        .pop()
+        .unwrap_or_default();
+    let needed = argon.params().block_count();
+    if blocks.len() < needed {
+        blocks.resize(needed, argon2::Block::default());
+    }
+    let computed = argon
+        .hash_password_into_with_memory(password, salt, &mut out, &mut blocks[..needed])
+        .is_ok();
+    BUFFERS.lock().expect("lock poisoned").push(blocks);
+    computed && bool::from(out.as_slice().ct_eq(expected.as_bytes()))
 }
 
 /// Spends as much time as checking a wrong password against a default-cost
