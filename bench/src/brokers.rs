@@ -122,8 +122,28 @@ pub fn rss_kib(pid: u32) -> Option<u64> {
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
 }
 
-/// A port that was free a moment ago on 127.0.0.1.
+/// A TCP port on 127.0.0.1 that was free a moment ago, below Linux's ephemeral range.
+///
+/// Why not `bind(0)`: the kernel hands out ports for outgoing connections (every client a
+/// test opens, thousands in the storm tests) from that same ephemeral range (32768-60999
+/// by default); a port picked there and released could be taken by a client's connect
+/// before the broker bound it, and the broker failed to start with `Address already in
+/// use` (seen in CI). Ports 20000-32767 are never handed out that way; they are tried in
+/// a pseudo-random order, so parallel tests rarely try the same one.
 pub fn free_port() -> Result<u16> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    let seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+        ^ (u64::from(std::process::id()) << 20);
+    for _ in 0..1000 {
+        let n = NEXT.fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed) ^ seed;
+        let port = 20_000 + (n.wrapping_mul(0xBF58_476D_1CE4_E5B9) >> 33) % 12_768;
+        if TcpListener::bind(("127.0.0.1", port as u16)).is_ok() {
+            return Ok(port as u16);
+        }
+    }
     Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
