@@ -17,31 +17,9 @@ PIDS=()
 cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$WORK"; }
 trap cleanup EXIT
 
-free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
-wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/null && return 0; sleep 0.1; done; echo "nothing listens on $1" >&2; exit 1; }
+. "$PWD/loadtest/bridge-lines.sh"
 cpu_s() { awk '{printf "%.2f", ($14+$15)/100}' "/proc/$1/stat"; }
 sub() { awk -v a="$1" -v b="$2" 'BEGIN{printf "%.2f", b-a}'; }
-
-line() { # line NAME MQTT_PORT ZENOH_LISTEN ZENOH_CONNECT BINARY
-  cat > "$WORK/$1.toml" <<TOML
-[broker]
-line = "$1"
-[bridge]
-listen = ["tcp/127.0.0.1:$3"]
-connect = ["tcp/127.0.0.1:$4"]
-[[listener]]
-name = "line"
-bind = "127.0.0.1:$2"
-allow_anonymous = true
-[admin]
-bind = "127.0.0.1:$(free_port)"
-[fb]
-registry_file = "$WORK/$1-registry.json"
-TOML
-  rm -f "$WORK/$1-registry.json"
-  "$5" serve --config "$WORK/$1.toml" > "$WORK/$1.log" 2>&1 &
-  PIDS+=($!)
-}
 
 burst() { "$LT" --ceiling 0 --broker "mqtt://127.0.0.1:$1" --out "$WORK/out" bridge \
             --subscribe-at "mqtt://127.0.0.1:$2" --messages "${3:-20000}" --repeats "${4:-5}" >/dev/null; }

@@ -21,30 +21,10 @@ WORK=$(mktemp -d)
 PIDS=()
 cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; wait 2>/dev/null || true; rm -rf "$WORK"; }
 trap cleanup EXIT
-free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
-wait_port() { for _ in $(seq 100); do (exec 3<>/dev/tcp/127.0.0.1/"$1") 2>/dev/null && return 0; sleep 0.1; done; echo "nothing listens on $1" >&2; exit 1; }
-line() { # line NAME MQTT_PORT ZENOH_LISTEN ZENOH_CONNECT
-  cat >"$WORK/$1.toml" <<TOML
-[broker]
-line = "$1"
-[bridge]
-listen = ["tcp/127.0.0.1:$3"]
-connect = ["tcp/127.0.0.1:$4"]
-[[listener]]
-name = "line"
-bind = "127.0.0.1:$2"
-allow_anonymous = true
-[admin]
-bind = "127.0.0.1:$(free_port)"
-[fb]
-registry_file = "$WORK/$1-registry.json"
-TOML
-  "$BIN" serve --config "$WORK/$1.toml" >"$WORK/$1.log" 2>&1 &
-  PIDS+=($!)
-}
+. "$PWD/loadtest/bridge-lines.sh"
 pa=$(free_port); pb=$(free_port); za=$(free_port); zb=$(free_port)
-line line-a "$pa" "$za" "$zb"
-line line-b "$pb" "$zb" "$za"
+line line-a "$pa" "$za" "$zb" "$BIN"
+line line-b "$pb" "$zb" "$za" "$BIN"
 wait_port "$pa"; wait_port "$pb"
 
 run() { "$LT" --ceiling 0 --broker "mqtt://127.0.0.1:$pa" --out "$WORK/out" bridge --subscribe-at "mqtt://127.0.0.1:$1" "${@:2}"; }
