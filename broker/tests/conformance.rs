@@ -641,3 +641,50 @@ async fn a_repeated_subscribe_replaces_the_maximum_qos() {
         assert!(sub.next_publish(Duration::from_millis(300)).await.is_none());
     }
 }
+
+/// [MQTT-3.8.4-3] (3.1.1), [MQTT-3.3.1-9] (5, Retain Handling 0): every SUBSCRIBE gets
+/// the retained messages, also a second one that arrives (here: in the same TCP write)
+/// before the broker sent the first one's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn back_to_back_subscribes_each_get_the_retained_messages() {
+    let broker = Broker::start();
+    let publisher = V4::connect(broker.port(), "bb-publisher", None)
+        .await
+        .unwrap();
+    publisher
+        .client
+        .publish("bb/t", rumqttc::QoS::AtLeastOnce, true, "kept")
+        .await
+        .unwrap();
+    // Stored once a subscriber got it.
+    let mut probe = V4::connect(broker.port(), "bb-probe", None).await.unwrap();
+    probe.subscribe("bb/#").await;
+    assert!(probe.next_publish(WAIT).await.is_some_and(|m| m.retain));
+
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            client_id: "bb-sub",
+            ..Default::default()
+        }),
+        0
+    );
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(800)))
+        .unwrap();
+    let twice = [
+        raw::subscribe(4, 1, &["bb/#"]),
+        raw::subscribe(4, 2, &["bb/#"]),
+    ]
+    .concat();
+    c.send(&twice);
+    let (mut subacks, mut retained) = (0, 0);
+    while let Some((byte1, body)) = c.read_packet() {
+        match byte1 & 0xF0 {
+            0x90 => subacks += 1,
+            0x30 if byte1 & 0x01 == 1 && body.ends_with(b"kept") => retained += 1,
+            _ => {}
+        }
+    }
+    assert_eq!((subacks, retained), (2, 2), "(SUBACKs, retained copies)");
+}

@@ -232,6 +232,10 @@ pub struct DataRequest {
     /// Maximum count of payload buffer per replica
     max_count: usize,
     pub(crate) forward_retained: bool,
+    /// fbbus: repeated SUBSCRIBEs that asked for the retained messages again while a
+    /// sending of them was still pending: each gets its own copy, one read after another.
+    #[serde(default)]
+    pub(crate) retained_again: u8,
     pub(crate) group: Option<String>,
     /// fbbus: the last read skipped messages and the reader has not caught up since.
     #[serde(default)]

@@ -1005,6 +1005,7 @@ impl Router {
                 max_count: 100,
                 // set true for new subscriptions
                 forward_retained,
+                retained_again: 0,
                 group,
                 skipping: false,
             };
@@ -1043,7 +1044,13 @@ impl Router {
     ) {
         let update = |request: &mut DataRequest| {
             request.qos = qos;
-            request.forward_retained |= retained_again;
+            if retained_again && request.forward_retained {
+                // The previous SUBSCRIBE's retained messages are not sent yet: this one
+                // gets its own copy after them.
+                request.retained_again = request.retained_again.saturating_add(1);
+            } else if retained_again {
+                request.forward_retained = true;
+            }
         };
         let in_tracker = self.scheduler.trackers.get_mut(id).and_then(|tracker| {
             tracker
@@ -1626,7 +1633,12 @@ fn forward_device_data(
         inflight_slots -= publishes.len() as u64;
 
         // we only want to forward retained messages once
-        request.forward_retained = false;
+        // fbbus: once per SUBSCRIBE that asked for them (`retained_again`).
+        if request.retained_again > 0 {
+            request.retained_again -= 1;
+        } else {
+            request.forward_retained = false;
+        }
     }
 
     let (next, publishes_from_datalog) =
@@ -1648,6 +1660,9 @@ fn forward_device_data(
         Position::Next { start, end } => (start, end, false),
         Position::Done { start, end } => (start, end, true),
     };
+    // fbbus: retained messages still to send for a repeated SUBSCRIBE keep the request
+    // reading instead of parking it until new data arrives.
+    let caughtup = caughtup && !request.forward_retained;
 
     if let Some(ref shared_group) = shared_group {
         let skip_current_client = Some(&outgoing.client_id) != shared_group.current_client();
