@@ -156,9 +156,11 @@ impl Bridge {
         out
     }
 
-    /// Whether zenoh is open (a zenoh client: its router answered once).
-    pub fn linked(&self) -> bool {
-        self.link.get().is_some()
+    /// The bridge's tasks (a list of handles, valid after any panic of another holder).
+    fn tasks(&self) -> std::sync::MutexGuard<'_, Vec<JoinHandle<()>>> {
+        self.tasks
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// Closes the zenoh session (other lines see this line go at once) and stops the
@@ -167,7 +169,7 @@ impl Bridge {
         if let Some(link) = self.link.get() {
             link.close().await;
         }
-        for task in self.tasks.lock().expect("lock poisoned").drain(..) {
+        for task in self.tasks().drain(..) {
             task.abort();
         }
     }
@@ -218,7 +220,7 @@ pub async fn start(config: &BusConfig, ctx: Arc<Context>) -> Result<Arc<Bridge>,
             tracing::error!(error = %e, "bridge to the other lines not started");
         }
     });
-    bridge.tasks.lock().expect("lock poisoned").push(opener);
+    bridge.tasks().push(opener);
     Ok(bridge)
 }
 
@@ -300,7 +302,7 @@ async fn run(
             config.export.clone(),
         )),
     ];
-    bridge.tasks.lock().expect("lock poisoned").extend(tasks);
+    bridge.tasks().extend(tasks);
     let _ = bridge.link.set(link);
     tracing::info!(line, mode = config.mode.as_str(), listen = ?config.listen, connect = ?config.connect,
         "bridge to the other lines started (zenoh)");

@@ -240,6 +240,14 @@ impl fmt::Debug for StoredHash {
 /// argon2id working memory (`m` KiB each) of finished verifications, for the next ones.
 static BUFFERS: Mutex<Vec<Vec<argon2::Block>>> = Mutex::new(Vec::new());
 
+/// The pool, whatever happened to another holder: it is a list of scratch buffers, valid
+/// after any panic.
+fn buffers() -> std::sync::MutexGuard<'static, Vec<Vec<argon2::Block>>> {
+    BUFFERS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// Frees the argon2id working memory kept for the next verifications (`m` KiB per
 /// verification that ran at the same time, 8 MiB each by default).
 ///
@@ -247,12 +255,12 @@ static BUFFERS: Mutex<Vec<Vec<argon2::Block>>> = Mutex::new(Vec::new());
 /// `verify_argon2id`); a caller that knows no other verification is waiting calls this so
 /// that it goes back to the OS as soon as the storm is over.
 pub fn release_verify_buffers() {
-    BUFFERS.lock().expect("lock poisoned").clear();
+    buffers().clear();
 }
 
 /// How many argon2id working buffers are kept for the next verifications.
 pub fn kept_verify_buffers() -> usize {
-    BUFFERS.lock().expect("lock poisoned").len()
+    buffers().len()
 }
 
 /// Verifies an argon2id hash in reused working memory.
@@ -283,11 +291,7 @@ fn verify_argon2id(password: &[u8], parsed: &PasswordHash<'_>) -> bool {
         .unwrap_or_default();
     let argon = Argon2::new(Algorithm::Argon2id, version, params);
     let mut out = vec![0u8; expected.len()];
-    let mut blocks = BUFFERS
-        .lock()
-        .expect("lock poisoned")
-        .pop()
-        .unwrap_or_default();
+    let mut blocks = buffers().pop().unwrap_or_default();
     let needed = argon.params().block_count();
     if blocks.len() < needed {
         blocks.resize(needed, argon2::Block::default());
@@ -295,7 +299,7 @@ fn verify_argon2id(password: &[u8], parsed: &PasswordHash<'_>) -> bool {
     let computed = argon
         .hash_password_into_with_memory(password, salt, &mut out, &mut blocks[..needed])
         .is_ok();
-    BUFFERS.lock().expect("lock poisoned").push(blocks);
+    buffers().push(blocks);
     computed && bool::from(out.as_slice().ct_eq(expected.as_bytes()))
 }
 
