@@ -52,6 +52,7 @@ use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
 use crate::origin;
+use crate::packet_ids::PacketIds;
 use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
@@ -239,9 +240,9 @@ struct Session {
     client_receive_max: u16,
     /// QoS 1/2 deliveries sent and not yet acknowledged by the client.
     outstanding_out: u16,
-    /// Their fingerprints by packet id (PUBACK, or PUBREC for QoS 2, removes one): sent
-    /// with DUP=1 if the session resumes on a later connection (`redelivery`).
-    unacked_out: BTreeMap<u16, u64>,
+    /// The packet ids the client sees for deliveries, and the router's for each; what a
+    /// later connection of this session re-sends, and under which ids (`redelivery`).
+    ids: PacketIds,
     /// Deliveries waiting for the client's window, in order.
     held: VecDeque<(Publish, Option<PublishProperties>)>,
     /// The router paused delivery and is woken once `held` is short again.
@@ -257,8 +258,8 @@ struct Session {
 }
 
 /// What a session needs only for uncommon traffic: refused or partly refused requests,
-/// QoS 2 exchanges the broker answers itself, MQTT 5 topic aliases, a resumed session's
-/// redeliveries. Boxed apart so the many sessions that never need it do not carry it.
+/// QoS 2 exchanges the broker answers itself, MQTT 5 topic aliases. Boxed apart so the
+/// many sessions that never need it do not carry it.
 #[derive(Default)]
 struct Rare {
     /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
@@ -274,9 +275,6 @@ struct Rare {
     /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
     /// the PUBREC the router waits for.
     qos2_sent_as_qos1: BTreeSet<u16>,
-    /// Fingerprints of what the previous connection of this session left
-    /// unacknowledged: the router re-sends those first, and they go out with DUP=1.
-    redeliver: Vec<u64>,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: BTreeSet<(&'static str, String)>,
 }
@@ -506,11 +504,11 @@ impl Session {
             keep_alive = connect.keep_alive,
             "client connected"
         );
-        let redeliver = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
+        let ids = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
             ctx.redeliveries.forget(&accepted.client_id);
-            Vec::new()
+            PacketIds::default()
         } else {
-            ctx.redeliveries.take(&accepted.client_id)
+            PacketIds::resumed(ctx.redeliveries.take(&accepted.client_id))
         };
         Some(Session {
             io,
@@ -540,13 +538,8 @@ impl Session {
                 .filter(|m| *m > 0)
                 .unwrap_or(u16::MAX),
             outstanding_out: 0,
-            unacked_out: BTreeMap::new(),
-            rare: (!redeliver.is_empty()).then(|| {
-                Box::new(Rare {
-                    redeliver,
-                    ..Rare::default()
-                })
-            }),
+            ids,
+            rare: None,
             held: VecDeque::new(),
             wake_pending: false,
             subscriptions: BTreeMap::new(),
@@ -675,6 +668,9 @@ impl Session {
 
     /// The packet path for one packet from the client (see the module doc).
     fn inbound(&mut self, packet: Packet, qos_pkid: Option<(u8, u16)>) -> Result<(), End> {
+        // Acknowledgements of deliveries carry the client's packet ids; from here on the
+        // packet path works with the router's (`packet_ids`).
+        let packet = self.ids.from_client(packet);
         match packet {
             Packet::Publish(publish, properties) => {
                 let (qos, pkid) = qos_pkid.unwrap_or((0, 0));
@@ -717,13 +713,11 @@ impl Session {
                     .is_some_and(|r| r.qos2_sent_as_qos1.remove(&ack.pkid)) =>
             {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
-                self.unacked_out.remove(&ack.pkid);
                 self.ack_for_client(2, ack.pkid);
                 Ok(())
             }
             Packet::PubAck(ack, properties) => {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
-                self.unacked_out.remove(&ack.pkid);
                 let pkid = ack.pkid;
                 let packet = Packet::PubAck(ack, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
@@ -731,7 +725,6 @@ impl Session {
             }
             Packet::PubRec(rec, properties) => {
                 let pkid = rec.pkid;
-                self.unacked_out.remove(&pkid);
                 let packet = Packet::PubRec(rec, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
                 Ok(())
@@ -1171,7 +1164,7 @@ impl Session {
                     self.held.push_back((publish, properties));
                 }
             }
-            Some(Packet::PubRel(pubrel, properties)) => {
+            Some(Packet::PubRel(mut pubrel, properties)) => {
                 self.ack_order.released(pubrel.pkid);
                 if self
                     .rare
@@ -1188,6 +1181,7 @@ impl Session {
                     self.ack_order
                         .complete(pubrel.pkid, complete, &mut self.to_router);
                 } else {
+                    pubrel.pkid = self.ids.release(pubrel.pkid);
                     self.io.queue(Packet::PubRel(pubrel, properties));
                 }
             }
@@ -1210,8 +1204,10 @@ impl Session {
     ///   the message's `origin`;
     /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
     ///
-    /// Whatever the client is not sent at the router's QoS is acknowledged to the router
-    /// for it ([`Session::ack_for_client`]).
+    /// A QoS 1/2 delivery goes out under the packet id the client sees ([`PacketIds`]):
+    /// the original id and DUP=1 when it re-sends what an earlier connection of the session
+    /// left unacknowledged [MQTT-4.4.0-1] [MQTT-3.3.1-1]. Whatever the client is not sent at
+    /// the router's QoS is acknowledged to the router for it ([`Session::ack_for_client`]).
     fn deliver_publish(&mut self, mut publish: Publish, properties: Option<PublishProperties>) {
         let origin = origin::take(&mut publish);
         let published = origin.as_ref().map(|o| o.qos);
@@ -1219,12 +1215,21 @@ impl Session {
         if retain_as_published {
             publish.retain = true;
         }
+        // `pkid` stays the router's; the client sees `client_id`.
+        let (routed_qos, pkid) = publish.qos_and_pkid();
+        let (client_id, dup) = if routed_qos > 0 {
+            let print = redelivery::fingerprint(&publish.topic, &publish.payload);
+            let delivery = self.ids.deliver(pkid, print);
+            publish.set_pkid(delivery.id);
+            (delivery.id, delivery.dup)
+        } else {
+            (0, false)
+        };
         let (topic, payload, retain) = (
             publish.topic.clone(),
             publish.payload.clone(),
             publish.retain,
         );
-        let (routed_qos, pkid) = publish.qos_and_pkid();
         let may_lower = routed_qos > 0 && matches!(published, Some(0 | 1));
         let kept_properties = if may_lower { properties.clone() } else { None };
 
@@ -1236,13 +1241,14 @@ impl Session {
         }
         if !deliver {
             self.io.write.truncate(before);
+            self.ids.withdraw(client_id);
             self.ack_for_client(routed_qos, pkid);
             return;
         }
         let qos = published.map_or(routed_qos, |q| q.min(routed_qos));
         if may_lower && qos < routed_qos {
             self.io.write.truncate(before);
-            let lower_pkid = if qos == 0 { 0 } else { pkid };
+            let lower_pkid = if qos == 0 { 0 } else { client_id };
             let lower = crate::broker_publisher::publish_packet(
                 topic.clone(),
                 payload.clone(),
@@ -1252,6 +1258,7 @@ impl Session {
             );
             self.io.queue(Packet::Publish(lower, kept_properties));
             if qos == 0 {
+                self.ids.withdraw(client_id);
                 self.ack_for_client(routed_qos, pkid);
             } else {
                 self.rare().qos2_sent_as_qos1.insert(pkid);
@@ -1266,6 +1273,7 @@ impl Session {
                     rare.qos2_sent_as_qos1.remove(&pkid);
                 }
                 if qos > 0 {
+                    self.ids.withdraw(client_id);
                     self.ack_for_client(routed_qos, pkid);
                 }
                 self.ctx
@@ -1284,15 +1292,8 @@ impl Session {
                 self.ctx.metrics.messages_out.inc();
                 if qos > 0 {
                     self.outstanding_out += 1;
-                    let print = redelivery::fingerprint(&topic, &payload);
-                    self.unacked_out.insert(pkid, print);
-                    // A delivery the previous connection already sent [MQTT-3.3.1-1].
-                    let redeliver = self.rare.as_mut().map(|r| &mut r.redeliver);
-                    if let Some(redeliver) = redeliver.filter(|r| !r.is_empty()) {
-                        if let Some(i) = redeliver.iter().position(|p| *p == print) {
-                            redeliver.swap_remove(i);
-                            self.io.write[before] |= 0b0000_1000;
-                        }
+                    if dup {
+                        self.io.write[before] |= 0b0000_1000;
                     }
                 }
             }
@@ -1433,12 +1434,12 @@ impl Session {
         }
         if self.lifetime.clean_link {
             self.ctx.redeliveries.forget(&self.client_id);
-        } else {
-            let unacked = std::mem::take(&mut self.unacked_out);
-            self.ctx
-                .redeliveries
-                .save(&self.client_id, unacked.into_values().collect());
+        } else if self.ctx.sessions.is_current(&self.client_id, self.session) {
+            let open = std::mem::take(&mut self.ids).into_resume();
+            self.ctx.redeliveries.save(&self.client_id, open);
         }
+        // Taken over: the newer connection started without this one's open exchanges, and
+        // a later one must not get them either (they would mark the wrong messages).
         self.ctx.fb.registry.disconnected(
             &self.client_id,
             self.session,

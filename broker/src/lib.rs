@@ -16,7 +16,8 @@
 //! - [`connection`]: one client's session; its module doc is the packet path, in order.
 //!   Around it: [`framed`] (the socket and its buffers), [`codec`] (rumqttd's MQTT codecs
 //!   and the guards in front of them), [`frame`] (the bytes fbbus reads itself),
-//!   [`ack_order`], [`origin`] and [`redelivery`] (delivery rules the router leaves out),
+//!   [`ack_order`], [`origin`], [`packet_ids`] and [`redelivery`] (delivery rules the
+//!   router leaves out),
 //!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
 //! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
 //! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
@@ -52,6 +53,7 @@ pub mod logging;
 pub mod memory;
 pub mod metrics;
 pub mod origin;
+pub mod packet_ids;
 pub mod redelivery;
 pub mod registry;
 pub mod router;

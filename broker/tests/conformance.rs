@@ -431,9 +431,7 @@ fn mqtt5_subscription_options_are_honoured() {
 }
 
 /// [MQTT-3.3.1-1] [MQTT-4.4.0-1]: a QoS 1 delivery the client never acknowledged is sent
-/// again when the session resumes, with DUP=1; a new delivery after it has DUP=0. (The
-/// packet id is the original one here only because rumqttd's router numbers each
-/// connection's deliveries from 1: see docs/conformance.md, 17a/b.)
+/// again when the session resumes, with DUP=1; a new delivery after it has DUP=0.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
     let broker = Broker::start();
@@ -485,6 +483,127 @@ async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
     // End the session.
     c.send(&raw::DISCONNECT);
     connect_v5(port, "dup-sub", true, 0);
+}
+
+/// The packet id of a PUBLISH at QoS 1 or 2, from its body.
+fn publish_pkid(body: &[u8]) -> u16 {
+    let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+    u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]])
+}
+
+/// The next packet, which must be a PUBLISH: (DUP, packet id, payload).
+fn read_delivery(c: &mut RawClient, topic: &str) -> (bool, u16, Vec<u8>) {
+    let (byte1, body) = c.read_packet().expect("a delivery");
+    assert_eq!(byte1 & 0xF0, 0x30, "a PUBLISH, got {byte1:#04x}");
+    let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+    assert_eq!(&body[2..2 + topic_len], topic.as_bytes());
+    let props_at = 4 + topic_len;
+    let props_len = body[props_at] as usize; // below 128 here: one varint byte
+    let payload = body[props_at + 1 + props_len..].to_vec();
+    (byte1 & 0x08 != 0, publish_pkid(&body), payload)
+}
+
+/// Answers a QoS 2 delivery: PUBREC, the broker's PUBREL for the same id, PUBCOMP.
+fn complete_qos2(c: &mut RawClient, pkid: u16) {
+    c.send(&raw::packet(0x50, &pkid.to_be_bytes()));
+    let (byte1, body) = c.read_packet().expect("PUBREL");
+    assert_eq!(
+        (byte1, &body[..2]),
+        (0x62, &pkid.to_be_bytes()[..]),
+        "PUBREL {pkid}"
+    );
+    c.send(&raw::packet(0x70, &pkid.to_be_bytes()));
+}
+
+/// [MQTT-4.4.0-1] [MQTT-2.2.1-3]: re-sent deliveries keep their original packet ids even
+/// when the client acknowledged earlier ones (rumqttd's router numbers every connection's
+/// deliveries from 1 again), a pending PUBREL is re-sent under its id, and no new delivery
+/// takes an id whose exchange is still open.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn resent_deliveries_keep_their_packet_ids_and_open_ids_stay_taken() {
+    let broker = Broker::start();
+    let port = broker.port();
+    let (_, mut c) = connect_v5(port, "ids-sub", false, 300);
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut sub = raw::subscribe(5, 1, &["ids/t"]);
+    *sub.last_mut().unwrap() = 2;
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    let publisher = V4::connect(port, "ids-pub", None).await.unwrap();
+    let publish = |payload: &'static str| {
+        let client = publisher.client.clone();
+        async move {
+            client
+                .publish("ids/t", rumqttc::QoS::ExactlyOnce, false, payload)
+                .await
+                .unwrap()
+        }
+    };
+    for p in ["a", "b", "c"] {
+        publish(p).await;
+    }
+    let mut first = Vec::new();
+    for _ in 0..3 {
+        first.push(read_delivery(&mut c, "ids/t"));
+    }
+    let ids: Vec<u16> = first.iter().map(|d| d.1).collect();
+    assert_eq!(first[0].2, b"a");
+    // "a" is received (PUBREC) and released (PUBREL), never completed; "b" and "c" are
+    // not even received.
+    c.send(&raw::packet(0x50, &ids[0].to_be_bytes()));
+    let (byte1, body) = c.read_packet().expect("PUBREL");
+    assert_eq!((byte1, &body[..2]), (0x62, &ids[0].to_be_bytes()[..]));
+    c.send(&raw::DISCONNECT);
+    assert!(c.closed_by_broker());
+
+    let (present, mut c) = connect_v5(port, "ids-sub", false, 300);
+    assert!(present, "session present");
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut pubrels = Vec::new();
+    let mut resent = Vec::new();
+    while pubrels.len() + resent.len() < 3 {
+        let (byte1, body) = c.read_packet().expect("the resumed session's packets");
+        if byte1 == 0x62 {
+            pubrels.push(u16::from_be_bytes([body[0], body[1]]));
+        } else {
+            assert_eq!(byte1 & 0xF0, 0x30, "PUBREL or PUBLISH, got {byte1:#04x}");
+            let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+            let payload = body[5 + topic_len + body[4 + topic_len] as usize..].to_vec();
+            resent.push((byte1 & 0x08 != 0, publish_pkid(&body), payload));
+        }
+    }
+    assert_eq!(pubrels, [ids[0]], "the PUBREL again, under its id");
+    assert_eq!(
+        resent,
+        [(true, ids[1], b"b".to_vec()), (true, ids[2], b"c".to_vec())],
+        "b and c again, with DUP=1 and their original ids"
+    );
+
+    // A new message while all three exchanges are open takes none of their ids.
+    publish("d").await;
+    let (dup, d_id, payload) = read_delivery(&mut c, "ids/t");
+    assert_eq!((dup, payload.as_slice()), (false, &b"d"[..]));
+    assert!(
+        !ids.contains(&d_id),
+        "{d_id} is one of the open ids {ids:?}"
+    );
+
+    // Every exchange completes under the client's ids, and the session goes on.
+    c.send(&raw::packet(0x70, &ids[0].to_be_bytes()));
+    for id in [ids[1], ids[2], d_id] {
+        complete_qos2(&mut c, id);
+    }
+    publish("e").await;
+    let (dup, e_id, payload) = read_delivery(&mut c, "ids/t");
+    assert_eq!((dup, payload.as_slice()), (false, &b"e"[..]));
+    complete_qos2(&mut c, e_id);
+    // End the session.
+    c.send(&raw::DISCONNECT);
+    connect_v5(port, "ids-sub", true, 0);
 }
 
 /// Retained PUBLISHes arriving within `within` (payloads), after a SUBSCRIBE.

@@ -230,6 +230,12 @@ impl Publish {
         (self.qos as u8, self.pkid)
     }
 
+    // fbbus: see `with_qos`; the embedding broker numbers deliveries for its clients.
+    /// Sets the packet id.
+    pub fn set_pkid(&mut self, pkid: u16) {
+        self.pkid = pkid;
+    }
+
     pub fn is_empty(&self) -> bool {
         false
     }
