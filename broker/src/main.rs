@@ -11,6 +11,18 @@ use security::{Argon2Params, PasswordFile, StoredHash};
 
 mod devices_command;
 
+/// The allocator and its options: see `broker::memory` for why these.
+#[cfg(feature = "jemalloc")]
+#[global_allocator]
+static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
+/// jemalloc reads this C string before `main` (its `malloc_conf`, under the prefix
+/// tikv-jemallocator builds it with); `_RJEM_MALLOC_CONF` in the environment still
+/// overrides it.
+#[cfg(feature = "jemalloc")]
+#[unsafe(export_name = "_rjem_malloc_conf")]
+pub static JEMALLOC_CONF: &[u8; 83] = broker::memory::JEMALLOC_CONF;
+
 #[derive(Parser)]
 #[command(
     name = "fbbus",
