@@ -83,7 +83,7 @@ impl RouterHandle {
                     );
                 }
             })),
-            released: Some(Box::new(crate::memory::release_freed)),
+            released: Some(std::sync::Arc::new(crate::memory::release_freed)),
             idle_after: IDLE_AFTER,
             release_every: RELEASE_EVERY,
         };

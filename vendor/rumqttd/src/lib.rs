@@ -34,6 +34,7 @@ pub use server::{Broker, LinkType, Server};
 
 pub use self::router::shared_subs::Strategy;
 
+mod freer; // fbbus
 mod link;
 pub mod protocol;
 mod router;

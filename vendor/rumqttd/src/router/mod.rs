@@ -39,8 +39,9 @@ pub struct RouterHooks {
     /// Called after the router released the memory no reader needs any more (read
     /// commit-log segments, empty per-connection queues): once it had no event for
     /// `idle_after`, and while events keep coming, at most every `release_every`.
-    /// Without it the router never releases memory early (upstream behaviour).
-    pub released: Option<Box<dyn FnMut() + Send>>,
+    /// Without it the router never releases memory early (upstream behaviour). It runs on
+    /// the thread that frees the released segments (`freer`), after they are freed.
+    pub released: Option<std::sync::Arc<dyn Fn() + Send + Sync>>,
     pub idle_after: std::time::Duration,
     pub release_every: std::time::Duration,
 }

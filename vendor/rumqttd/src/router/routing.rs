@@ -1237,9 +1237,9 @@ impl Router {
         for (_, tracker) in self.scheduler.trackers.iter_mut() {
             super::iobufs::shrink_if_empty(&mut tracker.data_requests);
         }
-        if let Some(released) = self.hooks.released.as_mut() {
-            released();
-        }
+        // fbbus: the segments released above are freed on the freeing thread; the hook runs
+        // there after them.
+        crate::freer::dispose(Box::new(()), self.hooks.released.clone());
     }
 
     pub fn handle_last_will(

@@ -58,7 +58,8 @@ pub struct CommitLog<T> {
 
 impl<T> CommitLog<T>
 where
-    T: Storage + Clone,
+    // fbbus: Send + 'static, so dropped segments can be freed on another thread (`freer`).
+    T: Storage + Clone + Send + 'static,
 {
     /// Create a new `CommitLog` with the given contraints. If `max_mem_segments` is 0, then only
     /// the active segment is maintained.
@@ -150,7 +151,10 @@ where
             let absolute_offset = self.active_segment().next_offset();
             // If active segment is full and segments are full, apply retention policy.
             if self.memory_segments_count() >= self.max_mem_segments {
-                self.segments.pop_front();
+                // fbbus: freed off the router thread (`freer`).
+                if let Some(oldest) = self.segments.pop_front() {
+                    crate::freer::dispose(Box::new(oldest), None);
+                }
                 self.head += 1;
             }
 
@@ -176,14 +180,22 @@ where
     pub fn release_read(&mut self, needed_from: Option<u64>) {
         let end = self.active_segment().next_offset();
         let keep_from = needed_from.map_or(end, |offset| offset.min(end));
+        let mut released = Vec::new();
         while self.segments.len() > 1 && self.segments[0].next_offset() <= keep_from {
-            self.segments.pop_front();
+            released.extend(self.segments.pop_front());
             self.head += 1;
         }
         if self.segments.len() == 1 && end <= keep_from && self.active_segment().is_allocated() {
-            *self.active_segment_mut() = Segment::with_offset(end);
+            released.push(std::mem::replace(
+                self.active_segment_mut(),
+                Segment::with_offset(end),
+            ));
         }
         self.segments.shrink_to_fit();
+        // Freed off the router thread (`freer`).
+        if !released.is_empty() {
+            crate::freer::dispose(Box::new(released), None);
+        }
     }
 
     /// Read `len` Ts at once. More efficient than reading 1 at a time. Returns
