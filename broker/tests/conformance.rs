@@ -453,11 +453,7 @@ async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
     let (first, body) = c.read_packet().expect("the delivery");
     assert_eq!(first & 0xF6, 0x32, "a QoS 1 PUBLISH");
     assert_eq!(first & 0x08, 0, "first delivery with DUP=0");
-    let pkid = |body: &[u8]| {
-        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
-        u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]])
-    };
-    assert!(pkid(&body) > 0);
+    assert!(publish_pkid(&body) > 0);
     // Gone without acknowledging it.
     c.send(&raw::DISCONNECT);
     assert!(c.closed_by_broker());
@@ -471,7 +467,7 @@ async fn unacknowledged_deliveries_are_resent_with_dup_on_resume() {
     assert_eq!(again & 0xF0, 0x30);
     assert_eq!(again & 0x08, 0x08, "re-sent with DUP=1");
     assert_eq!(&body[2..7], b"dup/t");
-    let id = pkid(&body);
+    let id = publish_pkid(&body);
     c.send(&raw::packet(0x40, &id.to_be_bytes()));
     publisher
         .client
@@ -491,16 +487,21 @@ fn publish_pkid(body: &[u8]) -> u16 {
     u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]])
 }
 
-/// The next packet, which must be a PUBLISH: (DUP, packet id, payload).
-fn read_delivery(c: &mut RawClient, topic: &str) -> (bool, u16, Vec<u8>) {
-    let (byte1, body) = c.read_packet().expect("a delivery");
+/// An MQTT 5 PUBLISH at QoS 1 or 2 on `topic`: (DUP, packet id, payload).
+fn delivery(byte1: u8, body: &[u8], topic: &str) -> (bool, u16, Vec<u8>) {
     assert_eq!(byte1 & 0xF0, 0x30, "a PUBLISH, got {byte1:#04x}");
     let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
     assert_eq!(&body[2..2 + topic_len], topic.as_bytes());
     let props_at = 4 + topic_len;
     let props_len = body[props_at] as usize; // below 128 here: one varint byte
     let payload = body[props_at + 1 + props_len..].to_vec();
-    (byte1 & 0x08 != 0, publish_pkid(&body), payload)
+    (byte1 & 0x08 != 0, publish_pkid(body), payload)
+}
+
+/// The next packet, which must be a PUBLISH on `topic`: (DUP, packet id, payload).
+fn read_delivery(c: &mut RawClient, topic: &str) -> (bool, u16, Vec<u8>) {
+    let (byte1, body) = c.read_packet().expect("a delivery");
+    delivery(byte1, &body, topic)
 }
 
 /// Answers a QoS 2 delivery: PUBREC, the broker's PUBREL for the same id, PUBCOMP.
@@ -570,10 +571,7 @@ async fn resent_deliveries_keep_their_packet_ids_and_open_ids_stay_taken() {
         if byte1 == 0x62 {
             pubrels.push(u16::from_be_bytes([body[0], body[1]]));
         } else {
-            assert_eq!(byte1 & 0xF0, 0x30, "PUBREL or PUBLISH, got {byte1:#04x}");
-            let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
-            let payload = body[5 + topic_len + body[4 + topic_len] as usize..].to_vec();
-            resent.push((byte1 & 0x08 != 0, publish_pkid(&body), payload));
+            resent.push(delivery(byte1, &body, "ids/t"));
         }
     }
     assert_eq!(pubrels, [ids[0]], "the PUBREL again, under its id");
