@@ -1215,9 +1215,9 @@ impl Session {
         if retain_as_published {
             publish.retain = true;
         }
-        // `pkid` stays the router's; the client sees `client_id`.
+        // `pkid` stays the router's; the client sees `client_pkid`.
         let (routed_qos, pkid) = publish.qos_and_pkid();
-        let (client_id, dup) = if routed_qos > 0 {
+        let (client_pkid, dup) = if routed_qos > 0 {
             let print = redelivery::fingerprint(&publish.topic, &publish.payload);
             let delivery = self.ids.deliver(pkid, print);
             publish.set_pkid(delivery.id);
@@ -1241,14 +1241,14 @@ impl Session {
         }
         if !deliver {
             self.io.write.truncate(before);
-            self.ids.withdraw(client_id);
+            self.ids.withdraw(client_pkid);
             self.ack_for_client(routed_qos, pkid);
             return;
         }
         let qos = published.map_or(routed_qos, |q| q.min(routed_qos));
         if may_lower && qos < routed_qos {
             self.io.write.truncate(before);
-            let lower_pkid = if qos == 0 { 0 } else { client_id };
+            let lower_pkid = if qos == 0 { 0 } else { client_pkid };
             let lower = crate::broker_publisher::publish_packet(
                 topic.clone(),
                 payload.clone(),
@@ -1258,7 +1258,7 @@ impl Session {
             );
             self.io.queue(Packet::Publish(lower, kept_properties));
             if qos == 0 {
-                self.ids.withdraw(client_id);
+                self.ids.withdraw(client_pkid);
                 self.ack_for_client(routed_qos, pkid);
             } else {
                 self.rare().qos2_sent_as_qos1.insert(pkid);
@@ -1273,7 +1273,7 @@ impl Session {
                     rare.qos2_sent_as_qos1.remove(&pkid);
                 }
                 if qos > 0 {
-                    self.ids.withdraw(client_id);
+                    self.ids.withdraw(client_pkid);
                     self.ack_for_client(routed_qos, pkid);
                 }
                 self.ctx
