@@ -499,3 +499,37 @@ async fn server_only_packet_types_end_the_connection_cleanly() {
     );
     assert_eq!(broker.metric("fbbus_connections"), 1.0);
 }
+
+/// The `fbbus` binary runs on jemalloc with the options `broker::memory::JEMALLOC_CONF`
+/// names (the idle-memory figures depend on them). jemalloc reads them from an exported
+/// symbol before `main`; if the symbol were lost (renamed, stripped by a build change),
+/// jemalloc would silently run on its defaults. `background_thread:true` is the option
+/// visible from outside: a thread named `jemalloc_bg_thd`.
+#[test]
+#[cfg(all(target_os = "linux", feature = "jemalloc"))]
+fn the_broker_runs_on_jemalloc_with_its_options() {
+    assert!(
+        std::str::from_utf8(broker::memory::JEMALLOC_CONF)
+            .unwrap()
+            .contains("background_thread:true"),
+        "this test looks for the background thread"
+    );
+    let broker = Broker::start();
+    let tasks = format!("/proc/{}/task", broker.child.id());
+    let deadline = std::time::Instant::now() + Duration::from_secs(5);
+    loop {
+        let names: Vec<String> = std::fs::read_dir(&tasks)
+            .unwrap()
+            .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("comm")).ok())
+            .map(|n| n.trim().to_owned())
+            .collect();
+        if names.iter().any(|n| n == "jemalloc_bg_thd") {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no jemalloc background thread among {names:?}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
