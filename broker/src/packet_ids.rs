@@ -178,10 +178,18 @@ impl PacketIds {
 
     /// What the next connection of this session starts from: every delivery without
     /// PUBACK or PUBREC is re-sent by the router, and every PUBREL is sent again [MQTT-4.4.0-1].
+    ///
+    /// An exchange still `Unsent` here was expected from the router and never came, although
+    /// this connection went on to new deliveries (`last > 0`): its message is gone (a
+    /// retained message sent at subscribe time, which the router does not re-send, or a
+    /// dropped commit-log segment). It is not handed on, or such entries would pile up over
+    /// the session's connections, each holding a packet id.
     pub fn into_resume(self) -> Resume {
+        let went_on = self.last > 0;
         Resume(
             self.open
                 .into_iter()
+                .filter(|e| !(went_on && e.stage == Stage::Unsent))
                 .map(|mut e| {
                     e.stage = match e.stage {
                         Stage::Unsent | Stage::Sent => Stage::Unsent,
@@ -312,6 +320,23 @@ mod tests {
         assert_eq!(id_of(&ids.from_client(pubcomp(2))), 1);
         assert_eq!(id_of(&ids.from_client(puback(3))), 2);
         assert!(ids.into_resume().is_empty());
+    }
+
+    #[test]
+    fn a_resend_that_never_came_is_not_handed_on_once_new_deliveries_went_out() {
+        let mut ids = PacketIds::default();
+        ids.deliver(1, 10);
+        ids.deliver(2, 20);
+        // Closed before the router re-sent anything: both are still expected.
+        let mut ids = PacketIds::resumed(PacketIds::resumed(ids.into_resume()).into_resume());
+        // The router re-sends only the first, then something new.
+        assert_eq!(ids.deliver(1, 10), Delivery { id: 1, dup: true });
+        assert_eq!(ids.deliver(2, 30), Delivery { id: 3, dup: false });
+        let mut ids = PacketIds::resumed(ids.into_resume());
+        // 10 and 30 are expected again; 20 is not, and its id is free.
+        assert_eq!(ids.deliver(1, 20), Delivery { id: 2, dup: false });
+        assert_eq!(ids.deliver(2, 10), Delivery { id: 1, dup: true });
+        assert_eq!(ids.deliver(3, 30), Delivery { id: 3, dup: true });
     }
 
     #[test]
