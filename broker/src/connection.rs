@@ -52,7 +52,7 @@ use crate::frame;
 use crate::framed::{Io, Stream};
 use crate::metrics::{DisconnectReason, Metrics};
 use crate::origin;
-use crate::packet_ids::PacketIds;
+use crate::packet_ids::{PacketIds, Resume};
 use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
@@ -400,7 +400,7 @@ impl Session {
             ctx.wills.cancel_delayed(&client_id);
             // The session number is taken before the router link, because linking is what
             // ends an older connection with this id, and that one must see it is stale.
-            let session = ctx.sessions.open(&client_id);
+            let (session, predecessor_running) = ctx.sessions.open(&client_id);
             if match username.as_deref() {
                 Some(user) => user == client_id,
                 None => ctx.fb.anonymous_devices,
@@ -426,7 +426,9 @@ impl Session {
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
-                    ctx.sessions.close(&client_id, session);
+                    ctx.sessions.close_with(&client_id, session, |superseded| {
+                        ctx.redeliveries.abandoned(&client_id, session, superseded)
+                    });
                     tracing::error!(client_id, error = %e, "router refused the connection");
                     return Err(refuse(
                         ConnectReturnCode::ServerUnavailable,
@@ -440,6 +442,7 @@ impl Session {
                 username,
                 will,
                 session,
+                predecessor_running,
                 lifetime,
                 link_tx,
                 link_rx,
@@ -470,7 +473,11 @@ impl Session {
         }
         if io.flush().await.is_err() {
             let _ = unlink(accepted.link_tx).await;
-            ctx.sessions.close(&accepted.client_id, accepted.session);
+            ctx.sessions
+                .close_with(&accepted.client_id, accepted.session, |superseded| {
+                    ctx.redeliveries
+                        .abandoned(&accepted.client_id, accepted.session, superseded)
+                });
             // It may have taken an online device's session over: that device is gone now.
             ctx.fb.registry.disconnected(
                 &accepted.client_id,
@@ -508,7 +515,15 @@ impl Session {
             ctx.redeliveries.forget(&accepted.client_id);
             PacketIds::default()
         } else {
-            PacketIds::resumed(ctx.redeliveries.take(&accepted.client_id))
+            let handed_over = ctx
+                .redeliveries
+                .take(
+                    &accepted.client_id,
+                    accepted.session,
+                    accepted.predecessor_running,
+                )
+                .await;
+            PacketIds::resumed(handed_over)
         };
         Some(Session {
             io,
@@ -1391,6 +1406,20 @@ impl Session {
     /// Ends the session: tells the client why (MQTT 5), the router that it is gone,
     /// fires the will if the end calls for it, and meters the disconnect.
     async fn close(mut self, end: End) {
+        // First, so a reconnecting client's next connection, which may already wait for
+        // it, gets this session's open exchanges at once (`redelivery`).
+        let open = if self.lifetime.clean_link {
+            Resume::default()
+        } else {
+            std::mem::take(&mut self.ids).into_resume()
+        };
+        let (redeliveries, client_id, session) =
+            (&self.ctx.redeliveries, &*self.client_id, self.session);
+        self.ctx
+            .sessions
+            .close_with(client_id, session, |superseded| {
+                redeliveries.save(client_id, session, open, superseded)
+            });
         if self.version == Version::V5 {
             if let Some(reason_code) = end.v5_disconnect() {
                 self.io
@@ -1422,7 +1451,6 @@ impl Session {
             }
             self.ctx.fb.publish(self.fb.take_outbox());
         }
-        self.ctx.sessions.close(&self.client_id, self.session);
         // A clean session's subscriptions end with it; a persistent session's stay (the
         // router keeps queueing for it), and so does the bridge's import of them.
         if self.lifetime.clean_link {
@@ -1432,14 +1460,6 @@ impl Session {
                 }
             }
         }
-        if self.lifetime.clean_link {
-            self.ctx.redeliveries.forget(&self.client_id);
-        } else if self.ctx.sessions.is_current(&self.client_id, self.session) {
-            let open = std::mem::take(&mut self.ids).into_resume();
-            self.ctx.redeliveries.save(&self.client_id, open);
-        }
-        // Taken over: the newer connection started without this one's open exchanges, and
-        // a later one must not get them either (they would mark the wrong messages).
         self.ctx.fb.registry.disconnected(
             &self.client_id,
             self.session,
@@ -1472,6 +1492,8 @@ struct Accepted {
     username: Option<String>,
     will: Option<Will>,
     session: u64,
+    /// The client id's previous connection had not closed yet when this one started.
+    predecessor_running: bool,
     lifetime: SessionLifetime,
     link_tx: LinkTx,
     link_rx: LinkRx,

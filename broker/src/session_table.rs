@@ -21,13 +21,15 @@ pub struct SessionTable {
 }
 
 impl SessionTable {
-    /// Registers a new connection for `client_id`; returns its session number.
-    pub fn open(&self, client_id: &str) -> u64 {
+    /// Registers a new connection for `client_id`; returns its session number, and whether
+    /// the previous connection of that client id is still running (has not closed yet).
+    pub fn open(&self, client_id: &str) -> (u64, bool) {
         let mut sessions = self.sessions.lock().expect("lock poisoned");
         let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
+        let previous_running = entry.1;
         entry.0 += 1;
         entry.1 = true;
-        entry.0
+        (entry.0, previous_running)
     }
 
     /// Continues `client_id`'s numbering after `session` (from the persisted registry).
@@ -58,16 +60,24 @@ impl SessionTable {
 
     /// The connection of `session` ended; the number is kept so the next one is higher.
     pub fn close(&self, client_id: &str, session: u64) {
-        if let Some(entry) = self
-            .sessions
-            .lock()
-            .expect("lock poisoned")
-            .get_mut(client_id)
-        {
+        self.close_with(client_id, session, |_| ());
+    }
+
+    /// [`SessionTable::close`], running `f(superseded)` with the table held: `superseded`
+    /// says a newer connection of `client_id` has started. No connection of the client id
+    /// starts while `f` runs, so what `f` hands over is either there before the newer
+    /// connection's [`SessionTable::open`] (which then reports no running predecessor), or
+    /// handed over knowing it is awaited (`redelivery`).
+    pub fn close_with<R>(&self, client_id: &str, session: u64, f: impl FnOnce(bool) -> R) -> R {
+        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let entry = sessions.get_mut(client_id);
+        let superseded = entry.as_ref().is_some_and(|(latest, _)| *latest != session);
+        if let Some(entry) = entry {
             if entry.0 == session {
                 entry.1 = false;
             }
         }
+        f(superseded)
     }
 }
 
@@ -78,10 +88,12 @@ mod tests {
     #[test]
     fn a_newer_session_makes_the_older_one_stale() {
         let t = SessionTable::default();
-        let a = t.open("plc");
+        let (a, running) = t.open("plc");
+        assert!(!running);
         assert!(t.is_current("plc", a));
-        let b = t.open("plc");
+        let (b, running) = t.open("plc");
         assert!(b > a);
+        assert!(running, "a has not closed");
         assert!(!t.is_current("plc", a));
         t.close("plc", a);
         assert!(t.is_current("plc", b));
@@ -89,6 +101,10 @@ mod tests {
         t.close("plc", b);
         assert_eq!(t.with_idle("plc", b, || 7), Some(7));
         assert_eq!(t.with_idle("plc", a, || 7), None, "stale");
-        assert!(t.open("plc") > b);
+        assert!(
+            t.close_with("plc", a, |superseded| superseded),
+            "b is newer"
+        );
+        assert_eq!(t.open("plc"), (b + 1, false));
     }
 }
