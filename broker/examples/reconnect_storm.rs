@@ -109,10 +109,12 @@ fn main() -> anyhow::Result<()> {
     let config = broker::Config::parse(
         &format!(
             "[broker]\nmax_connections = {}\n[auth]\npassword_file = \"{}\"\n\
+             [fb]\nregistry_file = \"{}\"\n\
              [[listener]]\nname = \"storm\"\nbind = \"127.0.0.1:{port}\"\n\
              [admin]\nbind = \"127.0.0.1:{admin}\"\n",
             devices + 16,
-            passwd.display()
+            passwd.display(),
+            dir.path().join("registry.json").display()
         ),
         "<reconnect_storm>",
     )?;

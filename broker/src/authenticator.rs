@@ -5,47 +5,24 @@
 //! 2. anonymous: a CONNECT without a username is let in only where the listener allows it;
 //! 3. cache: a device that already proved this exact password against this exact
 //!    password-file entry is let in without argon2 (the cache keeps keyed MACs, not passwords);
-//! 4. argon2id (or a Mosquitto legacy hash), on the blocking pool, at most
-//!    `verify_concurrency` at once, so a reconnect storm queues instead of starving the
+//! 4. argon2id (or a Mosquitto legacy hash), queued for the [`Verifier`]'s threads
+//!    (`verify_concurrency` of them), so a reconnect storm queues instead of starving the
 //!    connections already serving traffic.
 //!
 //! An unknown user costs one dummy argon2 verification, exactly like a wrong password, so
 //! response time does not reveal which user names exist.
 
+use std::io;
 use std::net::IpAddr;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use security::{CredentialCache, LoginThrottle, PasswordFile, StoredHash, Verification};
-use tokio::sync::Semaphore;
 
 use crate::config::AuthSection;
 use crate::metrics::Metrics;
+use crate::verifier::Verifier;
 use crate::watched_file::WatchedFile;
-
-/// One login counted in `Authenticator::verifying` from before it queues for a
-/// verification slot until it is dropped (verified, or abandoned while queued).
-struct Verifying(Arc<AtomicUsize>);
-
-impl Verifying {
-    fn new(count: &Arc<AtomicUsize>) -> Verifying {
-        count.fetch_add(1, Ordering::AcqRel);
-        Verifying(Arc::clone(count))
-    }
-
-    /// Whether no login queues for a verification slot (at most `slots` are counted: this
-    /// one and others verifying).
-    fn none_queued(&self, slots: usize) -> bool {
-        self.0.load(Ordering::Acquire) <= slots
-    }
-}
-
-impl Drop for Verifying {
-    fn drop(&mut self) {
-        self.0.fetch_sub(1, Ordering::AcqRel);
-    }
-}
 
 /// The result of a login attempt.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -63,10 +40,7 @@ pub struct Authenticator {
     passwords: Option<Arc<WatchedFile<PasswordFile>>>,
     cache: CredentialCache,
     throttle: LoginThrottle,
-    verify_slots: Semaphore,
-    /// Logins queued for or in an argon2 verification.
-    verifying: Arc<AtomicUsize>,
-    verify_concurrency: usize,
+    verifier: Verifier,
     rehash_legacy: bool,
     /// Serialises rewrites of the password file by the broker itself.
     rewrite: Mutex<()>,
@@ -78,24 +52,22 @@ impl Authenticator {
         auth: &AuthSection,
         passwords: Option<Arc<WatchedFile<PasswordFile>>>,
         metrics: Arc<Metrics>,
-    ) -> Authenticator {
+    ) -> io::Result<Authenticator> {
         let throttle = security::ThrottleConfig {
             free_failures: auth.throttle.free_failures,
             base_delay: Duration::from_millis(auth.throttle.base_delay_ms),
             max_delay: Duration::from_millis(auth.throttle.max_delay_ms),
             ..security::ThrottleConfig::default()
         };
-        Authenticator {
+        Ok(Authenticator {
             passwords,
             cache: CredentialCache::new(auth.cache_capacity),
             throttle: LoginThrottle::new(throttle),
-            verify_slots: Semaphore::new(auth.verify_concurrency),
-            verifying: Arc::new(AtomicUsize::new(0)),
-            verify_concurrency: auth.verify_concurrency,
+            verifier: Verifier::start(auth.verify_concurrency)?,
             rehash_legacy: auth.rehash_legacy,
             rewrite: Mutex::new(()),
             metrics,
-        }
+        })
     }
 
     /// Checks a CONNECT's credentials. `login` is (username, password) when the packet had a
@@ -141,24 +113,11 @@ impl Authenticator {
         }
 
         let started = Instant::now();
-        let verifying = Verifying::new(&self.verifying);
-        let slots = self.verify_concurrency;
-        let verdict = {
-            let _slot = self
-                .verify_slots
-                .acquire()
-                .await
-                .expect("the semaphore is never closed");
-            let this = Arc::clone(self);
-            let file = Arc::clone(&file);
-            tokio::task::spawn_blocking(move || {
+        let this = Arc::clone(self);
+        let verdict = self
+            .verifier
+            .run(move || {
                 let verdict = file.verify(&user, password.as_bytes());
-                // At the end of a storm (nobody queued behind the verifications running)
-                // the argon2 memory kept for the next verification (8 MiB each) is freed.
-                if verifying.none_queued(slots) {
-                    security::hash::release_verify_buffers();
-                }
-                drop(verifying);
                 if let Verification::Accepted { legacy } = verdict {
                     if let Some(stored) = file.get(&user) {
                         this.cache.insert(&user, password.as_bytes(), stored);
@@ -170,8 +129,7 @@ impl Authenticator {
                 verdict
             })
             .await
-            .unwrap_or(Verification::Rejected)
-        };
+            .unwrap_or(Verification::Rejected);
         self.metrics
             .auth_verify_seconds
             .observe(started.elapsed().as_secs_f64());
@@ -231,22 +189,5 @@ impl Authenticator {
     /// Drops every cached verification (used when the password file is reloaded).
     pub fn forget_cached(&self) {
         self.cache.clear();
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn logins_count_as_queued_until_dropped_however_they_end() {
-        let count = Arc::new(AtomicUsize::new(0));
-        let (a, b) = (Verifying::new(&count), Verifying::new(&count));
-        let queued = Verifying::new(&count);
-        assert!(!a.none_queued(2), "three logins, two slots: one queues");
-        drop(queued); // gave up while queued (the client went away)
-        assert!(a.none_queued(2));
-        drop((a, b));
-        assert_eq!(count.load(Ordering::Acquire), 0);
     }
 }

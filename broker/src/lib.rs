@@ -19,7 +19,8 @@
 //!   [`ack_order`], [`origin`], [`packet_ids`] and [`redelivery`] (delivery rules the
 //!   router leaves out),
 //!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
-//! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id.
+//! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id, the
+//!   last on the [`verifier`]'s threads.
 //! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
 //!   MQTT 5 will delay), never after a clean DISCONNECT.
 //! - [`fb_topics`] and [`registry`]: typed FB topics checked against each device's
@@ -61,6 +62,7 @@ pub mod server;
 pub mod session_lifetime;
 pub mod session_table;
 pub mod tls;
+pub mod verifier;
 pub mod watched_file;
 pub mod wills;
 

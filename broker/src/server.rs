@@ -47,6 +47,8 @@ pub enum StartError {
     },
     #[error("router: {0}")]
     Router(String),
+    #[error("cannot start the password verification threads: {0}")]
+    Verifier(std::io::Error),
     #[error(transparent)]
     Bridge(#[from] crate::bridge::BridgeError),
 }
@@ -75,11 +77,10 @@ impl Broker {
             acl,
             mut tls,
         } = Files::load(&config)?;
-        let authenticator = Arc::new(Authenticator::new(
-            &config.auth,
-            passwords.clone(),
-            Arc::clone(&metrics),
-        ));
+        let authenticator = Arc::new(
+            Authenticator::new(&config.auth, passwords.clone(), Arc::clone(&metrics))
+                .map_err(StartError::Verifier)?,
+        );
 
         let router = RouterHandle::spawn(&config.broker, Arc::clone(&metrics));
         let internal = router

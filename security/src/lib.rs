@@ -50,9 +50,9 @@
 //! ## Defaults and why
 //!
 //! * **argon2id, 8 MiB, 1 iteration, 1 lane** ([`Argon2Params`]): about
-//!   3.4 ms per check in release on a 2-core machine, so after a broker
-//!   restart 1,045 devices reconnecting at once are all verified in about
-//!   2 s. Device secrets should be random high-entropy strings, for which
+//!   2.5 ms of CPU per check in release on a 2-core machine, so after a
+//!   broker restart 1,045 devices reconnecting at once are all verified in
+//!   about 1.5 s (the broker's `reconnect_storm` example). Device secrets should be random high-entropy strings, for which
 //!   this is ample; operators with human passwords should raise the cost
 //!   (`fbbus passwd … --memory-kib/--iterations`).
 //! * **Unknown users cost a full argon2 check** ([`hash::dummy_verify`]), so
