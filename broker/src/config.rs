@@ -107,6 +107,10 @@ pub struct BrokerSection {
     pub router_segment_count: usize,
     /// Messages queued towards one connection before the router pauses delivery to it.
     pub router_max_outgoing_packets: u64,
+    /// Longest time the publishers of a filter are held back for a subscriber that would
+    /// otherwise lose messages it has not read (the filter's commit log is full); 0: never
+    /// held, a lagging subscriber skips.
+    pub slow_subscriber_hold_ms: u64,
 }
 
 impl Default for BrokerSection {
@@ -120,6 +124,7 @@ impl Default for BrokerSection {
             router_segment_bytes: 4 * 1024 * 1024,
             router_segment_count: 4,
             router_max_outgoing_packets: 1_000,
+            slow_subscriber_hold_ms: 1_000,
         }
     }
 }
@@ -364,6 +369,14 @@ impl Config {
                 file,
                 "broker.router_max_outgoing_packets",
                 "must be at least 1",
+            ));
+        }
+        if b.slow_subscriber_hold_ms > 60_000 {
+            return Err(invalid(
+                file,
+                "broker.slow_subscriber_hold_ms",
+                "must be at most 60000: a stalled subscriber would stop its filter's publishers \
+                 that long",
             ));
         }
         if self.auth.verify_concurrency == 0 {

@@ -87,6 +87,8 @@ pub struct Metrics {
     pub wills_published: IntCounter,
     pub messages_dropped: IntCounterVec,
     pub messages_skipped: IntCounter,
+    pub publisher_holds: IntCounterVec,
+    pub publisher_hold_ms: IntCounter,
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
     pub reloads: IntCounterVec,
@@ -257,6 +259,17 @@ impl Metrics {
                 "Messages a lagging subscriber never got: the router's commit log for its \
                  filter had dropped them before it read them (router_segment_count x \
                  router_segment_bytes per filter)",
+            ),
+            publisher_holds: counter_vec(
+                "fbbus_publisher_holds_total",
+                "Times the publishers of a filter were held back because a subscriber would \
+                 otherwise have lost messages it had not read, by outcome (caught_up: it \
+                 read them; gave_up: held for slow_subscriber_hold_ms, it skips)",
+                &["outcome"],
+            ),
+            publisher_hold_ms: counter(
+                "fbbus_publisher_hold_milliseconds_total",
+                "Time the publishers of filters were held back for lagging subscribers",
             ),
             malformed_packets: counter(
                 "fbbus_malformed_packets_total",

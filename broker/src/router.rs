@@ -6,16 +6,24 @@
 //! captured in a closure here and the rest of the broker only sees [`RouterHandle::link`].
 //!
 //! fbbus runs a vendored rumqttd (`vendor/rumqttd`, changes in its `FBBUS-CHANGES.md`)
-//! that reports two things back through [`RouterHooks`]:
-//! - **skipped messages**: a subscriber that lags by more than a filter's commit log holds
-//!   (`router_segment_count` x `router_segment_bytes`) reads on from the oldest message
-//!   still there, and what retention dropped unread is lost. MQTT allows that for QoS 0,
-//!   but never silently here: `fbbus_messages_skipped_total` counts every such message
-//!   and one warning is logged per episode (until the subscriber catches up again), at
-//!   most one per client per [`SKIP_WARNING_INTERVAL`]: a device that keeps falling behind
-//!   catches up briefly between bursts, and must not flood the log.
-//!   Publishers are not slowed down for a slow subscriber: one stalled device must not
-//!   stop a line.
+//! that holds publishers back for lagging subscribers and reports three things back
+//! through [`RouterHooks`]:
+//! - **held publishers**: when a filter's commit log (`router_segment_count` x
+//!   `router_segment_bytes`) is full and its next message would drop messages a subscriber
+//!   has not read, the router stops taking the publishers' packets until the subscriber
+//!   has read them, so TCP slows the publishers down instead of the subscriber losing
+//!   messages (a burst is delivered whole to a subscriber that reads, only slower). At most
+//!   for `slow_subscriber_hold_ms`, though: one stalled device must not stop a line. A
+//!   subscriber still behind then is slow, skips (below) and holds nobody back until it
+//!   has caught up. Counted in `fbbus_publisher_holds_total{outcome}` and
+//!   `fbbus_publisher_hold_milliseconds_total`; a hold that gave up is warned about, at
+//!   most once per filter per [`SKIP_WARNING_INTERVAL`].
+//! - **skipped messages**: what retention dropped before a slow subscriber read it is
+//!   lost. MQTT allows that for QoS 0, but never silently here:
+//!   `fbbus_messages_skipped_total` counts every such message and one warning is logged
+//!   per episode (until the subscriber catches up again), at most one per client per
+//!   [`SKIP_WARNING_INTERVAL`]: a device that keeps falling behind catches up briefly
+//!   between bursts, and must not flood the log.
 //! - **released**: the router has freed the commit-log data every reader has read and the
 //!   empty per-connection queues, after [`IDLE_AFTER`] without any event, and every
 //!   [`RELEASE_EVERY`] while traffic never pauses that long (a line with steady telemetry,
@@ -28,7 +36,7 @@ use std::time::{Duration, Instant};
 
 use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
-use rumqttd::{Notification, Router, RouterConfig, RouterHooks, Skipped};
+use rumqttd::{Held, Notification, Router, RouterConfig, RouterHooks, Skipped};
 
 use crate::config::BrokerSection;
 use crate::metrics::Metrics;
@@ -69,7 +77,31 @@ impl RouterHandle {
             shared_subscriptions_strategy: Default::default(),
         };
         let mut warned = SkipWarnings::default();
+        let mut warned_holds = SkipWarnings::default();
+        let held_metrics = metrics.clone();
         let hooks = RouterHooks {
+            hold_limit: Duration::from_millis(broker.slow_subscriber_hold_ms),
+            held: Some(Box::new(move |held: &Held<'_>| {
+                let outcome = if held.gave_up { "gave_up" } else { "caught_up" };
+                held_metrics
+                    .publisher_holds
+                    .with_label_values(&[outcome])
+                    .inc();
+                held_metrics
+                    .publisher_hold_ms
+                    .inc_by(held.waited.as_millis() as u64);
+                if held.gave_up && warned_holds.may_warn(held.filter) {
+                    tracing::warn!(
+                        filter = held.filter,
+                        publishers = held.publishers,
+                        waited_ms = held.waited.as_millis() as u64,
+                        "a subscriber of this filter did not catch up while its publishers \
+                         were held (slow_subscriber_hold_ms); it now skips what it cannot \
+                         keep up with (fbbus_messages_skipped_total; logged at most once a \
+                         minute per filter)"
+                    );
+                }
+            })),
             skipped: Some(Box::new(move |skipped: &Skipped<'_>| {
                 metrics.messages_skipped.inc_by(skipped.count);
                 if skipped.first_in_episode && warned.may_warn(skipped.client_id) {
@@ -124,14 +156,14 @@ impl RouterHandle {
     }
 }
 
-/// When each client was last warned about skipped messages (router thread only).
+/// When each client (or filter) was last warned about (router thread only).
 #[derive(Default)]
 struct SkipWarnings {
     last: HashMap<String, Instant>,
 }
 
 impl SkipWarnings {
-    /// Whether `client_id` may be warned about now; records it if so.
+    /// Whether `client_id` (or a filter) may be warned about now; records it if so.
     fn may_warn(&mut self, client_id: &str) -> bool {
         let now = Instant::now();
         if self

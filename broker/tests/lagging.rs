@@ -1,9 +1,10 @@
-//! A subscriber that lags behind its filter's commit log (issue 3): what retention drops
-//! before it reads it is lost for QoS 0, never silently.
+//! A subscriber that lags behind its filter's commit log (issue 3). While it reads, the
+//! publishers are held back so it loses nothing; once it has not caught up for
+//! `slow_subscriber_hold_ms`, it skips what retention drops (QoS 0), never silently.
 
 mod common;
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use common::raw::{self, Connect, RawClient};
 use common::{Broker, Options};
@@ -11,21 +12,105 @@ use common::{Broker, Options};
 const MESSAGES: usize = 20_000;
 const PAYLOAD: usize = 1_000;
 
-/// The subscriber reads nothing while 20 MB are published, far more than the socket
-/// buffers and a commit log of one 4 KiB segment hold, then drains. Every message it did
-/// not get is counted in `fbbus_messages_skipped_total`, and it is warned about once (a
-/// commit log of four messages makes it fall behind and catch up many times meanwhile).
-#[test]
-fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
-    let broker = Broker::start_with(
+/// A broker whose filters keep two 4 KiB segments (eight 1,000-byte messages).
+fn small_log_broker(hold_ms: u64) -> Broker {
+    Broker::start_with(
         Options {
-            extra:
-                "max_packet_bytes = 4096\nrouter_segment_bytes = 4096\nrouter_segment_count = 1\n"
-                    .into(),
+            extra: format!(
+                "max_packet_bytes = 4096\nrouter_segment_bytes = 4096\nrouter_segment_count = 2\n\
+                 slow_subscriber_hold_ms = {hold_ms}\n"
+            ),
             ..Options::default()
         },
         |_| {},
+    )
+}
+
+/// A subscriber that reads 20 MB more slowly than a publisher sends them (a pause every
+/// 50 messages), through a commit log of eight messages; what it received and what the
+/// broker counted as skipped.
+fn slow_reader_run(broker: &Broker) -> (usize, f64) {
+    let mut subscriber = RawClient::connect(broker.port());
+    let connect = Connect {
+        client_id: "slow-reader",
+        ..Connect::default()
+    };
+    assert_eq!(subscriber.handshake(&connect), 0);
+    subscriber.send(&raw::subscribe(4, 1, &["lag/slow"]));
+    let (suback, _) = subscriber.read_packet().expect("SUBACK");
+    assert_eq!(suback, 0x90);
+
+    let port = broker.port();
+    let publisher = std::thread::spawn(move || {
+        let mut publisher = RawClient::connect(port);
+        let connect = Connect {
+            client_id: "burst",
+            ..Connect::default()
+        };
+        assert_eq!(publisher.handshake(&connect), 0);
+        let burst: Vec<u8> = raw::publish_qos0("lag/slow", &[7u8; PAYLOAD]).repeat(1_000);
+        for _ in 0..MESSAGES / 1_000 {
+            publisher.send(&burst);
+        }
+        publisher
+    });
+
+    subscriber
+        .stream
+        .set_read_timeout(Some(Duration::from_secs(3)))
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let mut received = 0;
+    while received < MESSAGES && Instant::now() < deadline {
+        let Some((byte1, _)) = subscriber.read_packet() else {
+            break;
+        };
+        assert_eq!(byte1 & 0xf0, 0x30, "only PUBLISH expected");
+        received += 1;
+        if received % 50 == 0 {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+    let _publisher = publisher.join().expect("publisher thread");
+    (received, broker.metric("fbbus_messages_skipped_total"))
+}
+
+/// The subscriber reads all the time, only slower than the burst comes in: the publisher is
+/// held back whenever the next message would drop one the subscriber has not read, and every
+/// message arrives. Without holding (`slow_subscriber_hold_ms = 0`), the same run loses
+/// messages: the control that shows the test can fail.
+#[test]
+fn a_subscriber_that_reads_slower_than_a_burst_gets_every_message() {
+    let broker = small_log_broker(1_000);
+    let (received, skipped) = slow_reader_run(&broker);
+    assert_eq!(received, MESSAGES, "{}", broker.log_text());
+    assert_eq!(skipped, 0.0);
+    let held = broker.metric("fbbus_publisher_holds_total{outcome=\"caught_up\"}");
+    assert!(held > 0.0, "the publisher was held: {}", broker.metrics());
+    assert_eq!(
+        broker.metric("fbbus_publisher_holds_total{outcome=\"gave_up\"}"),
+        0.0
     );
+    drop(broker);
+
+    let control = small_log_broker(0);
+    let (received, skipped) = slow_reader_run(&control);
+    assert!(received < MESSAGES, "without holding, messages are skipped");
+    assert_eq!(skipped, (MESSAGES - received) as f64);
+    assert_eq!(
+        control.metric("fbbus_publisher_holds_total{outcome=\"caught_up\"}"),
+        0.0
+    );
+}
+
+/// The subscriber reads nothing while 20 MB are published, far more than the socket
+/// buffers and a commit log of eight messages hold, then drains. The publisher is held
+/// for `slow_subscriber_hold_ms`, then goes on: the subscriber is slow, and every message
+/// it did not get is counted in `fbbus_messages_skipped_total`. Both are warned about
+/// once.
+#[test]
+fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
+    let broker = small_log_broker(300);
     let mut subscriber = RawClient::connect(broker.port());
     let connect = Connect {
         client_id: "laggard",
@@ -44,11 +129,17 @@ fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
     assert_eq!(publisher.handshake(&connect), 0);
     let message = raw::publish_qos0("lag/t", &[7u8; PAYLOAD]);
     let burst: Vec<u8> = message.repeat(1_000);
+    let started = Instant::now();
     for _ in 0..MESSAGES / 1_000 {
         publisher.send(&burst);
     }
     let routed = broker.wait_metric("fbbus_messages_received_total", MESSAGES as f64);
     assert_eq!(routed, MESSAGES as f64);
+    let gave_up = broker.wait_metric("fbbus_publisher_holds_total{outcome=\"gave_up\"}", 1.0);
+    assert!(gave_up >= 1.0, "{}", broker.metrics());
+    // Held at least once for the whole 300 ms, and not forever.
+    assert!(broker.metric("fbbus_publisher_hold_milliseconds_total") >= 300.0);
+    assert!(started.elapsed() < Duration::from_secs(30));
 
     // Drain: everything still buffered or in the log, until the broker has nothing more.
     subscriber
@@ -79,4 +170,9 @@ fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
         warnings, 1,
         "at most one warning a minute per client:\n{log}"
     );
+    let hold_warnings = log
+        .lines()
+        .filter(|l| l.contains("WARN") && l.contains("did not catch up"))
+        .count();
+    assert_eq!(hold_warnings, 1, "at most one a minute per filter:\n{log}");
 }

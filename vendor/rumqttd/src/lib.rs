@@ -27,7 +27,8 @@ pub use link::alerts;
 pub use link::local;
 pub use link::meters;
 pub use router::{
-    Alert, Forward, IncomingMeter, Meter, Notification, OutgoingMeter, Router, RouterHooks, Skipped,
+    Alert, Forward, Held, IncomingMeter, Meter, Notification, OutgoingMeter, Router, RouterHooks,
+    Skipped,
 };
 use segments::Storage;
 pub use server::{Broker, LinkType, Server};

@@ -50,6 +50,14 @@ impl Incoming {
     pub(crate) fn take(&mut self) -> VecDeque<Packet> {
         std::mem::take(&mut *self.buffer.lock())
     }
+
+    /// fbbus: gives back packets taken but not handled (a held publisher's, see
+    /// `router::holds`), in front of what the connection sent since.
+    pub(crate) fn put_back(&self, mut taken: VecDeque<Packet>) {
+        let mut buffer = self.buffer.lock();
+        taken.append(&mut buffer);
+        *buffer = taken;
+    }
 }
 
 #[derive(Debug)]

@@ -1,4 +1,5 @@
 use super::Ack;
+use bytes::Bytes;
 use slab::Slab;
 use tracing::{info, trace};
 
@@ -143,6 +144,22 @@ impl DataLog {
                 Some(v)
             }
         }
+    }
+
+    /// fbbus: the filters `topic` is appended to whose next append drops messages
+    /// (`CommitLog::drop_boundary`), with that boundary. Empty, and no allocation, in the
+    /// common case; the filters are not copied (`matches` copies them).
+    pub fn drop_boundaries(&mut self, topic: &str) -> Vec<(FilterIdx, u64)> {
+        if !self.publish_filters.contains_key(topic) {
+            self.matches(topic);
+        }
+        let Some(filters) = self.publish_filters.get(topic) else {
+            return Vec::new();
+        };
+        filters
+            .iter()
+            .filter_map(|&idx| Some((idx, self.native.get(idx)?.log.drop_boundary()?)))
+            .collect()
     }
 
     pub fn next_native_offset(&mut self, filter: &str) -> (FilterIdx, Offset) {
@@ -349,6 +366,11 @@ where
         }
     }
 
+    /// fbbus: the filter this log is for.
+    pub fn filter(&self) -> &str {
+        &self.filter
+    }
+
     /// Writes to all the filters that are mapped to this publish topic
     /// and wakes up consumers that are matching this topic (if they exist)
     pub fn append(
@@ -412,6 +434,11 @@ impl AckLog {
     pub fn pubrel(&mut self, ack: PubRel) {
         let ack = Ack::PubRel(ack);
         self.committed.push_back(ack);
+    }
+
+    /// fbbus: the topic of the QoS 2 publish the next PUBREL releases (`pubcomp`).
+    pub fn next_recorded_topic(&self) -> Option<&Bytes> {
+        self.recorded.front().map(|(publish, _)| &publish.topic)
     }
 
     pub fn pubcomp(&mut self, ack: PubComp) -> Option<(Publish, Option<PublishProperties>)> {

@@ -18,6 +18,7 @@ use crate::{
 mod alertlog;
 mod connection;
 mod graveyard;
+mod holds;
 pub mod iobufs;
 mod logs;
 mod routing;
@@ -44,6 +45,12 @@ pub struct RouterHooks {
     pub released: Option<std::sync::Arc<dyn Fn() + Send + Sync>>,
     pub idle_after: std::time::Duration,
     pub release_every: std::time::Duration,
+    /// Longest time a publisher is held back for a reader that would otherwise lose
+    /// messages it has not read (`holds`). Zero: never held (upstream behaviour: the reader
+    /// skips what retention drops).
+    pub hold_limit: std::time::Duration,
+    /// Called when publishers held for a filter are let go.
+    pub held: Option<Box<dyn FnMut(&Held<'_>) + Send>>,
 }
 
 impl Default for RouterHooks {
@@ -53,8 +60,22 @@ impl Default for RouterHooks {
             released: None,
             idle_after: std::time::Duration::from_millis(500),
             release_every: std::time::Duration::from_secs(10),
+            hold_limit: std::time::Duration::ZERO,
+            held: None,
         }
     }
+}
+
+/// fbbus: publishers were held back on a filter because one of its readers was about to
+/// lose messages it had not read (`holds`), and are now let go.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Held<'a> {
+    pub filter: &'a str,
+    /// Connections that were held (each once, however many publishes it had queued).
+    pub publishers: usize,
+    pub waited: std::time::Duration,
+    /// The readers did not catch up within `hold_limit`: the ones still behind now skip.
+    pub gave_up: bool,
 }
 
 /// fbbus: messages one subscriber did not get because the commit log had dropped them.
@@ -241,6 +262,10 @@ pub struct DataRequest {
     /// fbbus: the last read skipped messages and the reader has not caught up since.
     #[serde(default)]
     pub(crate) skipping: bool,
+    /// fbbus: publishers were held for this reader for `hold_limit` and it was still
+    /// behind: until it catches up it no longer holds them back (`holds`).
+    #[serde(default)]
+    pub(crate) slow: bool,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

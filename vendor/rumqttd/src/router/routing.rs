@@ -19,13 +19,15 @@ use tracing::{debug, error, info, trace, warn};
 
 use super::alertlog::{Alert, AlertLog};
 use super::graveyard::Graveyard;
+use super::holds::Holds;
 use super::iobufs::{Incoming, Outgoing};
 use super::logs::{AckLog, DataLog};
 use super::scheduler::{ScheduleReason, Scheduler};
 use super::shared_subs::SharedGroup;
 use super::{
-    packetid, Connection, DataRequest, Event, FilterIdx, Meter, Notification, Print, RouterHooks,
-    RouterMeter, ShadowRequest, Skipped, MAX_CHANNEL_CAPACITY, MAX_SCHEDULE_ITERATIONS,
+    packetid, Connection, DataRequest, Event, FilterIdx, Held, Meter, Notification, Print,
+    RouterHooks, RouterMeter, ShadowRequest, Skipped, MAX_CHANNEL_CAPACITY,
+    MAX_SCHEDULE_ITERATIONS,
 };
 
 #[derive(Error, Debug)]
@@ -53,6 +55,9 @@ pub enum RouterError {
 
 // TODO: set this to some appropriate value
 const TOPIC_ALIAS_MAX: u16 = 4096;
+
+/// fbbus: how long the router waits for an event while publishers are held (`holds`).
+const HELD_POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
 pub struct Router {
     id: RouterId,
@@ -105,6 +110,8 @@ pub struct Router {
     dirty: bool,
     /// fbbus: when the router last released memory.
     last_release: std::time::Instant,
+    /// fbbus: publishers held back for readers that would lose messages (`holds`).
+    holds: Holds,
 }
 
 impl Router {
@@ -148,11 +155,13 @@ impl Router {
             hooks: RouterHooks::default(),
             dirty: false,
             last_release: std::time::Instant::now(),
+            holds: Holds::new(std::time::Duration::ZERO),
         }
     }
 
     /// fbbus: sets the callbacks the router reports to (see [`RouterHooks`]).
     pub fn with_hooks(mut self, hooks: RouterHooks) -> Router {
+        self.holds = Holds::new(hooks.hold_limit);
         self.hooks = hooks;
         self
     }
@@ -204,12 +213,21 @@ impl Router {
     }
 
     fn run_inner(&mut self) -> Result<(), RouterError> {
+        // fbbus: publishers held for a lagging reader go on once it has read enough.
+        self.let_held_go();
         // Block on incoming events if there are no ready connections for consumption
         if self.consume().is_none() {
             // trace!("{}:: {:20} {:20} {:?}", self.id, "", "done-await", self.readyqueue);
-            // fbbus: once nothing happened for `idle_after`, release memory (only when the
-            // embedder asked for it with a `released` hook, and once per quiet period).
-            let (id, data) = if self.dirty && self.hooks.released.is_some() {
+            // fbbus: while publishers are held, wake up to check on them; once nothing
+            // happened for `idle_after`, release memory (only when the embedder asked for
+            // it with a `released` hook, and once per quiet period).
+            let (id, data) = if !self.holds.is_empty() {
+                match self.router_rx.recv_timeout(HELD_POLL) {
+                    Ok(event) => event,
+                    Err(RecvTimeoutError::Timeout) => return Ok(()),
+                    Err(RecvTimeoutError::Disconnected) => return Err(RouterError::Disconnected),
+                }
+            } else if self.dirty && self.hooks.released.is_some() {
                 match self.router_rx.recv_timeout(self.hooks.idle_after) {
                     Ok(event) => event,
                     Err(RecvTimeoutError::Timeout) => {
@@ -450,6 +468,7 @@ impl Router {
 
         let span = tracing::info_span!("incoming_disconnect", client_id);
         let _guard = span.enter();
+        self.holds.forget(id);
 
         // must handle last will before sending disconnect packet
         // as the disconnecting client might have subscribed to will topic.
@@ -563,6 +582,10 @@ impl Router {
                 return;
             }
         };
+        // fbbus: a held publisher's packets wait in its buffer (`let_held_go`).
+        if self.holds.is_held(id) {
+            return;
+        }
 
         let client_id = incoming.client_id.clone();
         // fbbus: trace, not error (per batch of packets, see FBBUS-CHANGES.md).
@@ -575,12 +598,20 @@ impl Router {
         let mut new_data = false;
         let mut disconnect = false;
         let mut disconnect_reason: Option<DisconnectReasonCode> = None;
+        // fbbus: the filter and boundary this connection is held for (`holds`).
+        let mut held = None;
 
         // info!("{:15.15}[I] {:20} count = {}", client_id, "packets", packets.len());
 
-        for packet in packets.drain(0..) {
+        while let Some(packet) = packets.pop_front() {
             match packet {
                 Packet::Publish(publish, properties) => {
+                    // fbbus: before it is acknowledged or appended.
+                    if let Some(hold) = self.hold_for(&publish.topic) {
+                        packets.push_front(Packet::Publish(publish, properties));
+                        held = Some(hold);
+                        break;
+                    }
                     // fbbus: trace, not error: an error-level span is always enabled, so
                     // every publish formatted its topic with `Debug for Bytes` (~2-3 % of
                     // the router's CPU, measured).
@@ -830,6 +861,18 @@ impl Router {
                     );
                     let _guard = span.enter();
 
+                    // fbbus: the QoS 2 publish this PUBREL releases is appended now.
+                    let topic = self
+                        .ackslog
+                        .get(id)
+                        .and_then(|ackslog| ackslog.next_recorded_topic())
+                        .cloned();
+                    if let Some(hold) = topic.and_then(|topic| self.hold_for(&topic)) {
+                        packets.push_front(Packet::PubRel(pubrel, None));
+                        held = Some(hold);
+                        break;
+                    }
+
                     let ackslog = self.ackslog.get_mut(id).unwrap();
                     let pubcomp = PubComp {
                         pkid: pubrel.pkid,
@@ -911,6 +954,13 @@ impl Router {
                     warn!(packet=?incoming, "Unexpected packet received, ignoring the packet." );
                 }
             }
+        }
+
+        if let Some((filter_idx, boundary)) = held {
+            if let Some(incoming) = self.ibufs.get(id) {
+                incoming.put_back(packets);
+            }
+            self.holds.hold(id, filter_idx, boundary);
         }
 
         // Prepare AcksRequest in tracker if router is operating in a
@@ -1008,6 +1058,7 @@ impl Router {
                 retained_again: 0,
                 group,
                 skipping: false,
+                slow: false,
             };
 
             self.scheduler.track(id, request);
@@ -1186,6 +1237,103 @@ impl Router {
         Some(())
     }
 
+    /// fbbus: the filter and boundary to hold a publish on `topic` for: appending it now
+    /// would drop messages a live reader has not read yet (`holds`).
+    fn hold_for(&mut self, topic: &[u8]) -> Option<(FilterIdx, u64)> {
+        if !self.holds.enabled() {
+            return None;
+        }
+        let topic = std::str::from_utf8(topic).ok()?;
+        self.datalog
+            .drop_boundaries(topic)
+            .into_iter()
+            .find(|&(filter_idx, boundary)| {
+                self.holds.holds(filter_idx, boundary)
+                    || self
+                        .lowest_live_cursor(filter_idx)
+                        .is_some_and(|offset| offset < boundary)
+            })
+    }
+
+    /// fbbus: the lowest offset a live reader of the filter reads next (`holds`): the
+    /// subscriptions of connected clients that are not marked slow, wherever their request
+    /// is (scheduled, just notified, parked), shared ones at their group's cursor.
+    fn lowest_live_cursor(&self, filter_idx: FilterIdx) -> Option<u64> {
+        let groups = &self.shared_subscriptions;
+        self.scheduler
+            .trackers
+            .iter()
+            .flat_map(|(_, tracker)| tracker.data_requests.iter())
+            .chain(self.notifications.iter().map(|(_, request)| request))
+            .chain(
+                self.datalog
+                    .native
+                    .get(filter_idx)
+                    .into_iter()
+                    .flat_map(|data| data.waiters.waiters().iter().map(|(_, r)| r)),
+            )
+            .filter(|request| request.filter_idx == filter_idx && !request.slow)
+            .map(|request| reads_from(request, groups))
+            .min()
+    }
+
+    /// fbbus: publishers were held for `hold_limit` and readers of the filter are still
+    /// below `boundary`: they are slow now, skip what retention drops, and hold nobody back
+    /// until they catch up (`holds`).
+    fn mark_slow(&mut self, filter_idx: FilterIdx, boundary: u64) {
+        let groups = &self.shared_subscriptions;
+        let tracked = self
+            .scheduler
+            .trackers
+            .iter_mut()
+            .flat_map(|(_, tracker)| tracker.data_requests.iter_mut());
+        let notified = self.notifications.iter_mut().map(|(_, request)| request);
+        for request in tracked.chain(notified) {
+            if request.filter_idx == filter_idx && reads_from(request, groups) < boundary {
+                request.slow = true;
+            }
+        }
+    }
+
+    /// fbbus: lets held publishers go on once the readers they were held for have read
+    /// past the boundary, or once they were held for `hold_limit` (`holds`).
+    fn let_held_go(&mut self) {
+        let Some(filters) = self.holds.due() else {
+            return;
+        };
+        for (filter_idx, hold) in filters {
+            let still_there = self
+                .datalog
+                .native
+                .get(filter_idx)
+                .is_some_and(|data| data.log.drop_boundary() == Some(hold.boundary));
+            let behind = still_there
+                && self
+                    .lowest_live_cursor(filter_idx)
+                    .is_some_and(|offset| offset < hold.boundary);
+            let gave_up = behind && self.holds.expired(&hold);
+            if behind && !gave_up {
+                continue;
+            }
+            if gave_up {
+                self.mark_slow(filter_idx, hold.boundary);
+            }
+            let released = self.holds.release(filter_idx);
+            let report = self.hooks.held.as_mut();
+            if let (Some(report), Some(data)) = (report, self.datalog.native.get(filter_idx)) {
+                report(&Held {
+                    filter: data.filter(),
+                    publishers: released.len(),
+                    waited: hold.since.elapsed(),
+                    gave_up,
+                });
+            }
+            for id in released {
+                self.handle_device_payload(id);
+            }
+        }
+    }
+
     /// fbbus: gives back the memory no reader needs any more, then calls the `released`
     /// hook.
     /// Commit-log data is kept from the lowest offset anyone may still read: subscribers'
@@ -1333,6 +1481,16 @@ impl Router {
             }
         }
     }
+}
+
+/// fbbus: the offset a request reads next: a shared subscription reads at its group's
+/// cursor.
+fn reads_from(request: &DataRequest, groups: &HashMap<String, SharedGroup>) -> u64 {
+    request
+        .group
+        .as_ref()
+        .and_then(|group| groups.get(group))
+        .map_or(request.cursor.1, |group| group.cursor.1)
 }
 
 fn append_to_commitlog(
@@ -1704,6 +1862,7 @@ fn forward_device_data(
     }
     if caughtup {
         request.skipping = false;
+        request.slow = false;
     }
 
     trace!(

@@ -166,6 +166,16 @@ where
         }
     }
 
+    /// fbbus: the offset below which messages are lost if the next append applies
+    /// retention: `Some` when the active segment is full and no further segment may be
+    /// kept, so the next append drops the oldest segment (every offset before the value).
+    /// The router holds publishers back while a reader is still below it (`router::holds`).
+    pub fn drop_boundary(&self) -> Option<u64> {
+        let full = self.active_segment().size() >= self.max_segment_size as u64;
+        (full && self.memory_segments_count() >= self.max_mem_segments)
+            .then(|| self.segments[0].next_offset())
+    }
+
     #[inline]
     pub fn last(&self) -> Option<T> {
         self.active_segment().last()
@@ -790,6 +800,20 @@ mod fbbus_tests {
         assert_eq!(log.memory_segments_count(), 1);
         assert_eq!(log.next_offset(), (3, 25));
         assert_eq!(read(&log, (3, 25), 10).1, Vec::<u8>::new());
+    }
+
+    #[test]
+    fn the_drop_boundary_is_where_the_next_append_loses_messages() {
+        // At most 2 segments. 15 entries: the active segment (8..15) is not full yet.
+        assert_eq!(log(15, 2).drop_boundary(), None);
+        // 16 entries: both segments are full, the next append drops segment 0 (0..8).
+        let mut log = log(16, 2);
+        assert_eq!(log.drop_boundary(), Some(8));
+        log.append(Bytes::from(vec![16; 128]));
+        assert_eq!(log.drop_boundary(), None);
+        assert_eq!(read(&log, (0, 0), 100).1, (8..17).collect::<Vec<u8>>());
+        // One segment only: everything in it goes.
+        assert_eq!(super::fbbus_tests::log(8, 1).drop_boundary(), Some(8));
     }
 
     #[test]
