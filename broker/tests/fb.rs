@@ -2149,37 +2149,11 @@ async fn fb_subscribers_get_canonical_json_whatever_form_was_published() {
 
 const CONTRACT_SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/fb_contract.py");
 
-/// python3 with paho-mqtt 2.x importable; skipped loudly otherwise, a failure in CI
-/// (where `.ci/run` installs them).
-fn paho_available() -> bool {
-    if !common::require("python3") {
-        return false;
-    }
-    let ok = Command::new("python3")
-        .args([
-            "-c",
-            "import sys, paho.mqtt, paho.mqtt.client; \
-             sys.exit(int(paho.mqtt.__version__.split('.')[0]) < 2)",
-        ])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if ok {
-        return true;
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!("python3 has no paho-mqtt 2.x; .ci/run should have installed it");
-    }
-    eprintln!("SKIPPED: python3 has no paho-mqtt 2.x (pip install 'paho-mqtt>=2')");
-    false
-}
-
 /// A paho-mqtt device that knows only fb-bridge/README.md declares, publishes, is refused,
 /// reads both encodings and the registry (see the script's docstring).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_device_follows_the_readme_contract() {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = Broker::start();

@@ -19,32 +19,6 @@ use common::{Broker, Options};
 const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/paho_check.py");
 const LIMIT: Duration = Duration::from_secs(30);
 
-/// python3 with paho-mqtt importable; skipped loudly otherwise, a failure in CI.
-fn paho_available() -> bool {
-    if !common::require("python3") {
-        return false;
-    }
-    let ok = Command::new("python3")
-        .args([
-            "-c",
-            "import sys, paho.mqtt, paho.mqtt.client; \
-             sys.exit(int(paho.mqtt.__version__.split('.')[0]) < 2)",
-        ])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .map(|s| s.success())
-        .unwrap_or(false);
-    if ok {
-        return true;
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!("python3 has no paho-mqtt 2.x; .ci/run should have installed it");
-    }
-    eprintln!("SKIPPED: python3 has no paho-mqtt 2.x (pip install 'paho-mqtt>=2')");
-    false
-}
-
 /// The script's command line for one scenario.
 fn script(broker: &Broker, scenario: &str, protocol: &str, extra: &[&str]) -> Command {
     let mut cmd = Command::new("python3");
@@ -115,7 +89,7 @@ topic read plant/#
 // ---------------------------------------------------------------- pubsub
 
 fn pubsub(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = anonymous_broker();
@@ -138,7 +112,7 @@ fn paho_pubsub_v5() {
 /// Delivery QoS is min(publication QoS, granted subscription QoS) [MQTT-3.8.4-8].
 /// rumqttd's router delivers at the subscription's QoS; fbbus's packet path restores it.
 fn delivery_qos(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = anonymous_broker();
@@ -157,7 +131,7 @@ fn paho_delivery_qos_v5() {
 }
 
 fn pubsub_authenticated(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = auth_broker(None);
@@ -188,7 +162,7 @@ fn paho_pubsub_authenticated_v5() {
 // ---------------------------------------------------------------- bad_password
 
 fn bad_password(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = auth_broker(None);
@@ -228,7 +202,7 @@ fn paho_bad_password_v5() {
 // ---------------------------------------------------------------- acl
 
 fn acl(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = auth_broker(Some(DEV1_ACL));
@@ -262,7 +236,7 @@ fn paho_acl_v5() {
 
 /// A refused QoS 2 publication completes its flow and leaves the connection up.
 fn acl_qos2(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = auth_broker(Some(DEV1_ACL));
@@ -294,7 +268,7 @@ fn paho_acl_qos2_v5() {
 // ---------------------------------------------------------------- will
 
 fn will(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = anonymous_broker();
@@ -325,7 +299,7 @@ fn paho_will_v5() {
 // ---------------------------------------------------------------- keepalive0
 
 fn keepalive0(protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let broker = anonymous_broker();
@@ -353,7 +327,7 @@ fn paho_keepalive0_v5() {
 /// The script connects and prints READY; then the broker gets SIGTERM. The script must see
 /// the connection end (MQTT 5: DISCONNECT 0x8B) and the broker must exit 0 within 10 s.
 fn shutdown(scenario: &str, protocol: &str) {
-    if !paho_available() {
+    if !common::require_paho() {
         return;
     }
     let mut broker = anonymous_broker();

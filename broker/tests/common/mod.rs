@@ -292,3 +292,29 @@ pub fn require(program: &str) -> bool {
     eprintln!("SKIPPED: {program} not installed (run .ci/run or install it)");
     false
 }
+
+/// python3 with paho-mqtt 2.x importable; in CI its absence is a failure (`.ci/run`
+/// installs it), elsewhere the test is skipped loudly.
+pub fn require_paho() -> bool {
+    if !require("python3") {
+        return false;
+    }
+    let ok = Command::new("python3")
+        .args([
+            "-c",
+            "import sys, paho.mqtt, paho.mqtt.client; \
+             sys.exit(int(paho.mqtt.__version__.split('.')[0]) < 2)",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if ok {
+        return true;
+    }
+    if std::env::var_os("CI").is_some() {
+        panic!("python3 has no paho-mqtt 2.x; .ci/run should have installed it");
+    }
+    eprintln!("SKIPPED: python3 has no paho-mqtt 2.x (pip install 'paho-mqtt>=2')");
+    false
+}
