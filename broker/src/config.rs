@@ -98,6 +98,9 @@ pub struct BrokerSection {
     pub max_inflight: u16,
     /// Time a new TCP connection has to send CONNECT.
     pub connect_timeout_ms: u64,
+    /// Longest keep-alive an MQTT 5 client may use; one asking for more, or for none, is
+    /// told this value as Server Keep Alive. 0: no maximum.
+    pub max_keep_alive_s: u16,
     /// Router commit-log segment size per subscribed filter.
     pub router_segment_bytes: usize,
     /// Segments kept per filter: memory per filter is at most size x count. It is also how
@@ -121,6 +124,7 @@ impl Default for BrokerSection {
             max_packet_bytes: 64 * 1024,
             max_inflight: 100,
             connect_timeout_ms: 5_000,
+            max_keep_alive_s: 65_535,
             router_segment_bytes: 4 * 1024 * 1024,
             router_segment_count: 4,
             router_max_outgoing_packets: 1_000,

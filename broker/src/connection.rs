@@ -73,6 +73,8 @@ pub struct Context {
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,
+    /// `broker.max_keep_alive_s` (see [`keep_alive`]).
+    pub max_keep_alive: u16,
     pub connect_timeout: Duration,
     /// Becomes true when the broker shuts down.
     pub shutdown: watch::Receiver<bool>,
@@ -281,6 +283,20 @@ struct Rare {
 
 const MAX_LOGGED_DENIALS: usize = 1024;
 
+/// The keep-alive a connection runs with, in seconds (0: off), and the Server Keep Alive
+/// to announce in CONNACK. An MQTT 5 client that asks for 0 (no keep-alive) or for more
+/// than `max` (`broker.max_keep_alive_s`, 0: no maximum) is told to use `max` and is held
+/// to it [MQTT-3.2.2-21], so its death on a half-open link is noticed and its will
+/// published. An MQTT 3.1.1 client cannot be told, and keeps the value it asked for.
+fn keep_alive(version: Version, asked: u16, max: u16) -> (u16, Option<u16>) {
+    let beyond_max = max > 0 && (asked == 0 || asked > max);
+    if version == Version::V5 && beyond_max {
+        (max, Some(max))
+    } else {
+        (asked, None)
+    }
+}
+
 /// Packets from one client waiting for the router before its socket is no longer read.
 const ROUTER_BACKLOG: usize = 1024;
 
@@ -460,12 +476,15 @@ impl Session {
             }
         };
 
+        let (keep_alive_s, server_keep_alive) =
+            keep_alive(version, connect.keep_alive, ctx.max_keep_alive);
         let mut connack_packet: Option<Packet> = accepted.ack.into();
         if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
             let mut p = props.take().unwrap_or_default();
             p.assigned_client_identifier = accepted.assigned;
             p.receive_max = Some(ctx.max_inflight);
             p.max_packet_size = Some(ctx.max_packet as u32);
+            p.server_keep_alive = server_keep_alive;
             *props = Some(p);
         }
         if let Some(packet) = connack_packet {
@@ -508,7 +527,7 @@ impl Session {
             client_id = accepted.client_id,
             username = accepted.username.as_deref().unwrap_or(""),
             version = ?version,
-            keep_alive = connect.keep_alive,
+            keep_alive = keep_alive_s,
             "client connected"
         );
         let ids = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
@@ -532,8 +551,8 @@ impl Session {
             username: accepted.username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
-            keep_alive: (connect.keep_alive > 0)
-                .then(|| Duration::from_secs(connect.keep_alive as u64).mul_f32(1.5)),
+            keep_alive: (keep_alive_s > 0)
+                .then(|| Duration::from_secs(keep_alive_s as u64).mul_f32(1.5)),
             client_max_packet: properties
                 .as_ref()
                 .and_then(|p| p.max_packet_size)
@@ -1512,4 +1531,23 @@ fn rand_id() -> u64 {
             .unwrap_or(0),
     );
     h.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
+        // Off, or beyond the maximum: told to use the maximum.
+        assert_eq!(keep_alive(Version::V5, 0, 300), (300, Some(300)));
+        assert_eq!(keep_alive(Version::V5, 301, 300), (300, Some(300)));
+        // Within it: their own, nothing announced.
+        assert_eq!(keep_alive(Version::V5, 60, 300), (60, None));
+        // No maximum: whatever they ask, 0 (off) included.
+        assert_eq!(keep_alive(Version::V5, 0, 0), (0, None));
+        // MQTT 3.1.1 cannot be told.
+        assert_eq!(keep_alive(Version::V311, 0, 300), (0, None));
+        assert_eq!(keep_alive(Version::V311, 900, 300), (900, None));
+    }
 }

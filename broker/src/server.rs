@@ -126,6 +126,7 @@ impl Broker {
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
+            max_keep_alive: config.broker.max_keep_alive_s,
             connect_timeout: config.connect_timeout(),
             shutdown: shutdown_rx.clone(),
             bridge: Default::default(),

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use common::clients::{p5, V4, V5, WAIT};
 use common::raw::{self, RawClient};
-use common::Broker;
+use common::{Broker, Options};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn client_topic_aliases_are_resolved_before_routing() {
@@ -804,4 +804,91 @@ async fn back_to_back_subscribes_each_get_the_retained_messages() {
         }
     }
     assert_eq!((subacks, retained), (2, 2), "(SUBACKs, retained copies)");
+}
+
+/// The Server Keep Alive property of a CONNACK body, if any (MQTT 5, 3.2.2.3).
+fn server_keep_alive(connack: &[u8]) -> Option<u16> {
+    let mut i = 2;
+    let (mut len, mut shift) = (0usize, 0);
+    loop {
+        let b = connack[i];
+        i += 1;
+        len |= ((b & 0x7f) as usize) << shift;
+        shift += 7;
+        if b & 0x80 == 0 {
+            break;
+        }
+    }
+    let end = i + len;
+    let u16_at = |at: usize| u16::from_be_bytes([connack[at], connack[at + 1]]);
+    while i < end {
+        let id = connack[i];
+        i += 1;
+        let size = match id {
+            0x13 => return Some(u16_at(i)),
+            0x24 | 0x25 | 0x28 | 0x29 | 0x2A => 1,
+            0x21 | 0x22 => 2,
+            0x11 | 0x27 => 4,
+            0x12 | 0x1A | 0x1C | 0x1F | 0x15 | 0x16 => 2 + u16_at(i) as usize,
+            0x26 => {
+                let key = 2 + u16_at(i) as usize;
+                key + 2 + u16_at(i + key) as usize
+            }
+            other => panic!("unexpected CONNACK property {other:#x}"),
+        };
+        i += size;
+    }
+    None
+}
+
+/// `max_keep_alive_s`: an MQTT 5 client that asks for no keep-alive, or a longer one, is
+/// told the maximum as Server Keep Alive and is disconnected after 1.5 x that of silence
+/// [MQTT-3.2.2-21]; one within the maximum keeps its own. An MQTT 3.1.1 client cannot be
+/// told, so its keep-alive 0 still means none.
+#[test]
+fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_keep_alive_s = 1\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let connect = |version: u8, id: &str, keep_alive: u16| {
+        let mut c = RawClient::connect(broker.port());
+        c.send(
+            &raw::Connect {
+                version,
+                client_id: id,
+                keep_alive,
+                ..Default::default()
+            }
+            .bytes(),
+        );
+        let (byte1, body) = c.read_packet().expect("CONNACK");
+        assert_eq!((byte1, body[1]), (0x20, 0), "CONNACK success");
+        (c, body)
+    };
+    let (mut silent_v5, connack) = connect(5, "ka-v5-zero", 0);
+    assert_eq!(server_keep_alive(&connack), Some(1));
+    let (_, connack) = connect(5, "ka-v5-long", 600);
+    assert_eq!(server_keep_alive(&connack), Some(1));
+    let (_, connack) = connect(5, "ka-v5-within", 1);
+    assert_eq!(server_keep_alive(&connack), None);
+    let (mut silent_v4, _) = connect(4, "ka-v4-zero", 0);
+
+    let started = std::time::Instant::now();
+    silent_v5
+        .stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    assert!(silent_v5.closed_by_broker());
+    let closed_after = started.elapsed();
+    assert!(
+        closed_after >= Duration::from_millis(1_200) && closed_after < Duration::from_secs(4),
+        "closed after {closed_after:?}"
+    );
+    // The 3.1.1 client, silent just as long, is still served.
+    silent_v4.send(&raw::PINGREQ);
+    assert_eq!(silent_v4.read_packet().expect("PINGRESP").0, 0xD0);
 }

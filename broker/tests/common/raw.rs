@@ -150,6 +150,7 @@ pub fn publish_v5(topic: &str, alias: Option<u16>, qos: u8, pkid: u16, payload: 
 }
 
 pub const DISCONNECT: [u8; 2] = [0xE0, 0x00];
+pub const PINGREQ: [u8; 2] = [0xC0, 0x00];
 
 /// SUBSCRIBE for `filters` at QoS 0 (MQTT 5 adds an empty property list).
 pub fn subscribe(version: u8, pkid: u16, filters: &[&str]) -> Vec<u8> {
