@@ -26,28 +26,31 @@ fn small_log_broker(hold_ms: u64) -> Broker {
     )
 }
 
+/// An MQTT 3.1.1 client, connected; subscribed to `topic` at QoS 0 if one is given.
+fn client(port: u16, client_id: &str, topic: Option<&str>) -> RawClient {
+    let mut client = RawClient::connect(port);
+    let connect = Connect {
+        client_id,
+        ..Connect::default()
+    };
+    assert_eq!(client.handshake(&connect), 0);
+    if let Some(topic) = topic {
+        client.send(&raw::subscribe(4, 1, &[topic]));
+        let (suback, _) = client.read_packet().expect("SUBACK");
+        assert_eq!(suback, 0x90);
+    }
+    client
+}
+
 /// A subscriber that reads 20 MB more slowly than a publisher sends them (a pause every
 /// 50 messages), through a commit log of eight messages; what it received and what the
 /// broker counted as skipped.
 fn slow_reader_run(broker: &Broker) -> (usize, f64) {
-    let mut subscriber = RawClient::connect(broker.port());
-    let connect = Connect {
-        client_id: "slow-reader",
-        ..Connect::default()
-    };
-    assert_eq!(subscriber.handshake(&connect), 0);
-    subscriber.send(&raw::subscribe(4, 1, &["lag/slow"]));
-    let (suback, _) = subscriber.read_packet().expect("SUBACK");
-    assert_eq!(suback, 0x90);
+    let mut subscriber = client(broker.port(), "slow-reader", Some("lag/slow"));
 
     let port = broker.port();
     let publisher = std::thread::spawn(move || {
-        let mut publisher = RawClient::connect(port);
-        let connect = Connect {
-            client_id: "burst",
-            ..Connect::default()
-        };
-        assert_eq!(publisher.handshake(&connect), 0);
+        let mut publisher = client(port, "burst", None);
         let burst: Vec<u8> = raw::publish_qos0("lag/slow", &[7u8; PAYLOAD]).repeat(1_000);
         for _ in 0..MESSAGES / 1_000 {
             publisher.send(&burst);
@@ -111,22 +114,8 @@ fn a_subscriber_that_reads_slower_than_a_burst_gets_every_message() {
 #[test]
 fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
     let broker = small_log_broker(300);
-    let mut subscriber = RawClient::connect(broker.port());
-    let connect = Connect {
-        client_id: "laggard",
-        ..Connect::default()
-    };
-    assert_eq!(subscriber.handshake(&connect), 0);
-    subscriber.send(&raw::subscribe(4, 1, &["lag/t"]));
-    let (suback, _) = subscriber.read_packet().expect("SUBACK");
-    assert_eq!(suback, 0x90);
-
-    let mut publisher = RawClient::connect(broker.port());
-    let connect = Connect {
-        client_id: "fast",
-        ..Connect::default()
-    };
-    assert_eq!(publisher.handshake(&connect), 0);
+    let mut subscriber = client(broker.port(), "laggard", Some("lag/t"));
+    let mut publisher = client(broker.port(), "fast", None);
     let message = raw::publish_qos0("lag/t", &[7u8; PAYLOAD]);
     let burst: Vec<u8> = message.repeat(1_000);
     let started = Instant::now();
