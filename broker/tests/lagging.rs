@@ -6,6 +6,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
+use common::clients::V4;
 use common::raw::{self, Connect, RawClient};
 use common::{Broker, Options};
 
@@ -164,4 +165,77 @@ fn messages_a_lagging_subscriber_skips_are_counted_exactly() {
         .filter(|l| l.contains("WARN") && l.contains("did not catch up"))
         .count();
     assert_eq!(hold_warnings, 1, "at most one a minute per filter:\n{log}");
+}
+
+/// QoS 1 publications take the same way: a held PUBLISH is acknowledged only once it is
+/// routed, so the publisher (rumqttc, 100 in flight) gets every PUBACK and the slow
+/// subscriber every message, each once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn held_qos1_publications_are_acknowledged_and_delivered_once() {
+    const QOS1_MESSAGES: usize = 10_000;
+    let broker = small_log_broker(1_000);
+    let mut subscriber = client(broker.port(), "slow-qos1-reader", Some("lag/qos1"));
+    let reader = std::thread::spawn(move || {
+        subscriber
+            .stream
+            .set_read_timeout(Some(Duration::from_secs(3)))
+            .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let mut seqs = Vec::with_capacity(QOS1_MESSAGES);
+        while seqs.len() < QOS1_MESSAGES && Instant::now() < deadline {
+            let Some((byte1, body)) = subscriber.read_packet() else {
+                break;
+            };
+            assert_eq!(byte1 & 0xf0, 0x30, "only PUBLISH expected");
+            let payload = &body[2 + "lag/qos1".len()..];
+            seqs.push(u32::from_be_bytes(payload[..4].try_into().unwrap()));
+            if seqs.len() % 10 == 0 {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        }
+        seqs
+    });
+
+    let mut publisher = V4::connect(broker.port(), "qos1-burst", None)
+        .await
+        .expect("publisher connects");
+    let client = publisher.client.clone();
+    let sender = tokio::spawn(async move {
+        for seq in 0..QOS1_MESSAGES as u32 {
+            let mut payload = vec![7u8; PAYLOAD];
+            payload[..4].copy_from_slice(&seq.to_be_bytes());
+            client
+                .publish("lag/qos1", rumqttc::QoS::AtLeastOnce, false, payload)
+                .await
+                .unwrap();
+        }
+    });
+    let mut acked = 0;
+    while acked < QOS1_MESSAGES {
+        let ack = publisher
+            .next(Duration::from_secs(20), |p| {
+                matches!(p, rumqttc::Packet::PubAck(_)).then_some(())
+            })
+            .await;
+        assert!(ack.is_some(), "{acked} of {QOS1_MESSAGES} PUBACKs");
+        acked += 1;
+    }
+    sender.await.unwrap();
+
+    let seqs = tokio::task::spawn_blocking(move || reader.join().unwrap())
+        .await
+        .unwrap();
+    let expected: Vec<u32> = (0..QOS1_MESSAGES as u32).collect();
+    let first_wrong = seqs
+        .iter()
+        .zip(&expected)
+        .position(|(got, want)| got != want);
+    assert!(
+        seqs == expected,
+        "{} of {QOS1_MESSAGES} delivered, in order and once each; first out of place at {first_wrong:?}",
+        seqs.len()
+    );
+    assert_eq!(broker.metric("fbbus_messages_skipped_total"), 0.0);
+    let held = broker.metric("fbbus_publisher_holds_total{outcome=\"caught_up\"}");
+    assert!(held > 0.0, "the publisher was held: {}", broker.metrics());
 }
