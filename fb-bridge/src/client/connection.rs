@@ -25,9 +25,23 @@ const DISCONNECT_LINGER: Duration = Duration::from_secs(1);
 /// How many diag messages [`Shared::recent_diagnostics`] keeps.
 const RECENT_DIAGNOSTICS: usize = 32;
 
+/// Longest time the connection waits for room in a full subscriber queue (`deliver`).
+const READER_WAIT: Duration = Duration::from_millis(500);
+
+/// How long the connection may wait for a reader with this keep-alive: at most a quarter
+/// of it, so the PINGREQs the waiting delays still reach the broker in time.
+pub(super) fn reader_wait(keep_alive: Duration) -> Duration {
+    if keep_alive.is_zero() {
+        READER_WAIT
+    } else {
+        READER_WAIT.min(keep_alive / 4)
+    }
+}
+
 /// Where messages on one subscribed topic go.
 pub(super) enum Sink {
-    /// A subscriber's (or a waiting INIT's) queue. Full queues drop, see `deliver`.
+    /// A subscriber's (or a waiting INIT's) queue. When it is full the connection waits
+    /// for room, see `deliver`.
     Queue(mpsc::Sender<Publish>),
     /// A decimal count (`fbbus/lines/<line>/online`), watched: receivers are notified
     /// of the first value and of every change (the broker repeats unchanged counts).
@@ -40,6 +54,8 @@ pub(super) struct Shared {
     pub(super) client: AsyncClient,
     /// The bound on every wait.
     pub(super) timeout: Duration,
+    /// The longest wait for a reader's room ([`reader_wait`]).
+    reader_wait: Duration,
     /// The interface as JSON, published again after every connect.
     declaration: Vec<u8>,
     diag_topic: String,
@@ -55,6 +71,9 @@ pub(super) struct Shared {
 struct State {
     acks: Acks,
     routes: HashMap<String, Vec<(u64, Sink)>>,
+    /// Queues whose reader did not make room within `reader_wait`: their messages are
+    /// dropped, without waiting, until they have room again; with the count dropped.
+    stalled: HashMap<u64, u64>,
     next_sink: u64,
     recent: VecDeque<Diagnostic>,
     session: u64,
@@ -68,6 +87,7 @@ impl Shared {
         id: String,
         client: AsyncClient,
         timeout: Duration,
+        reader_wait: Duration,
         declaration: Vec<u8>,
     ) -> Shared {
         Shared {
@@ -75,6 +95,7 @@ impl Shared {
             id,
             client,
             timeout,
+            reader_wait,
             declaration,
             state: Mutex::default(),
             status: watch::Sender::new((false, "connecting".to_owned())),
@@ -194,6 +215,7 @@ impl Shared {
     /// Removes one route; unsubscribes when it was the topic's last.
     fn remove_route(&self, topic: &str, id: u64) {
         let mut state = self.lock();
+        state.stalled.remove(&id);
         let Some(sinks) = state.routes.get_mut(topic) else {
             return;
         };
@@ -275,28 +297,84 @@ impl Shared {
             .send_replace((false, format!("reconnecting: {error}")));
     }
 
-    fn deliver(&self, publish: Publish) {
+    /// Hands a message to every sink of its topic.
+    ///
+    /// A subscriber whose queue is full holds the connection until it has room, for at
+    /// most `reader_wait`: meanwhile rumqttc does not read the socket, so TCP slows the
+    /// broker's delivery down, and the broker holds the publishers back in turn
+    /// (`slow_subscriber_hold_ms`). A subscriber that reads, only slower than a burst comes
+    /// in, thus gets every message. One that made no room within `reader_wait` is stalled:
+    /// its messages are dropped without waiting (counted, warned about once) until its
+    /// queue has room again, so one forgotten subscriber does not hold up the device's
+    /// other subscribers, its CNFs and its keep-alive for good.
+    async fn deliver(&self, publish: Publish) {
         if publish.topic == self.diag_topic {
             return self.diagnose(Diagnostic::parse(&publish.payload));
         }
-        let mut state = self.lock();
-        let Some(sinks) = state.routes.get_mut(&publish.topic) else {
-            return; // unsubscribed meanwhile
-        };
-        sinks.retain_mut(|(_, sink)| match sink {
-            // Never block the connection on a slow reader: keep-alive and every other
-            // subscriber would wait with it.
-            Sink::Queue(tx) => match tx.try_send(publish.clone()) {
-                Ok(()) => true,
-                Err(mpsc::error::TrySendError::Full(_)) => {
-                    tracing::warn!(
-                        topic = publish.topic,
-                        "subscriber queue full: message dropped"
-                    );
-                    true
+        let queues = self.route(&publish);
+        for (sink, queue, stalled) in queues {
+            let waited = match queue.try_send(publish.clone()) {
+                Ok(()) => Ok(()),
+                Err(mpsc::error::TrySendError::Closed(_)) => continue, // removed next time
+                Err(mpsc::error::TrySendError::Full(_)) if stalled => Err(()),
+                Err(mpsc::error::TrySendError::Full(publish)) => {
+                    match tokio::time::timeout(self.reader_wait, queue.send(publish)).await {
+                        Ok(Ok(())) => Ok(()),
+                        Ok(Err(_)) => continue,
+                        Err(_) => Err(()),
+                    }
                 }
-                Err(mpsc::error::TrySendError::Closed(_)) => false,
-            },
+            };
+            let mut state = self.lock();
+            match waited {
+                Ok(()) if stalled => {
+                    let dropped = state.stalled.remove(&sink).unwrap_or(0);
+                    tracing::warn!(
+                        device = self.id,
+                        topic = publish.topic,
+                        dropped,
+                        "subscriber reads again; messages dropped while it was stalled"
+                    );
+                }
+                Ok(()) => {}
+                Err(()) => {
+                    let dropped = state.stalled.entry(sink).or_insert(0);
+                    if *dropped == 0 {
+                        tracing::warn!(
+                            device = self.id,
+                            topic = publish.topic,
+                            waited_ms = self.reader_wait.as_millis() as u64,
+                            "subscriber queue full and not read: its messages are dropped \
+                             until it reads again"
+                        );
+                    }
+                    *dropped += 1;
+                }
+            }
+        }
+    }
+
+    /// The queues a message on this topic goes to (sink id, queue, stalled), after the
+    /// watched counts among its sinks have taken it and closed sinks are removed.
+    fn route(&self, publish: &Publish) -> Vec<(u64, mpsc::Sender<Publish>, bool)> {
+        let mut state = self.lock();
+        let State {
+            routes, stalled, ..
+        } = &mut *state;
+        let Some(sinks) = routes.get_mut(&publish.topic) else {
+            return Vec::new(); // unsubscribed meanwhile
+        };
+        let mut queues = Vec::new();
+        sinks.retain_mut(|(id, sink)| match sink {
+            Sink::Queue(tx) => {
+                let open = !tx.is_closed();
+                if open {
+                    queues.push((*id, tx.clone(), stalled.contains_key(id)));
+                } else {
+                    stalled.remove(id);
+                }
+                open
+            }
             Sink::Count { tx, first } => {
                 match std::str::from_utf8(&publish.payload)
                     .ok()
@@ -316,9 +394,10 @@ impl Shared {
             }
         });
         if sinks.is_empty() {
-            state.routes.remove(&publish.topic);
+            routes.remove(&publish.topic);
             let _ = self.client.try_unsubscribe(&publish.topic);
         }
+        queues
     }
 
     fn diagnose(&self, diagnostic: Diagnostic) {
@@ -433,7 +512,7 @@ pub(super) async fn run(
                     shared.connected(first);
                 }
             }
-            Event::Incoming(Incoming::Publish(publish)) => shared.deliver(publish),
+            Event::Incoming(Incoming::Publish(publish)) => shared.deliver(publish).await,
             Event::Incoming(Incoming::PubAck(ack)) => {
                 shared.lock().acks.publishes.acked(ack.pkid, ())
             }
@@ -461,5 +540,20 @@ pub(super) async fn run(
             }
             _ => {}
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_wait_for_a_reader_leaves_room_for_the_keep_alive() {
+        assert_eq!(reader_wait(Duration::ZERO), READER_WAIT);
+        assert_eq!(reader_wait(Duration::from_secs(5)), READER_WAIT);
+        assert_eq!(
+            reader_wait(Duration::from_secs(1)),
+            Duration::from_millis(250)
+        );
     }
 }

@@ -27,6 +27,15 @@
 //! had not seen acknowledged are resent, so a REQ may be delivered twice across a
 //! reconnect (its `seq` tells them apart).
 //!
+//! **A slow application loses no IND; a stalled one does not stop the device.** Each
+//! [`Subscriber`] has a queue of 1,024 INDs. When it is full, the connection waits for the
+//! application to take one, for at most 500 ms (a quarter of the keep-alive if that is
+//! shorter): meanwhile the socket is not read, TCP slows the broker down, and the broker
+//! holds the publishers back. A subscriber read more slowly than a burst arrives thus
+//! gets every IND. One not read at all for that long is stalled: its new INDs are
+//! dropped without waiting (warned about once, with the count when it reads again), so
+//! the device's other subscribers, its CNFs and its keep-alive go on.
+//!
 //! **Refusals show on the diag topic.** On MQTT 3.1.1 a PUBACK cannot say no: the broker
 //! acknowledges a publication it refuses (another device's topic, an undeclared port, a
 //! payload of the wrong type) and drops it. This client checks types before sending, so a

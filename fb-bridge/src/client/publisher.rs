@@ -141,6 +141,7 @@ mod tests {
             "conveyor-a".into(),
             client,
             Duration::from_millis(100),
+            Duration::from_millis(100),
             Vec::new(),
         );
         (
