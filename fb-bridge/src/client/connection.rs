@@ -325,10 +325,10 @@ impl Shared {
                     }
                 }
             };
-            let mut state = self.lock();
             match waited {
-                Ok(()) if stalled => {
-                    let dropped = state.stalled.remove(&sink).unwrap_or(0);
+                Ok(()) if !stalled => {}
+                Ok(()) => {
+                    let dropped = self.lock().stalled.remove(&sink).unwrap_or(0);
                     tracing::warn!(
                         device = self.id,
                         topic = publish.topic,
@@ -336,8 +336,8 @@ impl Shared {
                         "subscriber reads again; messages dropped while it was stalled"
                     );
                 }
-                Ok(()) => {}
                 Err(()) => {
+                    let mut state = self.lock();
                     let dropped = state.stalled.entry(sink).or_insert(0);
                     if *dropped == 0 {
                         tracing::warn!(
