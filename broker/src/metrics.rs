@@ -260,12 +260,18 @@ impl Metrics {
                  filter had dropped them before it read them (router_segment_count x \
                  router_segment_bytes per filter)",
             ),
-            publisher_holds: counter_vec(
-                "fbbus_publisher_holds_total",
-                "Times the publishers of a filter were held back because a subscriber would \
-                 otherwise have lost messages it had not read, by outcome (caught_up: it \
-                 read them; gave_up: held for slow_subscriber_hold_ms, it skips)",
-                &["outcome"],
+            // Both outcomes are exported from the start, at 0: an alert on gave_up needs
+            // the series before the first hold.
+            publisher_holds: with_series(
+                counter_vec(
+                    "fbbus_publisher_holds_total",
+                    "Times the publishers of a filter were held back because a subscriber \
+                     would otherwise have lost messages it had not read, by outcome \
+                     (caught_up: it read them; gave_up: held for slow_subscriber_hold_ms, \
+                     it skips)",
+                    &["outcome"],
+                ),
+                &[&["caught_up"], &["gave_up"]],
             ),
             publisher_hold_ms: counter(
                 "fbbus_publisher_hold_milliseconds_total",
@@ -310,4 +316,13 @@ impl Default for Metrics {
     fn default() -> Self {
         Metrics::new()
     }
+}
+
+/// The counter family with these label values created, so their series are exported at 0
+/// before anything is counted.
+fn with_series(counters: IntCounterVec, series: &[&[&str]]) -> IntCounterVec {
+    for labels in series {
+        counters.with_label_values(labels);
+    }
+    counters
 }

@@ -86,6 +86,12 @@ fn slow_reader_run(broker: &Broker) -> (usize, f64) {
 #[test]
 fn a_subscriber_that_reads_slower_than_a_burst_gets_every_message() {
     let broker = small_log_broker(1_000);
+    // Both outcomes are exported before anything was held.
+    let metrics = broker.metrics();
+    for outcome in ["caught_up", "gave_up"] {
+        let series = format!("fbbus_publisher_holds_total{{outcome=\"{outcome}\"}} 0");
+        assert!(metrics.contains(&series), "{metrics}");
+    }
     let (received, skipped) = slow_reader_run(&broker);
     assert_eq!(received, MESSAGES, "{}", broker.log_text());
     assert_eq!(skipped, 0.0);
