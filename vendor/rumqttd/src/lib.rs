@@ -28,7 +28,7 @@ pub use link::local;
 pub use link::meters;
 pub use router::{
     Alert, Forward, Held, IncomingMeter, Meter, Notification, OutgoingMeter, Router, RouterHooks,
-    Skipped,
+    SavedSessions, Skipped, DEFAULT_MAX_SAVED_SESSIONS,
 };
 use segments::Storage;
 pub use server::{Broker, LinkType, Server};
@@ -200,7 +200,8 @@ pub struct ClusterSettings {
     pub seniors: Vec<(ConnectionId, String)>,
 }
 
-#[derive(Debug, Default, Clone, Serialize, Deserialize)]
+// fbbus: `Default` is written out for `max_saved_sessions`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RouterConfig {
     pub max_connections: usize,
     pub max_outgoing_packet_count: u64,
@@ -211,6 +212,31 @@ pub struct RouterConfig {
     // defaults to Round Robin
     #[serde(default)]
     pub shared_subscriptions_strategy: Strategy,
+    /// fbbus: at most this many offline persistent sessions are kept; saving one more
+    /// drops the oldest saved (counted in `RouterHooks::saved_sessions`). Default
+    /// [`DEFAULT_MAX_SAVED_SESSIONS`]; upstream kept every one forever.
+    #[serde(default = "default_max_saved_sessions")]
+    pub max_saved_sessions: usize,
+}
+
+// fbbus
+fn default_max_saved_sessions() -> usize {
+    DEFAULT_MAX_SAVED_SESSIONS
+}
+
+impl Default for RouterConfig {
+    fn default() -> Self {
+        RouterConfig {
+            max_connections: 0,
+            max_outgoing_packet_count: 0,
+            max_segment_size: 0,
+            max_segment_count: 0,
+            custom_segment: None,
+            initialized_filters: None,
+            shared_subscriptions_strategy: Strategy::default(),
+            max_saved_sessions: DEFAULT_MAX_SAVED_SESSIONS,
+        }
+    }
 }
 
 #[derive(Debug, Default, Clone, Serialize, Deserialize)]

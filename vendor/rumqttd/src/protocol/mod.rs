@@ -701,7 +701,11 @@ pub fn valid_filter(filter: &str) -> bool {
 /// **NOTE**: make sure a topic is validated during a publish and filter is validated
 /// during a subscribe
 pub fn matches(topic: &str, filter: &str) -> bool {
-    if !topic.is_empty() && topic[..1].contains('$') {
+    // fbbus: `starts_with`, not `topic[..1]`: a topic is any UTF-8, and slicing at byte 1
+    // panicked inside a multi-byte first character (`é/x`), killing the router thread.
+    // [MQTT-4.7.2-1]: a filter starting with a wildcard never matches a `$` topic; one
+    // that names the `$` level itself does (upstream matched no `$` topic at all).
+    if topic.starts_with('$') && (filter.starts_with('+') || filter.starts_with('#')) {
         return false;
     }
 
@@ -794,4 +798,36 @@ pub enum Error {
 pub trait Protocol {
     fn read_mut(&mut self, stream: &mut BytesMut, max_size: usize) -> Result<Packet, Error>;
     fn write(&self, packet: Packet, write: &mut BytesMut) -> Result<usize, Error>;
+}
+
+#[cfg(test)]
+mod fbbus_tests {
+    use super::*;
+
+    /// fbbus: topics are any UTF-8. A multi-byte character anywhere, first byte included,
+    /// must neither panic nor change what matches.
+    #[test]
+    fn multi_byte_topics_match_without_panicking() {
+        for topic in [
+            "é/x",
+            "Ü",
+            "Förderband/1",
+            "日本/ライン/1",
+            "a/€",
+            "😀/😀/😀",
+            "/é",
+        ] {
+            assert!(matches(topic, "#"), "{topic} matches #");
+            assert!(valid_topic(topic));
+            assert!(!matches(topic, "x/+/+/+/+"));
+        }
+        assert!(matches("é/x", "é/+"));
+        assert!(matches("é/x", "+/x"));
+        assert!(!matches("é/x", "e/x"));
+        assert!(!matches("$SYS/é", "#"));
+        assert!(!matches("$é", "+"));
+        assert!(!matches("$fbbus/probe", "+/probe"));
+        assert!(matches("$fbbus/probe", "$fbbus/probe"));
+        assert!(matches("$fbbus/probe", "$fbbus/#"));
+    }
 }

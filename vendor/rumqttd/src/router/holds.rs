@@ -91,9 +91,23 @@ impl Holds {
         self.held.push((id, filter));
     }
 
-    /// A held connection ended: its packets are gone with it.
+    /// A held connection ended: its packets are gone with it. fbbus: so is the hold of a
+    /// filter none of whose publishers is held any more. Left in place, it outlived its
+    /// publishers, and the next publisher held for that boundary found it already expired:
+    /// held for no time, and the filter's readers marked slow at once.
     pub fn forget(&mut self, id: ConnectionId) {
         self.held.retain(|&(held, _)| held != id);
+        let held = &self.held;
+        self.filters
+            .retain(|filter, _| held.iter().any(|&(_, held_on)| held_on == *filter));
+    }
+
+    /// fbbus: the filters of the holds (`DataLog::remove_unused` keeps their logs).
+    pub fn filters(&self) -> impl Iterator<Item = FilterIdx> + '_ {
+        self.filters
+            .keys()
+            .copied()
+            .chain(self.held.iter().map(|&(_, filter)| filter))
     }
 
     /// Whether the router should check the held filters now (at most every
@@ -156,6 +170,22 @@ mod tests {
         holds.hold(3, 4, 20);
         assert_eq!(holds.filters[&4].boundary, 20);
         assert!(holds.filters[&4].since > first.since);
+    }
+
+    /// fbbus: a filter's hold ends with the last of its held publishers, however they went.
+    #[test]
+    fn a_hold_whose_publishers_all_ended_is_gone() {
+        let mut holds = Holds::new(Duration::from_secs(1));
+        holds.hold(1, 4, 10);
+        holds.hold(2, 4, 10);
+        holds.hold(3, 5, 7);
+        holds.forget(1);
+        assert!(holds.holds(4, 10));
+        holds.forget(2);
+        assert!(!holds.holds(4, 10) && holds.holds(5, 7));
+        assert_eq!(holds.filters().collect::<Vec<_>>(), vec![5, 5]);
+        holds.forget(3);
+        assert!(holds.filters.is_empty() && holds.is_empty());
     }
 
     #[test]

@@ -115,7 +115,10 @@ impl Outgoing {
     }
 
     pub fn free_slots(&self) -> usize {
-        MAX_INFLIGHT - self.inflight_buffer.len()
+        // fbbus: saturating. `forward_device_data` never reads more QoS 1/2 messages than
+        // there are free slots, so this cannot underflow; upstream's `push_forwards` warns
+        // when it would have, and a warning must not turn into a panic here.
+        MAX_INFLIGHT.saturating_sub(self.inflight_buffer.len())
     }
 
     pub fn push_notification(&mut self, notification: Notification) -> usize {
@@ -220,8 +223,8 @@ impl Outgoing {
         let mut o = HashMap::new();
         for (_, filter_idx, cursor) in self.inflight_buffer.iter() {
             // if cursor in None, it means it was a retained publish
-            if !o.contains_key(filter_idx) && cursor.is_some() {
-                o.insert(*filter_idx, cursor.unwrap());
+            if let (false, Some(cursor)) = (o.contains_key(filter_idx), cursor) {
+                o.insert(*filter_idx, *cursor);
             }
         }
 

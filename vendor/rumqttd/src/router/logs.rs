@@ -13,11 +13,25 @@ use crate::{ConnectionId, Filter, Offset, RouterConfig, Topic};
 
 use crate::segments::{CommitLog, Position};
 use crate::Storage;
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::io;
 use std::time::Instant;
 
 type PubWithProp = (Publish, Option<PublishProperties>);
+
+/// fbbus: the invariant behind the lookups of `native` that cannot fail: `filter_indexes`
+/// and the read requests name only logs in `native`; a log is removed only with its index
+/// entry and once nothing refers to it (`DataLog::remove_unused`).
+const INDEXED_LOGS_EXIST: &str =
+    "invariant: a filter index in `filter_indexes` or a read request names a log";
+
+/// fbbus: at most this many topics are kept in `DataLog::publish_filters`, the cache of
+/// which filters each published topic matches; at the limit the cache starts over. Each
+/// distinct topic published while any filter matched it kept an entry for the life of the
+/// router (a topic and its list, ~150 bytes): with random topics, memory without bound.
+/// A line of ~1,000 devices publishes a few thousand distinct topics; 16,384 entries are
+/// ~2.5 MB. Emptying it costs a filter scan per topic on its next publish.
+const MAX_CACHED_TOPICS: usize = 16_384;
 
 #[derive(Clone)]
 pub struct PublishData {
@@ -103,20 +117,25 @@ impl DataLog {
             .map(|data| &data.waiters)
     }
 
+    /// The request of connection `id` for `subscription` parked in the log of `filter`.
+    /// fbbus: matched by subscription too: a shared subscription `$share/g/f` parks its
+    /// request in the log of `f`, next to the connection's own subscription of `f` if it has
+    /// one (upstream took the connection's first request in the log, whichever it was).
     pub fn remove_waiters_for_id(
         &mut self,
         id: ConnectionId,
-        filter: &Filter,
+        filter: &str,
+        subscription: &str,
     ) -> Option<DataRequest> {
         let data = self
             .native
             .get_mut(*self.filter_indexes.get(filter)?)
-            .unwrap();
+            .expect(INDEXED_LOGS_EXIST);
         let waiters = data.waiters.get_mut();
 
         waiters
             .iter()
-            .position(|&(conn_id, _)| conn_id == id)
+            .position(|(conn_id, request)| *conn_id == id && request.filter == subscription)
             .and_then(|index| {
                 waiters
                     .swap_remove_back(index)
@@ -138,6 +157,10 @@ impl DataLog {
                     .collect();
 
                 if !v.is_empty() {
+                    // fbbus: bounded, see `MAX_CACHED_TOPICS`.
+                    if self.publish_filters.len() >= MAX_CACHED_TOPICS {
+                        self.publish_filters = HashMap::new();
+                    }
                     self.publish_filters.insert(topic.to_owned(), v.clone());
                 }
 
@@ -167,7 +190,7 @@ impl DataLog {
         let filter_indexes = &mut self.filter_indexes;
 
         let (filter_idx, data) = match filter_indexes.get(filter) {
-            Some(idx) => (*idx, self.native.get(*idx).unwrap()),
+            Some(idx) => (*idx, self.native.get(*idx).expect(INDEXED_LOGS_EXIST)),
             None => {
                 let data = Data::new(filter, &self.config);
 
@@ -183,7 +206,10 @@ impl DataLog {
                     }
                 }
 
-                (idx, self.native.get(idx).unwrap())
+                (
+                    idx,
+                    self.native.get(idx).expect("invariant: inserted just now"),
+                )
             }
         };
 
@@ -200,7 +226,7 @@ impl DataLog {
         // arrives in `Router::handle_device_payload`, it first calls the function
         // `next_native_offset` which creates a new commitlog if one doesn't exist. So any new
         // reads will definitely happen on a valid filter.
-        let data = self.native.get(filter_idx).unwrap();
+        let data = self.native.get(filter_idx).expect(INDEXED_LOGS_EXIST);
         let mut o = Vec::new();
         // TODO: `readv` is infallible but its current return type does not
         // reflect that. Consequently, this method is also infallible.
@@ -220,7 +246,7 @@ impl DataLog {
                 return true;
             };
 
-            let time_spent = (now - pubdata.timestamp).as_secs() as u32;
+            let time_spent = now.saturating_duration_since(pubdata.timestamp).as_secs() as u32;
 
             let is_valid = time_spent < *message_expiry_interval;
 
@@ -259,7 +285,10 @@ impl DataLog {
         // filter as `request` is "done", that is, the subscriber has caught up. In other words,
         // there has been atleast 1 call to `native_readv` for the same filter, which means if
         // `native_readv` hasn't paniced, so this won't panic either.
-        let data = self.native.get_mut(request.filter_idx).unwrap();
+        let data = self
+            .native
+            .get_mut(request.filter_idx)
+            .expect(INDEXED_LOGS_EXIST);
         data.waiters.register(id, request);
     }
 
@@ -271,6 +300,55 @@ impl DataLog {
         }
 
         inflight
+    }
+
+    /// fbbus: the index of the log of `filter`, if it has one.
+    pub fn filter_idx(&self, filter: &str) -> Option<FilterIdx> {
+        self.filter_indexes.get(filter).copied()
+    }
+
+    /// fbbus: removes the logs of filters nothing refers to any more: no read request
+    /// parked in them, not in `used` (the router's read requests, subscriptions, saved
+    /// sessions, unacknowledged deliveries and holds), not configured
+    /// (`initialized_filters`). Upstream kept the log of every filter ever subscribed for
+    /// the life of the router (a commit log, a meter and index entries, ~0.5 KB each):
+    /// clients subscribing to ever new filters grew it without bound. A log without readers
+    /// holds nothing anyone can read: a new subscription starts at the log's end. Removed
+    /// logs leave the topic cache too, so their index may be reused. Returns how many.
+    pub fn remove_unused(&mut self, used: &HashSet<FilterIdx>) -> usize {
+        let configured = self.config.initialized_filters.as_deref().unwrap_or(&[]);
+        let unused: HashSet<FilterIdx> = self
+            .native
+            .iter()
+            .filter(|(idx, data)| {
+                !used.contains(idx)
+                    && data.waiters.waiters().is_empty()
+                    && !configured.contains(&data.filter)
+            })
+            .map(|(idx, _)| idx)
+            .collect();
+        if unused.is_empty() {
+            return 0;
+        }
+        let mut removed = Vec::with_capacity(unused.len());
+        for &idx in &unused {
+            let data = self.native.remove(idx);
+            self.filter_indexes.remove(&data.filter);
+            removed.push(data);
+        }
+        self.publish_filters.retain(|_, filters| {
+            filters.retain(|idx| !unused.contains(idx));
+            !filters.is_empty()
+        });
+        // Freed off the router thread, like released segments (`freer`).
+        crate::freer::dispose(Box::new(removed), None);
+        unused.len()
+    }
+
+    /// fbbus: filters with a log, and topics in the topic cache (tests).
+    #[cfg(test)]
+    pub fn sizes(&self) -> (usize, usize) {
+        (self.native.len(), self.publish_filters.len())
     }
 
     pub fn insert_to_retained_publishes(
@@ -303,7 +381,7 @@ impl DataLog {
                 return true;
             };
 
-            let time_spent = (now - pubdata.timestamp).as_secs() as u32;
+            let time_spent = now.saturating_duration_since(pubdata.timestamp).as_secs() as u32;
 
             let is_valid = time_spent < *message_expiry_interval;
 
@@ -472,7 +550,9 @@ impl AckLog {
 mod test {
     use super::DataLog;
     use crate::router::shared_subs::Strategy;
+    use crate::router::DataRequest;
     use crate::RouterConfig;
+    use std::collections::HashSet;
 
     #[test]
     fn publish_filters_updating_correctly_on_new_topic_subscription() {
@@ -484,6 +564,7 @@ mod test {
             custom_segment: None,
             initialized_filters: None,
             shared_subscriptions_strategy: Strategy::RoundRobin,
+            max_saved_sessions: crate::DEFAULT_MAX_SAVED_SESSIONS, // fbbus
         };
         let mut data = DataLog::new(config).unwrap();
         data.next_native_offset("topic/a");
@@ -504,6 +585,7 @@ mod test {
             custom_segment: None,
             initialized_filters: None,
             shared_subscriptions_strategy: Strategy::RoundRobin,
+            max_saved_sessions: crate::DEFAULT_MAX_SAVED_SESSIONS, // fbbus
         };
         let mut data = DataLog::new(config).unwrap();
         data.next_native_offset("+/+");
@@ -511,6 +593,106 @@ mod test {
         data.matches("topic/a");
 
         assert_eq!(data.publish_filters.get("topic/a").unwrap().len(), 1);
+    }
+
+    fn datalog() -> DataLog {
+        DataLog::new(RouterConfig {
+            max_segment_size: 1024,
+            max_connections: 10,
+            max_segment_count: 10,
+            max_outgoing_packet_count: 1024,
+            initialized_filters: Some(vec!["configured/#".into()]),
+            ..Default::default()
+        })
+        .unwrap()
+    }
+
+    /// fbbus: the topic cache starts over at `MAX_CACHED_TOPICS` instead of growing with
+    /// every distinct topic published.
+    #[test]
+    fn the_topic_cache_is_bounded() {
+        let mut data = datalog();
+        let (all, _) = data.next_native_offset("#");
+        for i in 0..super::MAX_CACHED_TOPICS + 10 {
+            assert_eq!(data.matches(&format!("t/{i}")), Some(vec![all]));
+        }
+        assert_eq!(data.sizes().1, 10);
+        assert_eq!(data.matches("t/0"), Some(vec![all]));
+    }
+
+    /// fbbus: the log of a filter nothing refers to is removed, with its cache entries; a
+    /// used, parked-on or configured one stays.
+    #[test]
+    fn unused_logs_are_removed() {
+        let mut data = datalog();
+        let (a, _) = data.next_native_offset("a/+");
+        let (b, _) = data.next_native_offset("b/#");
+        let (c, _) = data.next_native_offset("c");
+        let request = |filter: &str, filter_idx| DataRequest {
+            filter: filter.into(),
+            filter_idx,
+            qos: 0,
+            cursor: (0, 0),
+            read_count: 0,
+            max_count: 100,
+            forward_retained: false,
+            retained_again: 0,
+            group: None,
+            skipping: false,
+            slow: false,
+        };
+        data.park(7, request("c", c));
+        assert_eq!(data.matches("a/x"), Some(vec![a]));
+        assert_eq!(data.matches("b/x"), Some(vec![b]));
+        assert_eq!(data.sizes(), (4, 2));
+
+        assert_eq!(data.remove_unused(&[b].into_iter().collect()), 1);
+        assert_eq!(data.sizes(), (3, 1));
+        assert_eq!(data.filter_idx("a/+"), None);
+        assert_eq!(data.matches("a/x"), Some(vec![]));
+        assert!(data.filter_idx("configured/#").is_some());
+        assert_eq!(
+            data.remove_waiters_for_id(7, "c", "c")
+                .map(|r| r.filter_idx),
+            Some(c)
+        );
+
+        assert_eq!(data.remove_unused(&HashSet::new()), 2);
+        assert_eq!(data.sizes(), (1, 0));
+        // A filter subscribed again gets a new log.
+        let (again, cursor) = data.next_native_offset("b/#");
+        assert_eq!(cursor, (0, 0));
+        assert_eq!(data.matches("b/x"), Some(vec![again]));
+    }
+
+    /// fbbus: a connection's parked request is found by subscription, also when it has
+    /// both a filter's own and a shared subscription of it in one log.
+    #[test]
+    fn a_parked_request_is_found_by_its_subscription() {
+        let mut data = datalog();
+        let (x, _) = data.next_native_offset("x");
+        for filter in ["x", "$share/g/x"] {
+            data.park(
+                3,
+                DataRequest {
+                    filter: filter.into(),
+                    filter_idx: x,
+                    qos: 0,
+                    cursor: (0, 0),
+                    read_count: 0,
+                    max_count: 100,
+                    forward_retained: false,
+                    retained_again: 0,
+                    group: None,
+                    skipping: false,
+                    slow: false,
+                },
+            );
+        }
+        let removed = data.remove_waiters_for_id(3, "x", "$share/g/x");
+        assert_eq!(removed.map(|r| r.filter), Some("$share/g/x".to_string()));
+        assert_eq!(data.remove_waiters_for_id(3, "x", "$share/g/x"), None);
+        assert!(data.remove_waiters_for_id(3, "x", "x").is_some());
     }
 
     //     #[test]

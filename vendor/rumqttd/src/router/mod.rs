@@ -28,6 +28,7 @@ mod waiters;
 
 pub use alertlog::Alert;
 pub use connection::Connection;
+pub use graveyard::{SavedSessions, DEFAULT_MAX_SAVED_SESSIONS};
 pub use routing::Router;
 pub use waiters::Waiters;
 
@@ -37,6 +38,10 @@ pub struct RouterHooks {
     /// A subscriber read past messages the filter's commit log no longer held: it lagged
     /// by more than `max_segment_count` segments and retention dropped them unread.
     pub skipped: Option<Box<dyn FnMut(&Skipped<'_>) + Send>>,
+    /// The offline persistent sessions the router keeps, and how many it dropped at
+    /// `RouterConfig::max_saved_sessions`: the router updates the counters, the embedder
+    /// reads them (keep a clone of the `Arc`).
+    pub saved_sessions: std::sync::Arc<SavedSessions>,
     /// Called after the router released the memory no reader needs any more (read
     /// commit-log segments, empty per-connection queues): once it had no event for
     /// `idle_after`, and while events keep coming, at most every `release_every`.
@@ -51,17 +56,28 @@ pub struct RouterHooks {
     pub hold_limit: std::time::Duration,
     /// Called when publishers held for a filter are let go.
     pub held: Option<Box<dyn FnMut(&Held<'_>) + Send>>,
+    /// Called on the router thread when the router stops for good: its loop returned
+    /// (`RouterError`, e.g. every link gone) or it panicked (the panic's message). Nothing
+    /// is routed after this: the embedder must stop serving (fbbus exits non-zero).
+    pub exited: Option<Box<dyn FnOnce(String) + Send>>,
+    /// Tests only: the router panics when it routes a publication on exactly this topic,
+    /// so the embedder's handling of a dead router can be tested. fbbus sets it only in
+    /// debug builds, from an environment variable.
+    pub panic_on_topic: Option<String>,
 }
 
 impl Default for RouterHooks {
     fn default() -> Self {
         RouterHooks {
             skipped: None,
+            saved_sessions: Default::default(),
             released: None,
             idle_after: std::time::Duration::from_millis(500),
             release_every: std::time::Duration::from_secs(10),
             hold_limit: std::time::Duration::ZERO,
             held: None,
+            exited: None,
+            panic_on_topic: None,
         }
     }
 }

@@ -2,10 +2,14 @@ use std::collections::{HashSet, VecDeque};
 
 use serde::{Deserialize, Serialize};
 use slab::Slab;
-use tracing::trace;
+use tracing::{debug, trace};
 
 use super::DataRequest;
 use crate::{ConnectionId, Filter};
+
+/// fbbus: the invariant behind the tracker lookups that cannot fail: the router calls them
+/// only for a connection it holds (registered in every per-connection slab together).
+const LIVE_CONNECTION: &str = "invariant: only a registered connection is tracked or paused";
 
 pub struct Scheduler {
     /// Subscriptions and matching topics maintained per connection
@@ -32,8 +36,16 @@ impl Scheduler {
 
     /// Next connection which is ready to make progress
     pub fn poll(&mut self) -> Option<(ConnectionId, VecDeque<DataRequest>)> {
-        let id = self.readyqueue.pop_front()?;
-        let tracker = self.trackers.get_mut(id)?;
+        // fbbus: ids of connections that are gone are skipped (the router leaves them in
+        // the queue, see `handle_disconnection`). Upstream returned `None` for one, as if
+        // nobody were ready, and the router then waited for the next event while the
+        // connections behind it in the queue had data to send.
+        let (id, tracker) = loop {
+            let id = self.readyqueue.pop_front()?;
+            if let Some(tracker) = self.trackers.get_mut(id) {
+                break (id, tracker);
+            }
+        };
 
         // drain will clear all DataRequest but will keep the allocated memory of our VecDeque.
         let data_requests = tracker.data_requests.drain(..).collect();
@@ -45,22 +57,29 @@ impl Scheduler {
     }
 
     pub fn track(&mut self, id: ConnectionId, request: DataRequest) {
-        let tracker = self.trackers.get_mut(id).unwrap();
+        let tracker = self.trackers.get_mut(id).expect(LIVE_CONNECTION);
         tracker.register_data_request(request);
     }
 
     pub fn untrack(&mut self, id: ConnectionId, filter: &Filter) {
-        let tracker = self.trackers.get_mut(id).unwrap();
+        let tracker = self.trackers.get_mut(id).expect(LIVE_CONNECTION);
         tracker.unregister_data_request(filter.clone());
     }
 
     pub fn trackv(&mut self, id: ConnectionId, requests: VecDeque<DataRequest>) {
-        let tracker = self.trackers.get_mut(id).unwrap();
+        let tracker = self.trackers.get_mut(id).expect(LIVE_CONNECTION);
         tracker.data_requests.extend(requests);
     }
 
     pub fn reschedule(&mut self, id: ConnectionId, reason: ScheduleReason) {
-        let tracker = self.trackers.get_mut(id).unwrap();
+        // fbbus: a connection that is gone is not scheduled. `Event::Ready` comes from a
+        // link (`LinkRx::wake`) and may arrive after the router dropped its connection
+        // (a taken-over client id, an ack the router refused): upstream unwrapped the
+        // tracker here and the router thread panicked.
+        let Some(tracker) = self.trackers.get_mut(id) else {
+            debug!(id, ?reason, "not scheduled: the connection is gone");
+            return;
+        };
         if let Some(v) = tracker.try_ready(reason) {
             trace!(tracker_id = tracker.id, "reschedule {:?} -> Ready", v);
             self.readyqueue.push_back(id);
@@ -68,8 +87,13 @@ impl Scheduler {
     }
 
     pub fn pause(&mut self, id: ConnectionId, reason: PauseReason) {
-        assert_eq!(self.readyqueue.pop_back(), Some(id));
-        let tracker = self.trackers.get_mut(id).unwrap();
+        assert_eq!(
+            self.readyqueue.pop_back(),
+            Some(id),
+            "invariant: the router pauses only the connection it polled last, which `poll` \
+             put back at the end of the ready queue"
+        );
+        let tracker = self.trackers.get_mut(id).expect(LIVE_CONNECTION);
 
         trace!(
             tracker_id = tracker.id,
@@ -149,7 +173,11 @@ impl Tracker {
 
         match reason {
             ScheduleReason::Init => {
-                debug_assert!(self.status == Status::Paused(PauseReason::Busy));
+                debug_assert!(
+                    self.status == Status::Paused(PauseReason::Busy),
+                    "invariant: a connection starts with a new tracker or a saved one, both \
+                     paused Busy (`Tracker::new`, `Graveyard::save_state`)"
+                );
                 self.status = Status::Ready;
                 Some(previous)
             }
@@ -168,8 +196,12 @@ impl Tracker {
                 self.status = Status::Ready;
                 Some(previous)
             }
-            ScheduleReason::Ready => {
-                debug_assert!(self.status == Status::Paused(PauseReason::Busy));
+            // fbbus: only a connection paused because its buffer was full waits for its
+            // link's `Ready` (`Notification::Unschedule`). A `Ready` found in another state
+            // is stale: its link's connection was replaced by a new one under the same id
+            // (slab ids are reused). Upstream asserted Busy (a panic in debug builds) and
+            // scheduled whatever it found.
+            ScheduleReason::Ready if previous == PauseReason::Busy => {
                 self.status = Status::Ready;
                 Some(previous)
             }
@@ -218,16 +250,73 @@ impl Scheduler {
 
     // Return a `Some` if duplicate were found, otherwise `None`
     pub fn check_tracker_duplicates(&self, id: ConnectionId) -> Option<&VecDeque<DataRequest>> {
-        let tracker = self.trackers.get(id).unwrap();
+        let tracker = self.trackers.get(id).expect(LIVE_CONNECTION);
         let tracker_data_req = tracker.get_data_requests();
         let mut uniq = HashSet::with_capacity(tracker_data_req.len());
 
-        let all_uniq = tracker_data_req.iter().all(|x| uniq.insert(x.filter_idx));
+        // fbbus: one request per subscription, not per log: `x` and `$share/g/x` read the
+        // same log (one filter index). Upstream compared indices, and a client subscribing
+        // both (one SUBSCRIBE is enough) failed the router's debug assertion.
+        let all_uniq = tracker_data_req.iter().all(|x| uniq.insert(&x.filter));
 
         if !all_uniq {
             Some(&tracker.data_requests)
         } else {
             None
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn busy_connection(scheduler: &mut Scheduler, client_id: &str) -> ConnectionId {
+        let id = scheduler.add(Tracker::new(client_id.to_owned()));
+        scheduler.reschedule(id, ScheduleReason::Init);
+        id
+    }
+
+    /// fbbus: a link's `Ready` for a connection the router dropped must not panic.
+    #[test]
+    fn scheduling_a_connection_that_is_gone_does_nothing() {
+        let mut scheduler = Scheduler::with_capacity(0);
+        let id = busy_connection(&mut scheduler, "a");
+        scheduler.remove(id);
+        scheduler.reschedule(id, ScheduleReason::Ready);
+        scheduler.reschedule(id + 1, ScheduleReason::FreshData);
+        assert_eq!(scheduler.readyqueue, [id]);
+    }
+
+    /// fbbus: `Ready` only ends a pause for a full buffer; a stale one (its connection was
+    /// replaced under the same id) changes nothing.
+    #[test]
+    fn a_stale_ready_leaves_a_caught_up_connection_paused() {
+        let mut scheduler = Scheduler::with_capacity(0);
+        let id = busy_connection(&mut scheduler, "a");
+        assert_eq!(scheduler.poll().map(|(polled, _)| polled), Some(id));
+        scheduler.pause(id, PauseReason::Caughtup);
+        scheduler.reschedule(id, ScheduleReason::Ready);
+        assert!(scheduler.readyqueue.is_empty());
+        assert_eq!(
+            scheduler.trackers[id].status,
+            Status::Paused(PauseReason::Caughtup)
+        );
+
+        assert_eq!(scheduler.poll(), None);
+        scheduler.trackers[id].pause(PauseReason::Busy);
+        scheduler.reschedule(id, ScheduleReason::Ready);
+        assert_eq!(scheduler.readyqueue, [id]);
+    }
+
+    /// fbbus: a gone connection's id left in the ready queue does not hide the ones after it.
+    #[test]
+    fn polling_skips_connections_that_are_gone() {
+        let mut scheduler = Scheduler::with_capacity(0);
+        let gone = busy_connection(&mut scheduler, "gone");
+        let live = busy_connection(&mut scheduler, "live");
+        scheduler.remove(gone);
+        assert_eq!(scheduler.poll().map(|(id, _)| id), Some(live));
+        assert_eq!(scheduler.readyqueue, [live]);
     }
 }

@@ -29,7 +29,12 @@ impl SharedGroup {
     }
 
     pub fn add_client(&mut self, client: String) {
-        self.clients.push(client)
+        // fbbus: once per client. Upstream added it again on every repeated SUBSCRIBE: the
+        // list grew with each one (a client looping SUBSCRIBE grew it without bound) and the
+        // client got one more share of the group's messages each time.
+        if !self.clients.contains(&client) {
+            self.clients.push(client)
+        }
     }
 
     pub fn remove_client(&mut self, client: &String) {
@@ -44,6 +49,11 @@ impl SharedGroup {
     }
 
     pub fn update_next_client(&mut self) {
+        // fbbus: no member, no next one (`% 0` and `gen_range(0..0)` panic). The router
+        // calls this only after a member read, so the group is not empty: kept as a guard.
+        if self.clients.is_empty() {
+            return;
+        }
         match self.strategy {
             Strategy::RoundRobin => {
                 self.current_client_index = (self.current_client_index + 1) % self.clients.len();
@@ -70,6 +80,28 @@ mod tests {
     use crate::router::shared_subs::Strategy;
 
     use super::SharedGroup;
+
+    /// fbbus: a repeated SUBSCRIBE does not add the client again.
+    #[test]
+    fn a_client_is_a_member_once() {
+        let mut group = SharedGroup::new((0, 0), Strategy::RoundRobin);
+        for _ in 0..1000 {
+            group.add_client("A".into());
+        }
+        group.add_client("B".into());
+        assert_eq!(group.clients, vec!["A".to_string(), "B".to_string()]);
+        group.update_next_client();
+        assert_eq!(group.current_client().map(String::as_str), Some("B"));
+    }
+
+    #[test]
+    fn an_empty_group_has_no_next_client() {
+        for strategy in [Strategy::RoundRobin, Strategy::Random, Strategy::Sticky] {
+            let mut group = SharedGroup::new((0, 0), strategy);
+            group.update_next_client();
+            assert_eq!(group.current_client(), None);
+        }
+    }
 
     #[test]
     fn performs_round_robin() {

@@ -90,7 +90,9 @@ where
         if idx >= self.len() {
             ret = None;
         } else {
-            let mut limit = idx + len;
+            // fbbus: saturating: `len` is the configured read size for QoS 0
+            // (`max_outgoing_packet_count`, any u64), and `idx + len` overflowed near the top.
+            let mut limit = idx.saturating_add(len);
 
             ret = Some(limit);
 
@@ -195,6 +197,22 @@ mod tests {
         let mut out: Vec<(Vec<u8>, Offset)> = Vec::new();
         let _ = segment.readv((0, 0), 2, &mut out).unwrap();
         assert_eq!(out, vec![(vec![1u8], (0, 0)), (vec![2u8], (0, 1))]);
+    }
+
+    /// fbbus: a read of up to `u64::MAX` entries (the QoS 0 read size is configurable)
+    /// from past the segment's start reads to its end.
+    #[test]
+    fn an_unbounded_read_does_not_overflow() {
+        let mut segment: Segment<Bytes> = Segment::with_offset(5);
+        for i in 0..3u8 {
+            segment.push(Bytes::from(vec![i]));
+        }
+        let mut out = Vec::new();
+        match segment.readv((0, 6), u64::MAX, &mut out).unwrap() {
+            SegmentPosition::Done(next) => assert_eq!(next, 8),
+            SegmentPosition::Next(_) => panic!("read to the end"),
+        }
+        assert_eq!(out.len(), 2);
     }
 
     #[test]
