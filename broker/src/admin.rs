@@ -1,10 +1,9 @@
 //! The HTTP admin endpoint: `/metrics` (Prometheus text), `/healthz` (the process runs),
-//! `/readyz` (listeners are bound and the broker is not shutting down), and the device
+//! `/readyz` (the broker routes: see `health`), and the device
 //! registry as JSON: `/api/v1/devices` (every device, by id; `?status=online` filters)
 //! and `/api/v1/devices/{id}` (one record, 404 if unknown).
 //! Bound to loopback by default; it exposes no secret and accepts no command.
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use axum::extract::{Path, Query, State};
@@ -14,13 +13,14 @@ use axum::routing::get;
 use axum::Router;
 use tokio::net::TcpListener;
 
+use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::registry::Registry;
 
 #[derive(Clone)]
 pub struct AdminState {
     pub metrics: Arc<Metrics>,
-    pub ready: Arc<AtomicBool>,
+    pub health: Arc<Health>,
     pub registry: Arc<Registry>,
 }
 
@@ -41,11 +41,15 @@ async fn metrics(State(state): State<AdminState>) -> impl IntoResponse {
     )
 }
 
+/// 200 only while the broker routes: listeners bound, nothing fatal, and a probe
+/// publication made the round trip through the router (`health`).
 async fn readyz(State(state): State<AdminState>) -> impl IntoResponse {
-    if state.ready.load(Ordering::Acquire) {
-        (StatusCode::OK, "ready\n")
-    } else {
-        (StatusCode::SERVICE_UNAVAILABLE, "not ready\n")
+    match state.health.ready().await {
+        Ok(()) => (StatusCode::OK, "ready\n".to_owned()),
+        Err(why) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("not ready: {why}\n"),
+        ),
     }
 }
 

@@ -163,7 +163,7 @@ impl Authenticator {
             let _guard = self
                 .rewrite
                 .lock()
-                .map_err(|_| "lock poisoned".to_string())?;
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
             let mut file = PasswordFile::load(watched.path()).map_err(|e| e.to_string())?;
             if file.get(user).map(|h| h.phc()) != Some(verified.phc()) {
                 return Ok(false);

@@ -112,21 +112,24 @@ pub struct Bridge {
     tasks: Mutex<Vec<JoinHandle<()>>>,
 }
 
-impl Bridge {
+/// Local subscriptions become imports.
+impl crate::connection::SubscriptionObserver for Bridge {
     /// A local client was granted `filter`.
-    pub fn subscribed(&self, filter: &str) {
+    fn subscribed(&self, filter: &str) {
         for f in self.imports_for(filter) {
             let _ = self.interest.send(Interest::Add(f));
         }
     }
 
     /// A local client dropped `filter` (UNSUBSCRIBE, or its clean session ended).
-    pub fn unsubscribed(&self, filter: &str) {
+    fn unsubscribed(&self, filter: &str) {
         for f in self.imports_for(filter) {
             let _ = self.interest.send(Interest::Remove(f));
         }
     }
+}
 
+impl Bridge {
     /// The filters to import for a local subscription to `filter`: the typed namespace
     /// in the canonical `fb/` form (`dinasore/` and `fbdk/` are re-encoded here), narrowed
     /// to the configured import filters.
@@ -902,9 +905,4 @@ async fn retained(ctx: &Context, filter: &str, export: &[String]) -> Vec<(String
     }
     let _ = crate::router::unlink(tx).await;
     out
-}
-
-/// Whether a client id is one of the bridge's own router links.
-pub fn is_bridge_client_id(id: &str) -> bool {
-    id.starts_with("fbbus:bridge")
 }

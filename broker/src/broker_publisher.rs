@@ -12,10 +12,21 @@ use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Packet, Publish, PublishProperties};
 use tokio::sync::mpsc;
 
+use crate::health::Health;
 use crate::origin;
+use crate::supervisor::spawn_core;
 
 /// The client id of the broker's own router link; clients may not use it.
 pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
+
+/// Client ids starting with this are the broker's own router links (its publisher, the
+/// readiness probe, the bus bridge's links): a client may not take one.
+pub const RESERVED_CLIENT_ID_PREFIX: &str = "fbbus:";
+
+/// Whether `id` is one of the broker's own client ids.
+pub fn is_reserved_client_id(id: &str) -> bool {
+    id.starts_with(RESERVED_CLIENT_ID_PREFIX)
+}
 
 /// One message the broker publishes.
 #[derive(Debug)]
@@ -51,11 +62,12 @@ pub struct BrokerPublisher {
 }
 
 impl BrokerPublisher {
-    /// Starts the task that owns the internal link `(tx, rx)`.
-    pub fn start(link: (LinkTx, LinkRx)) -> Arc<BrokerPublisher> {
+    /// Starts the tasks that own the internal link `(tx, rx)`: core tasks (`supervisor`),
+    /// since wills and registry records stop without them.
+    pub fn start(link: (LinkTx, LinkRx), health: &Arc<Health>) -> Arc<BrokerPublisher> {
         let (mut tx, mut rx) = link;
         let (queue, mut messages) = mpsc::unbounded_channel::<Message>();
-        tokio::spawn(async move {
+        spawn_core(health, "broker publisher (acknowledgements)", async move {
             // The router acknowledges QoS 1 messages to this link; nothing waits for them.
             while let Ok(notification) = rx.next().await {
                 if matches!(notification, Some(rumqttd::Notification::Unschedule)) {
@@ -63,7 +75,7 @@ impl BrokerPublisher {
                 }
             }
         });
-        tokio::spawn(async move {
+        spawn_core(health, "broker publisher", async move {
             let mut pkid: u16 = 0;
             while let Some(message) = messages.recv().await {
                 pkid = pkid % u16::MAX + 1;

@@ -402,6 +402,14 @@ impl Config {
             ));
         }
         if let Some(bridge) = &self.bridge {
+            if !cfg!(feature = "bridge") {
+                return Err(invalid(
+                    file,
+                    "bridge",
+                    "this fbbus was built without the `bridge` cargo feature (the zenoh bus); \
+                     remove the [bridge] section or use a build with it",
+                ));
+            }
             bridge
                 .validate(&b.line)
                 .map_err(|(key, message)| invalid(file, &key, message))?;

@@ -45,7 +45,7 @@ use tokio::time::{timeout, Instant};
 
 use crate::ack_order::AckOrder;
 use crate::authenticator::{Authenticator, Outcome};
-use crate::broker_publisher::INTERNAL_CLIENT_ID;
+use crate::broker_publisher::is_reserved_client_id;
 use crate::codec::{connack, ReadError, Version};
 use crate::fb_topics::{Check, FbSession, FbTopics, Refusal};
 use crate::frame;
@@ -57,6 +57,7 @@ use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
 use crate::session_table::SessionTable;
+use crate::supervisor::CatchPanic;
 use crate::watched_file::WatchedFile;
 use crate::wills::{Will, Wills};
 
@@ -78,8 +79,20 @@ pub struct Context {
     pub connect_timeout: Duration,
     /// Becomes true when the broker shuts down.
     pub shutdown: watch::Receiver<bool>,
-    /// The zenoh bridge to the other lines, once started (`[bridge]` configured).
-    pub bridge: std::sync::OnceLock<Arc<crate::bridge::Bridge>>,
+    /// Tests only: a publication on this topic makes its session panic (`supervisor`).
+    pub test_panic_topic: Option<String>,
+    /// Who else wants to know what clients subscribe to: the zenoh bridge to the other
+    /// lines, once started (`[bridge]` configured), imports what local clients read.
+    pub bridge: std::sync::OnceLock<Arc<dyn SubscriptionObserver>>,
+}
+
+/// Told of every filter local clients start or stop reading (the bus bridge imports what
+/// they read from the other lines). Called on the connection's task: must not block.
+pub trait SubscriptionObserver: Send + Sync {
+    /// A first local subscription to `filter` (per session).
+    fn subscribed(&self, filter: &str);
+    /// A session no longer reads `filter`.
+    fn unsubscribed(&self, filter: &str);
 }
 
 /// What a listener decides for the connections it accepts.
@@ -106,13 +119,31 @@ pub async fn serve(
     ctx: Arc<Context>,
     slot: OwnedSemaphorePermit,
 ) {
-    let Some(mut session) = accept(stream, peer, listener, &ctx).await else {
-        return;
+    let session = match CatchPanic::new(accept(stream, peer, listener, &ctx)).await {
+        Ok(Some(session)) => session,
+        Ok(None) => return,
+        Err(message) => {
+            // Logged by the panic hook; the client had no session yet.
+            ctx.metrics.refused("internal_error");
+            tracing::error!(%peer, message, "login failed inside fbbus; connection closed");
+            return;
+        }
     };
     tokio::spawn(async move {
         let _slot = slot;
-        let end = session.run().await;
-        Box::pin(session.close(end)).await;
+        let mut session = session;
+        // A panic in this one session (a bug, logged by the panic hook) ends this
+        // connection only, closed like a lost connection: unlinked, will published,
+        // gauges and registry updated. The rest of the line goes on.
+        let end = CatchPanic::new(session.run()).await.unwrap_or(End::Panic);
+        let client_id = Arc::clone(&session.client_id);
+        if let Err(message) = CatchPanic::new(session.close(end)).await {
+            tracing::error!(
+                client_id = &*client_id,
+                message,
+                "closing a session failed inside fbbus"
+            );
+        }
     });
 }
 
@@ -155,7 +186,9 @@ enum Wake {
 /// Why a session ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum End {
-    Client { with_will: bool },
+    Client {
+        with_will: bool,
+    },
     Abrupt,
     KeepAlive,
     Takeover,
@@ -164,6 +197,8 @@ enum End {
     ProtocolError(DisconnectReasonCode),
     Router,
     Shutdown,
+    /// The session's task panicked (`supervisor`): closed as a lost connection.
+    Panic,
 }
 
 impl End {
@@ -185,6 +220,7 @@ impl End {
             End::ProtocolError(_) => DisconnectReason::ProtocolError,
             End::Router => DisconnectReason::Router,
             End::Shutdown => DisconnectReason::Shutdown,
+            End::Panic => DisconnectReason::Internal,
         }
     }
 
@@ -197,6 +233,7 @@ impl End {
             End::Oversized => Some(DisconnectReasonCode::PacketTooLarge),
             End::ProtocolError(code) => Some(code),
             End::Shutdown => Some(DisconnectReasonCode::ServerShuttingDown),
+            End::Panic => Some(DisconnectReasonCode::UnspecifiedError),
             End::Client { .. } | End::Abrupt | End::Router => None,
         }
     }
@@ -339,10 +376,7 @@ impl Session {
                 client_id = format!("fbbus-{:016x}", rand_id());
                 assigned = Some(client_id.clone());
             }
-            if client_id == INTERNAL_CLIENT_ID
-                || crate::bridge::is_bridge_client_id(&client_id)
-                || client_id.contains(['+', '#', '/', '$'])
-            {
+            if is_reserved_client_id(&client_id) || client_id.contains(['+', '#', '/', '$']) {
                 return Err(refuse(
                     ConnectReturnCode::ClientIdentifierNotValid,
                     "invalid_client_id",
@@ -811,6 +845,9 @@ impl Session {
         pkid: u16,
     ) -> Result<(), End> {
         let topic = self.resolve_topic(&publish, properties.as_ref())?;
+        if self.ctx.test_panic_topic.as_deref() == Some(topic.as_str()) {
+            panic!("test_panic_topic: {} published on {topic}", self.client_id);
+        }
 
         // 2. Authorize.
         if !self.may_publish(&topic) {
@@ -840,7 +877,7 @@ impl Session {
 
         // 4. Route, 5. meter. The router gets the full topic, never an alias.
         if qos > 0 {
-            self.inflight_in += 1;
+            self.inflight_in = self.inflight_in.saturating_add(1);
             if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
                 tracing::warn!(client_id = &*self.client_id, receive_maximum = self.ctx.max_inflight,
                     "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
@@ -1325,7 +1362,7 @@ impl Session {
             _ => {
                 self.ctx.metrics.messages_out.inc();
                 if qos > 0 {
-                    self.outstanding_out += 1;
+                    self.outstanding_out = self.outstanding_out.saturating_add(1);
                     if dup {
                         self.io.write[before] |= 0b0000_1000;
                     }

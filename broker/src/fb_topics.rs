@@ -242,6 +242,13 @@ impl FbSession {
     }
 
     fn decide(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
+        // The broker's own `$` namespace: its readiness probe must not be fed or flooded.
+        if topic.starts_with(crate::health::RESERVED_TOPICS) {
+            return refuse(
+                Refusal::NotAuthorized,
+                "$fbbus/ topics are the broker's own",
+            );
+        }
         if let Some(rest) = topic.strip_prefix(topic::BROKER_NAMESPACE) {
             if rest.strip_prefix("declare/") == Some(self.device.as_str()) {
                 return self.declare(fb, payload);
@@ -391,7 +398,12 @@ impl FbSession {
                     .declarations
                     .with_label_values(&["refused"])
                     .inc();
-                tracing::warn!(device = self.device, errors = errors.len(), first = %errors[0], "interface declaration refused");
+                tracing::warn!(
+                    device = self.device,
+                    errors = errors.len(),
+                    first = errors.first().map(ToString::to_string),
+                    "interface declaration refused"
+                );
                 self.outbox.push(BrokerMessage::broker(
                     topic::diag(&self.device),
                     json!({"kind": "declaration", "ok": false, "errors": errors}).to_string(),

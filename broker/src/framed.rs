@@ -158,7 +158,11 @@ impl Io {
         }
         match self.decode(&header) {
             Ok(packet @ Packet::Connect(..)) => Ok(packet),
-            Ok(_) => unreachable!("the frame was checked to be a CONNECT"),
+            Ok(_) => Err(refusal(
+                "malformed",
+                "first packet is not an MQTT CONNECT".into(),
+                None,
+            )),
             Err(e) => Err(refusal("malformed", e.to_string(), None)),
         }
     }

@@ -32,7 +32,10 @@
 //! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
 //! - [`bridge`]: one bus across lines: the zenoh bridge to the other lines' brokers
 //!   (`[bridge]` section), its imports, exports and registry federation.
-//! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`.
+//! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`; [`health`]: what
+//!   `/readyz` answers (a probe publication through the router) and what is fatal;
+//!   [`supervisor`]: a panic in a core task or thread is fatal, one in a connection's
+//!   task closes that connection only.
 //! - [`router`] and [`memory`]: the vendored rumqttd router's thread, its reports
 //!   (skipped messages, idle), and giving freed memory back to the OS.
 //!
@@ -41,6 +44,7 @@
 pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
+#[cfg(feature = "bridge")]
 pub mod bridge;
 pub mod broker_publisher;
 pub mod codec;
@@ -49,6 +53,7 @@ pub mod connection;
 pub mod fb_topics;
 pub mod frame;
 pub mod framed;
+pub mod health;
 pub mod listener;
 pub mod logging;
 pub mod memory;
@@ -61,6 +66,7 @@ pub mod router;
 pub mod server;
 pub mod session_lifetime;
 pub mod session_table;
+pub mod supervisor;
 pub mod tls;
 pub mod verifier;
 pub mod watched_file;

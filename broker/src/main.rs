@@ -154,12 +154,17 @@ fn check_config(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
+/// The exit status when a core part of the broker died (EX_SOFTWARE): the service manager
+/// restarts on it; a configuration error exits with 1 before anything was served.
+const EXIT_FATAL: i32 = 70;
+
 fn serve(config_path: Option<PathBuf>) -> Result<()> {
     let config = match &config_path {
         Some(path) => Config::load(path)?,
         None => Config::embedded_default(),
     };
     broker::logging::init(&config.log).map_err(anyhow::Error::msg)?;
+    broker::supervisor::install_panic_hook();
     broker::memory::configure();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -177,9 +182,19 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
         let broker = Broker::start(config).await?;
         let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
             .context("cannot listen for SIGTERM")?;
-        tokio::select! {
-            _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
-            _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT: shutting down"),
+        let died = tokio::select! {
+            _ = term.recv() => { tracing::info!("SIGTERM: shutting down"); None }
+            _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: shutting down"); None }
+            reason = broker.died() => Some(reason),
+        };
+        if let Some(reason) = died {
+            // The router or another core part is gone: nothing can be routed or closed
+            // cleanly any more. Keep what the registry knows and exit at once, non-zero,
+            // so the service manager starts a whole broker (`Restart=on-failure`).
+            broker.abort();
+            tracing::error!(reason, status = EXIT_FATAL, "fbbus stops");
+            eprintln!("fbbus: stopped: {reason}");
+            std::process::exit(EXIT_FATAL);
         }
         broker.shutdown(Duration::from_secs(5)).await;
         Ok(())

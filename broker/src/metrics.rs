@@ -8,6 +8,8 @@ use prometheus::{
     Encoder, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, IntGaugeVec, Opts,
     Registry, TextEncoder,
 };
+use rumqttd::SavedSessions;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Why a connection ended; the `reason` label of `fbbus_disconnects_total`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -32,6 +34,9 @@ pub enum DisconnectReason {
     Router,
     /// The broker is shutting down.
     Shutdown,
+    /// fbbus failed while serving this connection (a panic in its task, logged): the
+    /// connection is closed as if it had been lost, the rest of the line goes on.
+    Internal,
 }
 
 impl DisconnectReason {
@@ -47,6 +52,7 @@ impl DisconnectReason {
             DisconnectReason::ProtocolError => "protocol_error",
             DisconnectReason::Router => "router",
             DisconnectReason::Shutdown => "shutdown",
+            DisconnectReason::Internal => "internal_error",
         }
     }
 
@@ -63,6 +69,7 @@ impl DisconnectReason {
             DisconnectReason::ProtocolError => "protocol error",
             DisconnectReason::Router => "dropped by the router",
             DisconnectReason::Shutdown => "broker shutdown",
+            DisconnectReason::Internal => "broker internal error",
         }
     }
 }
@@ -104,6 +111,13 @@ pub struct Metrics {
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
     pub bridge_retained_replayed: IntCounter,
+    /// The router's offline persistent sessions, which it updates itself
+    /// (`RouterHooks::saved_sessions`); copied into the two metrics below at each scrape.
+    pub router_sessions: Arc<SavedSessions>,
+    saved_sessions: IntGauge,
+    saved_sessions_dropped: IntCounter,
+    /// Serializes the copy into the counter above (two scrapes at once would add twice).
+    scrape: Mutex<()>,
 }
 
 impl Metrics {
@@ -290,6 +304,18 @@ impl Metrics {
                 "Password and ACL file reloads, by file and result",
                 &["file", "result"],
             ),
+            router_sessions: Arc::default(),
+            saved_sessions: gauge(
+                "fbbus_router_saved_sessions",
+                "Offline persistent sessions (clean session 0) the router keeps for their \
+                 clients; at most max(broker.max_connections, 4096)",
+            ),
+            saved_sessions_dropped: counter(
+                "fbbus_router_saved_sessions_dropped_total",
+                "Saved persistent sessions dropped, the oldest first, because the router \
+                 kept as many as it may",
+            ),
+            scrape: Mutex::new(()),
             registry,
         }
     }
@@ -304,11 +330,27 @@ impl Metrics {
 
     /// The Prometheus text exposition of every metric.
     pub fn render(&self) -> String {
+        self.copy_router_sessions();
         let mut out = Vec::new();
         TextEncoder::new()
             .encode(&self.registry.gather(), &mut out)
             .expect("text encoding to a Vec cannot fail");
         String::from_utf8(out).expect("prometheus text is UTF-8")
+    }
+}
+
+impl Metrics {
+    /// The router's saved-session counters into their metrics.
+    fn copy_router_sessions(&self) {
+        let _one_at_a_time = self.scrape.lock().unwrap_or_else(PoisonError::into_inner);
+        let sessions = &self.router_sessions;
+        self.saved_sessions
+            .set(i64::try_from(sessions.saved()).unwrap_or(i64::MAX));
+        let dropped = sessions.dropped();
+        let counted = self.saved_sessions_dropped.get();
+        if dropped > counted {
+            self.saved_sessions_dropped.inc_by(dropped - counted);
+        }
     }
 }
 

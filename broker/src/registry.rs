@@ -31,7 +31,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, SystemTime};
 
 use fb_bridge::topic;
@@ -192,6 +192,7 @@ impl Registry {
         file: Option<&Path>,
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
+        health: &Arc<crate::health::Health>,
     ) -> Result<Arc<Registry>, LoadError> {
         let mut devices = HashMap::new();
         if let Some(path) = file {
@@ -214,7 +215,10 @@ impl Registry {
             observer: std::sync::OnceLock::new(),
         });
         {
-            let devices = registry.devices.lock().expect("lock poisoned");
+            let devices = registry
+                .devices
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
             for record in devices.values() {
                 registry.announce(record);
             }
@@ -225,7 +229,11 @@ impl Registry {
             }
         }
         if registry.file.is_some() {
-            tokio::spawn(Arc::clone(&registry).persist_loop());
+            crate::supervisor::spawn_core(
+                health,
+                "registry writer",
+                Arc::clone(&registry).persist_loop(),
+            );
         }
         Ok(registry)
     }
@@ -236,7 +244,7 @@ impl Registry {
 
     /// Each known device's latest session number, to seed the session table.
     pub fn sessions(&self) -> Vec<(String, u64)> {
-        let devices = self.devices.lock().expect("lock poisoned");
+        let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         devices
             .values()
             .map(|r| (r.id.clone(), r.session))
@@ -246,7 +254,7 @@ impl Registry {
     /// A device declared its interface on its connection `session`: it is online with it.
     pub fn declare(&self, id: &str, session: u64, interface: Interface) -> Arc<Interface> {
         let interface = Arc::new(interface);
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let record = Record {
             id: id.to_owned(),
             line: self.line.clone(),
@@ -267,7 +275,7 @@ impl Registry {
     /// connection of that id (takeover). Recording the number first is what makes the old
     /// connection's end stale, whichever of the two finishes first.
     pub fn session_started(&self, id: &str, session: u64) {
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         devices.update(
             id,
             |_| true,
@@ -278,7 +286,7 @@ impl Registry {
     /// A client connected with session `session`. A known device is online again (with
     /// its declared interface, returned) until it declares a new one.
     pub fn connected(&self, id: &str, session: u64) -> Option<Arc<Interface>> {
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let record = devices.update(
             id,
             |record| session >= record.session,
@@ -299,7 +307,7 @@ impl Registry {
     /// The connection `session` of `id` ended for `reason`. Applied only if it is the
     /// device's current session; returns whether it was.
     pub fn disconnected(&self, id: &str, session: u64, reason: &str) -> bool {
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let Some(record) = devices.get(id) else {
             return false;
         };
@@ -332,13 +340,17 @@ impl Registry {
     }
 
     pub fn get(&self, id: &str) -> Option<Record> {
-        self.devices.lock().expect("lock poisoned").get(id).cloned()
+        self.devices
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(id)
+            .cloned()
     }
 
     /// The declared interface of `id` if it is a device of `line` (the bridge's typed
     /// check of messages from that line: no record is cloned).
     pub fn remote_interface(&self, id: &str, line: &str) -> Option<Arc<Interface>> {
-        let devices = self.devices.lock().expect("lock poisoned");
+        let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         devices
             .get(id)
             .filter(|r| r.line == line)
@@ -350,7 +362,7 @@ impl Registry {
         let mut all: Vec<Record> = self
             .devices
             .lock()
-            .expect("lock poisoned")
+            .unwrap_or_else(PoisonError::into_inner)
             .values()
             .cloned()
             .collect();
@@ -361,7 +373,7 @@ impl Registry {
     /// Every change of a local device's record from now on is sent to `observer`.
     /// Returns the local records as they are now.
     pub fn observe(&self, observer: tokio::sync::mpsc::UnboundedSender<Record>) -> Vec<Record> {
-        let devices = self.devices.lock().expect("lock poisoned");
+        let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let _ = self.observer.set(observer);
         devices
             .values()
@@ -384,7 +396,7 @@ impl Registry {
         if record.line == self.line {
             return;
         }
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         if devices.get(&record.id).is_some_and(|r| r.line == self.line) {
             tracing::warn!(
                 device = record.id,
@@ -404,7 +416,7 @@ impl Registry {
     /// A remote device's status changed as seen from here (`Unreachable`, or back `Online`
     /// when its liveliness token reappears).
     pub fn remote_status(&self, line: &str, id: &str, status: Status) {
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let changed = devices.update(
             id,
             |r| r.line == line && r.status != status,
@@ -425,7 +437,7 @@ impl Registry {
         if line == self.line {
             return;
         }
-        let mut devices = self.devices.lock().expect("lock poisoned");
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let mut changed = Vec::new();
         devices.update_all(
             |r| r.line == line && r.status != Status::Unreachable,
@@ -575,7 +587,8 @@ mod tests {
     fn announced_counts_follow_every_change() {
         let (publisher, mut published) = BrokerPublisher::detached();
         let metrics = Arc::new(Metrics::new());
-        let registry = Registry::open("a", None, publisher, Arc::clone(&metrics)).unwrap();
+        let health = crate::health::Health::new();
+        let registry = Registry::open("a", None, publisher, Arc::clone(&metrics), &health).unwrap();
         let mut line_online = None;
         let mut check = |step: &str| {
             let records = registry.list();

@@ -39,6 +39,7 @@ use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
 use rumqttd::{Held, Notification, Router, RouterConfig, RouterHooks, Skipped};
 
 use crate::config::BrokerSection;
+use crate::health::Health;
 use crate::metrics::Metrics;
 
 /// How long the router must be quiet before it releases memory.
@@ -64,8 +65,13 @@ pub struct RouterHandle {
 }
 
 impl RouterHandle {
-    /// Starts the router thread with the line's memory bounds.
-    pub fn spawn(broker: &BrokerSection, metrics: Arc<Metrics>) -> RouterHandle {
+    /// Starts the router thread with the line's memory bounds. If the router ever stops
+    /// (a panic, or its loop ending), `health` is told: the broker is dead without it.
+    pub fn spawn(
+        broker: &BrokerSection,
+        metrics: Arc<Metrics>,
+        health: &Arc<Health>,
+    ) -> RouterHandle {
         let config = RouterConfig {
             // One extra for the broker's internal link.
             max_connections: broker.max_connections + 1,
@@ -75,11 +81,18 @@ impl RouterHandle {
             custom_segment: None,
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
+            // Offline persistent sessions the router keeps (the oldest saved is dropped
+            // beyond): every client that can be connected at once may also be away.
+            max_saved_sessions: broker
+                .max_connections
+                .max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS),
         };
         let mut warned = SkipWarnings::default();
         let mut warned_holds = SkipWarnings::default();
         let held_metrics = metrics.clone();
         let hooks = RouterHooks {
+            // Exported as fbbus_router_saved_sessions{,_dropped_total}.
+            saved_sessions: Arc::clone(&metrics.router_sessions),
             hold_limit: Duration::from_millis(broker.slow_subscriber_hold_ms),
             held: Some(Box::new(move |held: &Held<'_>| {
                 let outcome = if held.gave_up { "gave_up" } else { "caught_up" };
@@ -118,6 +131,11 @@ impl RouterHandle {
             released: Some(std::sync::Arc::new(crate::memory::release_freed)),
             idle_after: IDLE_AFTER,
             release_every: RELEASE_EVERY,
+            exited: Some(Box::new({
+                let health = Arc::clone(health);
+                move |reason| health.fatal(reason)
+            })),
+            panic_on_topic: crate::supervisor::test_panic_topic("FBBUS_TEST_ROUTER_PANIC_TOPIC"),
         };
         let router_tx = Router::new(0, config).with_hooks(hooks).spawn();
         RouterHandle {

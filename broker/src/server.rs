@@ -2,7 +2,6 @@
 //! shutdown. Reading this file top to bottom tells what a running fbbus consists of.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -18,11 +17,13 @@ use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
 use crate::connection::{Context, ListenerPolicy};
 use crate::fb_topics::FbTopics;
+use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::listener::Listener;
 use crate::metrics::Metrics;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
 use crate::session_table::SessionTable;
+use crate::supervisor::spawn_core;
 use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
 
@@ -49,6 +50,7 @@ pub enum StartError {
     Router(String),
     #[error("cannot start the password verification threads: {0}")]
     Verifier(std::io::Error),
+    #[cfg(feature = "bridge")]
     #[error(transparent)]
     Bridge(#[from] crate::bridge::BridgeError),
 }
@@ -60,9 +62,10 @@ pub struct Broker {
     pub admin: SocketAddr,
     pub metrics: Arc<Metrics>,
     shutdown: watch::Sender<bool>,
-    ready: Arc<AtomicBool>,
+    health: Arc<Health>,
     tasks: Vec<JoinHandle<()>>,
     registry: Arc<Registry>,
+    #[cfg(feature = "bridge")]
     bridge: Option<Arc<crate::bridge::Bridge>>,
 }
 
@@ -71,6 +74,7 @@ impl Broker {
     /// Must run inside a multi-threaded tokio runtime.
     pub async fn start(config: Config) -> Result<Broker, StartError> {
         let metrics = Arc::new(Metrics::new());
+        let health = Health::new();
 
         let Files {
             passwords,
@@ -82,12 +86,17 @@ impl Broker {
                 .map_err(StartError::Verifier)?,
         );
 
-        let router = RouterHandle::spawn(&config.broker, Arc::clone(&metrics));
+        let router = RouterHandle::spawn(&config.broker, Arc::clone(&metrics), &health);
         let internal = router
             .link(INTERNAL_CLIENT_ID, true, 0)
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
-        let publisher = BrokerPublisher::start((internal.0, internal.1));
+        let publisher = BrokerPublisher::start((internal.0, internal.1), &health);
+        let probe = router
+            .link(PROBE_CLIENT_ID, true, 0)
+            .await
+            .map_err(|e| StartError::Router(e.to_string()))?;
+        health.set_probe(Probe::start((probe.0, probe.1)));
         let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics));
         let registry_file = &config.fb.registry_file;
         let registry = Registry::open(
@@ -95,6 +104,7 @@ impl Broker {
             (!registry_file.as_os_str().is_empty()).then_some(registry_file.as_path()),
             Arc::clone(&publisher),
             Arc::clone(&metrics),
+            &health,
         )
         .map_err(|e| StartError::File {
             kind: "device registry",
@@ -129,14 +139,16 @@ impl Broker {
             max_keep_alive: config.broker.max_keep_alive_s,
             connect_timeout: config.connect_timeout(),
             shutdown: shutdown_rx.clone(),
+            test_panic_topic: crate::supervisor::test_panic_topic("FBBUS_TEST_SESSION_PANIC_TOPIC"),
             bridge: Default::default(),
         });
 
         let mut tasks = Vec::new();
+        #[cfg(feature = "bridge")]
         let bridge = match &config.bridge {
             Some(bus) => {
                 let bridge = crate::bridge::start(bus, Arc::clone(&ctx)).await?;
-                let _ = ctx.bridge.set(Arc::clone(&bridge));
+                let _ = ctx.bridge.set(Arc::clone(&bridge) as _);
                 Some(bridge)
             }
             None => None,
@@ -171,56 +183,84 @@ impl Broker {
         for listener in listeners {
             tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
                 tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
-            tasks.push(tokio::spawn(
+            tasks.push(spawn_core(
+                &health,
+                "listener",
                 listener.run(Arc::clone(&ctx), Arc::clone(&slots)),
             ));
         }
 
-        let ready = Arc::new(AtomicBool::new(false));
         let mut admin_shutdown = shutdown_rx.clone();
-        tasks.push(tokio::spawn(admin::serve(
-            admin_socket,
-            AdminState {
-                metrics: Arc::clone(&metrics),
-                ready: Arc::clone(&ready),
-                registry: Arc::clone(&registry),
-            },
-            async move {
-                let _ = admin_shutdown.changed().await;
-            },
-        )));
+        tasks.push(spawn_core(
+            &health,
+            "admin endpoint",
+            admin::serve(
+                admin_socket,
+                AdminState {
+                    metrics: Arc::clone(&metrics),
+                    health: Arc::clone(&health),
+                    registry: Arc::clone(&registry),
+                },
+                async move {
+                    let _ = admin_shutdown.changed().await;
+                },
+            ),
+        ));
         tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
 
-        tasks.push(tokio::spawn(watch_files(
-            passwords,
-            acl,
-            Duration::from_millis(config.auth.reload_poll_ms),
-            Arc::clone(&metrics),
-            shutdown_rx,
-        )));
+        tasks.push(spawn_core(
+            &health,
+            "file watcher",
+            watch_files(
+                passwords,
+                acl,
+                Duration::from_millis(config.auth.reload_poll_ms),
+                Arc::clone(&metrics),
+                shutdown_rx,
+            ),
+        ));
 
-        ready.store(true, Ordering::Release);
+        health.set_started(true);
         Ok(Broker {
             listeners: bound,
             admin: admin_addr,
             metrics,
             shutdown,
-            ready,
+            health,
             tasks,
             registry,
+            #[cfg(feature = "bridge")]
             bridge,
         })
+    }
+
+    /// Resolves once a part the whole line depends on died (the router thread, a core
+    /// task): the broker cannot serve any more and its process should exit non-zero, so
+    /// the service manager restarts it. `/readyz` already fails by then.
+    pub async fn died(&self) -> String {
+        self.health.died().await
+    }
+
+    /// Stops everything at once, without closing connections or waiting (a core part
+    /// died, see [`Broker::died`]); the registry is written first.
+    pub fn abort(self) {
+        self.health.set_started(false);
+        for task in self.tasks {
+            task.abort();
+        }
+        self.registry.flush();
     }
 
     /// Stops accepting, disconnects every client (MQTT 5: reason 0x8B, server shutting
     /// down) and waits up to `grace` for the connections to close.
     pub async fn shutdown(self, grace: Duration) {
-        self.ready.store(false, Ordering::Release);
+        self.health.set_started(false);
         let _ = self.shutdown.send(true);
         let deadline = tokio::time::Instant::now() + grace;
         while self.metrics.connections.get() > 0 && tokio::time::Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
+        #[cfg(feature = "bridge")]
         if let Some(bridge) = &self.bridge {
             bridge.close().await;
         }

@@ -12,7 +12,7 @@
 //! ([`SessionTable::with_idle`]); a client that came back in time has a newer number.
 
 use std::collections::HashMap;
-use std::sync::Mutex;
+use std::sync::{Mutex, PoisonError};
 
 #[derive(Default)]
 pub struct SessionTable {
@@ -24,7 +24,7 @@ impl SessionTable {
     /// Registers a new connection for `client_id`; returns its session number, and whether
     /// the previous connection of that client id is still running (has not closed yet).
     pub fn open(&self, client_id: &str) -> (u64, bool) {
-        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
         let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
         let previous_running = entry.1;
         entry.0 += 1;
@@ -34,7 +34,7 @@ impl SessionTable {
 
     /// Continues `client_id`'s numbering after `session` (from the persisted registry).
     pub fn seed(&self, client_id: &str, session: u64) {
-        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
         let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
         entry.0 = entry.0.max(session);
     }
@@ -43,7 +43,7 @@ impl SessionTable {
     pub fn is_current(&self, client_id: &str, session: u64) -> bool {
         self.sessions
             .lock()
-            .expect("lock poisoned")
+            .unwrap_or_else(PoisonError::into_inner)
             .get(client_id)
             .is_some_and(|(latest, _)| *latest == session)
     }
@@ -51,7 +51,7 @@ impl SessionTable {
     /// Runs `f` if `session` is the newest session of `client_id` and not connected, with
     /// the table held, so no connection of that client id starts while `f` runs.
     pub fn with_idle<R>(&self, client_id: &str, session: u64, f: impl FnOnce() -> R) -> Option<R> {
-        let sessions = self.sessions.lock().expect("lock poisoned");
+        let sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
         match sessions.get(client_id) {
             Some((latest, false)) if *latest == session => Some(f()),
             _ => None,
@@ -69,7 +69,7 @@ impl SessionTable {
     /// connection's [`SessionTable::open`] (which then reports no running predecessor), or
     /// handed over knowing it is awaited (`redelivery`).
     pub fn close_with<R>(&self, client_id: &str, session: u64, f: impl FnOnce(bool) -> R) -> R {
-        let mut sessions = self.sessions.lock().expect("lock poisoned");
+        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
         let entry = sessions.get_mut(client_id);
         let superseded = entry.as_ref().is_some_and(|(latest, _)| *latest != session);
         if let Some(entry) = entry {

@@ -7,7 +7,7 @@
 //! because a half-edited file must not lock a whole line out.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, PoisonError, RwLock};
 use std::time::SystemTime;
 
 use crate::metrics::Metrics;
@@ -62,7 +62,10 @@ impl<T> WatchedFile<T> {
 
     /// The current contents.
     pub fn get(&self) -> Arc<T> {
-        self.current.read().expect("lock poisoned").clone()
+        self.current
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     pub fn path(&self) -> &Path {
@@ -72,21 +75,21 @@ impl<T> WatchedFile<T> {
     /// Replaces the contents after the broker itself rewrote the file (password re-hashing),
     /// so the poll does not reload what is already in memory.
     pub fn replace(&self, value: T) {
-        *self.stamp.write().expect("lock poisoned") = stamp(&self.path);
-        *self.current.write().expect("lock poisoned") = Arc::new(value);
+        *self.stamp.write().unwrap_or_else(PoisonError::into_inner) = stamp(&self.path);
+        *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(value);
     }
 
     /// Reloads if the file changed since the last load (`force`: reload anyway, for SIGHUP).
     /// Returns true when new contents were installed.
     pub fn reload(&self, force: bool, metrics: &Metrics) -> bool {
         let now = stamp(&self.path);
-        if !force && *self.stamp.read().expect("lock poisoned") == now {
+        if !force && *self.stamp.read().unwrap_or_else(PoisonError::into_inner) == now {
             return false;
         }
-        *self.stamp.write().expect("lock poisoned") = now;
+        *self.stamp.write().unwrap_or_else(PoisonError::into_inner) = now;
         match (self.loader)(&self.path) {
             Ok(value) => {
-                *self.current.write().expect("lock poisoned") = Arc::new(value);
+                *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(value);
                 metrics.reloads.with_label_values(&[self.kind, "ok"]).inc();
                 tracing::info!(file = %self.path.display(), kind = self.kind, "reloaded");
                 true

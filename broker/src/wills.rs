@@ -13,7 +13,7 @@
 //! cannot use its will to publish where it may not publish itself.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -82,7 +82,7 @@ impl Wills {
         if let Some(tasks) = self
             .delayed
             .lock()
-            .expect("lock poisoned")
+            .unwrap_or_else(PoisonError::into_inner)
             .remove(client_id)
         {
             tasks.iter().for_each(JoinHandle::abort);
@@ -101,13 +101,16 @@ impl Wills {
         let id = client_id.to_owned();
         let task = tokio::spawn(async move {
             tokio::time::sleep(will.delay).await;
-            this.delayed.lock().expect("lock poisoned").remove(&id);
+            this.delayed
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .remove(&id);
             this.publish(&id, session, will);
         });
         // Several when a typed will is published in several encodings.
         self.delayed
             .lock()
-            .expect("lock poisoned")
+            .unwrap_or_else(PoisonError::into_inner)
             .entry(client_id.to_owned())
             .or_default()
             .push(task);

@@ -22,6 +22,7 @@
 //! encodings, registry) is written down in this crate's README.
 
 pub mod bus;
+#[cfg(feature = "client")]
 pub mod client;
 pub mod codec;
 pub mod interface;

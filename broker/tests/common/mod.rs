@@ -79,6 +79,8 @@ pub struct Options {
     pub log_level: String,
     /// `text` or `json`.
     pub log_format: &'static str,
+    /// Environment variables for the broker process (the test-only fault hooks).
+    pub env: Vec<(&'static str, String)>,
 }
 
 impl Default for Options {
@@ -88,6 +90,7 @@ impl Default for Options {
             listener_extra: String::new(),
             log_level: "info,rumqttd=warn".into(),
             log_format: "text",
+            env: Vec::new(),
         }
     }
 }
@@ -118,7 +121,7 @@ impl Broker {
             ),
         )
         .unwrap();
-        Broker::spawn(dir, config, mqtt, admin)
+        Broker::spawn_with_env(dir, config, mqtt, admin, &options.env)
     }
 
     /// Starts the broker on a complete config file the caller wrote.
@@ -128,10 +131,22 @@ impl Broker {
         mqtt: SocketAddr,
         admin: SocketAddr,
     ) -> Broker {
+        Broker::spawn_with_env(dir, config, mqtt, admin, &[])
+    }
+
+    /// [`Broker::spawn`] with environment variables for the broker process.
+    pub fn spawn_with_env(
+        dir: tempfile::TempDir,
+        config: PathBuf,
+        mqtt: SocketAddr,
+        admin: SocketAddr,
+        env: &[(&'static str, String)],
+    ) -> Broker {
         let log = dir.path().join("broker.log");
         let child = Command::new(fbbus_bin())
             .args(["serve", "--config", config.to_str().unwrap()])
             .env_remove("RUST_LOG")
+            .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()

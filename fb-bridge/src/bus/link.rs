@@ -12,7 +12,7 @@
 //! - liveliness of lines and devices ([`Event`]), registry records (put, queried) and
 //!   retained messages (queried when a line starts importing a filter).
 
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use zenoh::key_expr::KeyExpr;
@@ -287,7 +287,10 @@ impl Link {
             .declare_token(keys::line_token(&self.line))
             .await
             .map_err(zerr)?;
-        *self.line_token.lock().expect("lock poisoned") = Some(token);
+        *self
+            .line_token
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(token);
         Ok(())
     }
 

@@ -1,0 +1,201 @@
+//! What happens when code panics anyway.
+//!
+//! No panic should be reachable from the network or from stored state: input is checked
+//! where it enters (`codec`, `frame`, the router's protocol helpers, the typed codecs), and
+//! the fuzz targets in `broker/fuzz` keep it so. This module is the last line, and it
+//! does not pretend a panic did not happen:
+//!
+//! - a task or thread the whole line depends on ([`spawn_core`], [`core_thread`]) that
+//!   panics is **fatal**: [`Health::fatal`] makes `/readyz` fail at once and `fbbus serve`
+//!   exits non-zero, so the service manager restarts a broker that is whole again;
+//! - a panic in one connection's task ends that connection only: the session is closed as
+//!   for any other abnormal end (router unlinked, will published, gauges and registry
+//!   updated), see `connection::serve`, which wraps the session in [`CatchPanic`].
+//!
+//! A panic is logged where it happens by the panic hook [`install_panic_hook`] installs
+//! (thread, location, message), whatever caught it.
+
+use std::any::Any;
+use std::future::Future;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+
+use tokio::task::JoinHandle;
+
+use crate::health::Health;
+
+/// A future whose panics come out as `Err(message)` instead of unwinding further.
+///
+/// The future is not polled again after it panicked: its state may be half-updated, so
+/// whoever gets the `Err` must only clean up with what it owns outside the future.
+pub struct CatchPanic<F> {
+    inner: Option<Pin<Box<F>>>,
+}
+
+impl<F: Future> CatchPanic<F> {
+    pub fn new(future: F) -> CatchPanic<F> {
+        CatchPanic {
+            inner: Some(Box::pin(future)),
+        }
+    }
+}
+
+impl<F: Future> Future for CatchPanic<F> {
+    type Output = Result<F::Output, String>;
+
+    fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
+        let Some(inner) = self.inner.as_mut() else {
+            return Poll::Pending;
+        };
+        match catch_unwind(AssertUnwindSafe(|| inner.as_mut().poll(cx))) {
+            Ok(Poll::Pending) => Poll::Pending,
+            Ok(Poll::Ready(output)) => {
+                self.inner = None;
+                Poll::Ready(Ok(output))
+            }
+            Err(panic) => {
+                self.inner = None;
+                Poll::Ready(Err(panic_message(panic.as_ref()).to_owned()))
+            }
+        }
+    }
+}
+
+/// Spawns a task the line depends on: if it panics, the broker is not whole any more.
+pub fn spawn_core<F>(health: &Arc<Health>, name: &'static str, task: F) -> JoinHandle<()>
+where
+    F: Future<Output = ()> + Send + 'static,
+{
+    let health = Arc::clone(health);
+    tokio::spawn(async move {
+        if let Err(message) = CatchPanic::new(task).await {
+            health.fatal(format!("task `{name}` panicked: {message}"));
+        }
+    })
+}
+
+/// Held by a thread the line depends on for as long as it runs: if the thread unwinds,
+/// dropping it reports the panic as fatal.
+pub struct CoreThread {
+    name: String,
+    health: Arc<Health>,
+}
+
+/// The guard a core thread holds (see [`CoreThread`]).
+pub fn core_thread(health: &Arc<Health>, name: impl Into<String>) -> CoreThread {
+    CoreThread {
+        name: name.into(),
+        health: Arc::clone(health),
+    }
+}
+
+impl Drop for CoreThread {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.health.fatal(format!(
+                "thread `{}` panicked (see the log line before)",
+                self.name
+            ));
+        }
+    }
+}
+
+/// The message of a panic payload (`panic!` makes a `&str` or a `String`).
+pub fn panic_message(panic: &(dyn Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}
+
+/// Debug builds only (the tests' binary): the topic the environment variable `var` names,
+/// whose publication makes a part of the broker panic on purpose, so tests can check what
+/// a panic does (`FBBUS_TEST_ROUTER_PANIC_TOPIC`: the router thread;
+/// `FBBUS_TEST_SESSION_PANIC_TOPIC`: the publishing client's session). A release build
+/// ignores them.
+pub fn test_panic_topic(var: &str) -> Option<String> {
+    if cfg!(debug_assertions) {
+        std::env::var(var).ok().filter(|t| !t.is_empty())
+    } else {
+        None
+    }
+}
+
+/// Logs every panic through `tracing` (thread, location, message), so it reaches the
+/// broker's log in its format (JSON included), not only standard error.
+pub fn install_panic_hook() {
+    std::panic::set_hook(Box::new(|info| {
+        let thread = std::thread::current();
+        let location = info
+            .location()
+            .map(|l| format!("{}:{}:{}", l.file(), l.line(), l.column()))
+            .unwrap_or_default();
+        tracing::error!(
+            thread = thread.name().unwrap_or("(unnamed)"),
+            location,
+            message = panic_message(info.payload()),
+            "panic"
+        );
+    }));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_panicking_future_comes_out_as_its_message() {
+        let caught = CatchPanic::new(async {
+            tokio::task::yield_now().await;
+            panic!("boom at {}", 7);
+        })
+        .await;
+        assert_eq!(caught, Err("boom at 7".to_owned()));
+        assert_eq!(CatchPanic::new(async { 5 }).await, Ok(5));
+    }
+
+    #[tokio::test]
+    async fn a_panicking_core_task_is_fatal() {
+        let health = Health::new();
+        assert!(health.fatal_reason().is_none());
+        let task = spawn_core(&health, "test", async { panic!("core broke") });
+        task.await.expect("the panic is caught inside the task");
+        let reason = tokio::time::timeout(std::time::Duration::from_secs(1), health.died())
+            .await
+            .expect("died() resolves");
+        assert!(
+            reason.contains("test") && reason.contains("core broke"),
+            "{reason}"
+        );
+        assert!(health.ready().await.is_err());
+    }
+
+    #[tokio::test]
+    async fn a_core_thread_that_panics_is_fatal() {
+        let health = Health::new();
+        let h = Arc::clone(&health);
+        let joined = std::thread::spawn(move || {
+            let _guard = core_thread(&h, "worker");
+            panic!("thread broke");
+        })
+        .join();
+        assert!(joined.is_err());
+        let reason = health.fatal_reason().expect("fatal");
+        assert!(reason.contains("worker"), "{reason}");
+    }
+
+    #[tokio::test]
+    async fn a_core_thread_that_ends_normally_is_not_fatal() {
+        let health = Health::new();
+        let h = Arc::clone(&health);
+        std::thread::spawn(move || {
+            let _guard = core_thread(&h, "worker");
+        })
+        .join()
+        .unwrap();
+        assert!(health.fatal_reason().is_none());
+    }
+}
