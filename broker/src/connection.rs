@@ -56,7 +56,7 @@ use crate::packet_ids::{PacketIds, Resume};
 use crate::redelivery::{self, Redeliveries};
 use crate::router::{unlink, RouterHandle};
 use crate::session_lifetime::{end_idle_session, purge_router_session, SessionLifetime};
-use crate::session_table::SessionTable;
+use crate::session_table::{Remains, SessionTable};
 use crate::supervisor::CatchPanic;
 use crate::watched_file::WatchedFile;
 use crate::wills::{Will, Wills};
@@ -476,9 +476,10 @@ impl Session {
             let (link_tx, link_rx, ack) = match linked {
                 Ok(link) => link,
                 Err(e) => {
-                    ctx.sessions.close_with(&client_id, session, |superseded| {
-                        ctx.redeliveries.abandoned(&client_id, session, superseded)
-                    });
+                    ctx.sessions
+                        .close_with(&client_id, session, Remains::Nothing, |superseded| {
+                            ctx.redeliveries.abandoned(&client_id, session, superseded)
+                        });
                     tracing::error!(client_id, error = %e, "router refused the connection");
                     return Err(refuse(
                         ConnectReturnCode::ServerUnavailable,
@@ -526,11 +527,16 @@ impl Session {
         }
         if io.flush().await.is_err() {
             let _ = unlink(accepted.link_tx).await;
-            ctx.sessions
-                .close_with(&accepted.client_id, accepted.session, |superseded| {
+            let remains = accepted.lifetime.remains();
+            ctx.sessions.close_with(
+                &accepted.client_id,
+                accepted.session,
+                remains,
+                |superseded| {
                     ctx.redeliveries
                         .abandoned(&accepted.client_id, accepted.session, superseded)
-                });
+                },
+            );
             // It may have taken an online device's session over: that device is gone now.
             ctx.fb.registry.disconnected(
                 &accepted.client_id,
@@ -1471,9 +1477,11 @@ impl Session {
         };
         let (redeliveries, client_id, session) =
             (&self.ctx.redeliveries, &*self.client_id, self.session);
+        // A kept session with an expiry is ended by the expiry task (`session_lifetime`).
+        let remains = self.lifetime.remains();
         self.ctx
             .sessions
-            .close_with(client_id, session, |superseded| {
+            .close_with(client_id, session, remains, |superseded| {
                 redeliveries.save(client_id, session, open, superseded)
             });
         if self.version == Version::V5 {
@@ -1521,13 +1529,10 @@ impl Session {
             self.session,
             end.reason().description(),
         );
-        if let Some(after) = self.lifetime.expires_after {
-            let (ctx, client_id, session) =
-                (Arc::clone(&self.ctx), self.client_id.clone(), self.session);
-            tokio::spawn(async move {
-                tokio::time::sleep(after).await;
-                end_idle_session(&ctx, &client_id, session).await;
-            });
+        // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0); later
+        // ones are the expiry task's (`session_lifetime::expire_sessions`).
+        if self.lifetime.expires_after == Some(Duration::ZERO) {
+            end_idle_session(&self.ctx, &self.client_id, self.session).await;
         }
         self.ctx.metrics.disconnected(end.reason());
         self.ctx.metrics.connections.dec();

@@ -21,8 +21,13 @@
 //! Fingerprints, because the router's re-send is a new forward with nothing else that
 //! ties it to the first delivery. The router re-sends before anything new, so a new
 //! message with the same topic and payload cannot take a re-sent one's place.
+//!
+//! Bounded: at most as many handovers as the router keeps sessions
+//! (`router::saved_sessions_limit`); beyond, the one of the oldest session (lowest session
+//! number, numbers are global) is dropped: its client, if it ever comes back, gets the
+//! router's re-sends with DUP=0 and new packet ids, as before fbbus tracked them.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::hash::{Hash, Hasher};
 use std::sync::Mutex;
 use std::time::Duration;
@@ -40,9 +45,39 @@ pub fn fingerprint(topic: &[u8], payload: &[u8]) -> u64 {
 /// How long a connection waits for its still-running predecessor's handover.
 pub const HANDOVER_WAIT: Duration = Duration::from_secs(1);
 
-#[derive(Default)]
 pub struct Redeliveries {
-    pending: Mutex<HashMap<String, Handover>>,
+    pending: Mutex<Pending>,
+    /// Handovers kept at most.
+    limit: usize,
+}
+
+#[derive(Default)]
+struct Pending {
+    by_client: HashMap<String, Handover>,
+    /// Client ids by the session number of their handover, oldest first.
+    by_session: BTreeMap<u64, String>,
+}
+
+impl Pending {
+    fn insert(&mut self, client_id: &str, handover: Handover, limit: usize) {
+        self.by_session
+            .insert(handover.session, client_id.to_owned());
+        if let Some(old) = self.by_client.insert(client_id.to_owned(), handover) {
+            self.by_session.remove(&old.session);
+        }
+        while self.by_client.len() > limit {
+            let Some((_, oldest)) = self.by_session.pop_first() else {
+                break;
+            };
+            self.by_client.remove(&oldest);
+        }
+    }
+
+    fn remove(&mut self, client_id: &str) -> Option<Handover> {
+        let handover = self.by_client.remove(client_id)?;
+        self.by_session.remove(&handover.session);
+        Some(handover)
+    }
 }
 
 /// What the connection with session number `session` handed over.
@@ -52,6 +87,14 @@ struct Handover {
 }
 
 impl Redeliveries {
+    /// A table keeping at most `limit` handovers.
+    pub fn new(limit: usize) -> Redeliveries {
+        Redeliveries {
+            pending: Mutex::default(),
+            limit,
+        }
+    }
+
     /// The connection `session` of `client_id` ended with these exchanges open (empty for
     /// a clean session). `superseded`: a newer connection of the client id has started and
     /// waits for this, so even nothing is handed over as a mark.
@@ -60,7 +103,7 @@ impl Redeliveries {
         if resume.is_empty() && !superseded {
             pending.remove(client_id);
         } else {
-            pending.insert(client_id.to_owned(), Handover { session, resume });
+            pending.insert(client_id, Handover { session, resume }, self.limit);
         }
     }
 
@@ -68,13 +111,13 @@ impl Redeliveries {
     /// CONNACK could not be sent): what an earlier connection handed over stays for the
     /// next one; a newer connection waiting for this one gets a mark.
     pub fn abandoned(&self, client_id: &str, session: u64, superseded: bool) {
-        if superseded {
-            self.pending()
-                .entry(client_id.to_owned())
-                .or_insert(Handover {
-                    session,
-                    resume: Resume::default(),
-                });
+        let mut pending = self.pending();
+        if superseded && !pending.by_client.contains_key(client_id) {
+            let mark = Handover {
+                session,
+                resume: Resume::default(),
+            };
+            pending.insert(client_id, mark, self.limit);
         }
     }
 
@@ -86,7 +129,11 @@ impl Redeliveries {
         loop {
             {
                 let mut pending = self.pending();
-                if pending.get(client_id).is_some_and(|h| h.session < session) {
+                if pending
+                    .by_client
+                    .get(client_id)
+                    .is_some_and(|h| h.session < session)
+                {
                     return pending
                         .remove(client_id)
                         .map(|h| h.resume)
@@ -107,8 +154,10 @@ impl Redeliveries {
 
     /// The table, also after a panic elsewhere left the lock poisoned: every update is a
     /// single insert or remove, so it is never half done.
-    fn pending(&self) -> std::sync::MutexGuard<'_, HashMap<String, Handover>> {
-        self.pending.lock().unwrap_or_else(|e| e.into_inner())
+    fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
+        self.pending
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 }
 
@@ -125,7 +174,7 @@ mod tests {
 
     #[tokio::test]
     async fn open_exchanges_are_handed_over_once() {
-        let r = Redeliveries::default();
+        let r = Redeliveries::new(10);
         let a = fingerprint(b"t", b"one");
         assert_ne!(a, fingerprint(b"t", b"two"));
         assert_ne!(a, fingerprint(b"to", b"ne"));
@@ -139,7 +188,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_connection_waits_for_its_running_predecessor() {
-        let r = std::sync::Arc::new(Redeliveries::default());
+        let r = std::sync::Arc::new(Redeliveries::new(10));
         let a = fingerprint(b"t", b"one");
         let late = r.clone();
         tokio::spawn(async move {
@@ -160,5 +209,20 @@ mod tests {
             started.elapsed() < HANDOVER_WAIT,
             "waited for the mark, not the limit"
         );
+    }
+
+    /// Issue 14: at most `limit` handovers, the oldest session's dropped first.
+    #[tokio::test]
+    async fn handovers_are_bounded() {
+        let r = Redeliveries::new(2);
+        let a = fingerprint(b"t", b"one");
+        for (session, id) in [(1, "a"), (2, "b"), (3, "c")] {
+            r.save(id, session, open_exchange(a), false);
+        }
+        assert!(r.take("a", 10, false).await.is_empty(), "dropped");
+        assert_eq!(r.take("b", 11, false).await, open_exchange(a));
+        assert_eq!(r.take("c", 12, false).await, open_exchange(a));
+        let pending = r.pending();
+        assert!(pending.by_client.is_empty() && pending.by_session.is_empty());
     }
 }

@@ -42,6 +42,15 @@ use crate::config::BrokerSection;
 use crate::health::Health;
 use crate::metrics::Metrics;
 
+/// Offline persistent sessions kept at most, by the router and by the broker's session
+/// table alike (the oldest closed is dropped beyond): every client that can be connected
+/// at once may also be away.
+pub fn saved_sessions_limit(broker: &BrokerSection) -> usize {
+    broker
+        .max_connections
+        .max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS)
+}
+
 /// How long the router must be quiet before it releases memory.
 pub const IDLE_AFTER: Duration = Duration::from_millis(500);
 
@@ -81,11 +90,7 @@ impl RouterHandle {
             custom_segment: None,
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
-            // Offline persistent sessions the router keeps (the oldest saved is dropped
-            // beyond): every client that can be connected at once may also be away.
-            max_saved_sessions: broker
-                .max_connections
-                .max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS),
+            max_saved_sessions: saved_sessions_limit(broker),
         };
         let mut warned = SkipWarnings::default();
         let mut warned_holds = SkipWarnings::default();

@@ -20,6 +20,7 @@ use crate::fb_topics::FbTopics;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::listener::Listener;
 use crate::metrics::Metrics;
+use crate::redelivery::Redeliveries;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
 use crate::session_table::SessionTable;
@@ -113,9 +114,9 @@ impl Broker {
         })?;
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
-        let sessions = SessionTable::default();
-        for (device, session) in registry.sessions() {
-            sessions.seed(&device, session);
+        let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker));
+        for (_, session) in registry.sessions() {
+            sessions.seed(session);
         }
 
         let (shutdown, shutdown_rx) = watch::channel(false);
@@ -132,7 +133,7 @@ impl Broker {
                 Arc::clone(&metrics),
             ),
             sessions,
-            redeliveries: Default::default(),
+            redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(&config.broker)),
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -189,6 +190,12 @@ impl Broker {
                 listener.run(Arc::clone(&ctx), Arc::clone(&slots)),
             ));
         }
+
+        tasks.push(spawn_core(
+            &health,
+            "session expiry",
+            crate::session_lifetime::expire_sessions(Arc::clone(&ctx), shutdown_rx.clone()),
+        ));
 
         let mut admin_shutdown = shutdown_rx.clone();
         tasks.push(spawn_core(

@@ -5,13 +5,18 @@
 //! connects, and the Session Expiry Interval decides how long the new one outlives the
 //! connection (3.1.2.4, 3.1.2.11.2). [`SessionLifetime`] maps the CONNECT onto rumqttd:
 //! a v5 link is clean only for Clean Start with expiry 0; Clean Start with expiry > 0 first
-//! ends the old session with a purge link; an expiry timer ends an idle session, guarded
-//! by the session number so a client that came back keeps its session.
+//! ends the old session with a purge link; the expiry task ([`expire_sessions`]) ends an
+//! idle session when due, guarded by the session number so a client that came back keeps
+//! its session.
 
+use std::sync::Arc;
 use std::time::Duration;
+
+use tokio::sync::watch;
 
 use crate::connection::Context;
 use crate::router::{unlink, RouterHandle};
+use crate::session_table::Remains;
 
 /// When the router's copy of a session ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -49,6 +54,17 @@ impl SessionLifetime {
     }
 }
 
+impl SessionLifetime {
+    /// What the router keeps of the session once its connection ends.
+    pub fn remains(&self) -> Remains {
+        if self.clean_link {
+            Remains::Nothing
+        } else {
+            Remains::Kept(self.expires_after)
+        }
+    }
+}
+
 /// Ends a session the router saved for `client_id`: a clean link with that client id
 /// replaces the saved state, and is disconnected at once.
 pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
@@ -69,5 +85,25 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
         let _ = unlink(tx).await;
         ctx.redeliveries.forget(client_id);
         tracing::debug!(client_id, "session expired");
+    }
+}
+
+/// How often the expiry task looks for sessions whose expiry is due: MQTT 5 expiry
+/// intervals are whole seconds.
+const EXPIRY_TICK: Duration = Duration::from_secs(1);
+
+/// Ends the kept sessions whose expiry is due (`SessionTable::due`), until shutdown. One
+/// task for all of them: their deadlines live in the session table, which is bounded.
+pub async fn expire_sessions(ctx: Arc<Context>, mut shutdown: watch::Receiver<bool>) {
+    let mut tick = tokio::time::interval(EXPIRY_TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = shutdown.changed() => return,
+        }
+        for (client_id, session) in ctx.sessions.due(tokio::time::Instant::now()) {
+            end_idle_session(&ctx, &client_id, session).await;
+        }
     }
 }

@@ -10,57 +10,128 @@
 //! The number also makes MQTT 5 session expiry simple: when a session's expiry is due,
 //! it is ended only if its number is still the newest and nobody is connected with it
 //! ([`SessionTable::with_idle`]); a client that came back in time has a newer number.
+//!
+//! **Bounded.** Numbers come from one counter for all client ids, so a client id needs no
+//! entry to be numbered above its past sessions: the table holds only the connected
+//! clients (at most `max_connections`) and the offline sessions the router keeps, at most
+//! `limit` of them, the oldest closed dropped first, as the router drops its saved
+//! sessions (`router::saved_sessions_limit`). A clean session leaves nothing. The expiry
+//! deadlines of the offline sessions live here too, served by one task
+//! ([`SessionTable::due`]) instead of a sleeping task per session. Before, every client
+//! id ever seen stayed (~350 bytes each, found by `fbbus-loadtest churn`), and every MQTT
+//! 5 session with an expiry left a task asleep for that long.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+
+use tokio::time::Instant;
+
+pub struct SessionTable {
+    inner: Mutex<Inner>,
+    /// Offline sessions kept at most.
+    limit: usize,
+}
 
 #[derive(Default)]
-pub struct SessionTable {
-    /// client id -> (latest session number, whether that session is connected)
-    sessions: Mutex<HashMap<String, (u64, bool)>>,
+struct Inner {
+    /// The last session number given out, to any client id.
+    last: u64,
+    clients: HashMap<String, Client>,
+    /// The offline sessions, by the order they closed (oldest first).
+    offline: BTreeMap<u64, String>,
+    closes: u64,
+    /// The offline sessions' expiry deadlines.
+    expiries: BTreeMap<(Instant, u64), String>,
+}
+
+struct Client {
+    /// The client id's latest session number.
+    latest: u64,
+    /// Whether that session is connected.
+    connected: bool,
+    /// While offline: its place in `offline`, and in `expiries` if it expires.
+    closed: Option<(u64, Option<Instant>)>,
+}
+
+/// What remains of a session once its connection ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Remains {
+    /// Nothing: a clean session, or one the router refused.
+    Nothing,
+    /// The router keeps it, forever (`None`) or until it expires.
+    Kept(Option<Duration>),
 }
 
 impl SessionTable {
+    /// A table keeping at most `limit` offline sessions.
+    pub fn new(limit: usize) -> SessionTable {
+        SessionTable {
+            inner: Mutex::default(),
+            limit,
+        }
+    }
+
+    /// The table, also after a panic elsewhere left the lock poisoned: every update below
+    /// leaves it consistent before it could panic.
+    fn inner(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
     /// Registers a new connection for `client_id`; returns its session number, and whether
     /// the previous connection of that client id is still running (has not closed yet).
     pub fn open(&self, client_id: &str) -> (u64, bool) {
-        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
-        let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
-        let previous_running = entry.1;
-        entry.0 += 1;
-        entry.1 = true;
-        (entry.0, previous_running)
+        let mut inner = self.inner();
+        inner.last += 1;
+        let session = inner.last;
+        let previous = inner.clients.insert(
+            client_id.to_owned(),
+            Client {
+                latest: session,
+                connected: true,
+                closed: None,
+            },
+        );
+        let previous_running = previous.as_ref().is_some_and(|c| c.connected);
+        if let Some(previous) = previous {
+            inner.forget_closed(&previous);
+        }
+        (session, previous_running)
     }
 
-    /// Continues `client_id`'s numbering after `session` (from the persisted registry).
-    pub fn seed(&self, client_id: &str, session: u64) {
-        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
-        let entry = sessions.entry(client_id.to_owned()).or_insert((0, false));
-        entry.0 = entry.0.max(session);
+    /// Numbers sessions above `session` from now on (from the persisted registry).
+    pub fn seed(&self, session: u64) {
+        let mut inner = self.inner();
+        inner.last = inner.last.max(session);
     }
 
     /// Whether `session` is still the newest session of `client_id`.
     pub fn is_current(&self, client_id: &str, session: u64) -> bool {
-        self.sessions
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
+        self.inner()
+            .clients
             .get(client_id)
-            .is_some_and(|(latest, _)| *latest == session)
+            .is_some_and(|c| c.latest == session)
     }
 
     /// Runs `f` if `session` is the newest session of `client_id` and not connected, with
-    /// the table held, so no connection of that client id starts while `f` runs.
+    /// the table held, so no connection of that client id starts while `f` runs; the
+    /// session is then ended (`f` ends it in the router) and leaves the table.
     pub fn with_idle<R>(&self, client_id: &str, session: u64, f: impl FnOnce() -> R) -> Option<R> {
-        let sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
-        match sessions.get(client_id) {
-            Some((latest, false)) if *latest == session => Some(f()),
-            _ => None,
+        let mut inner = self.inner();
+        match inner.clients.get(client_id) {
+            Some(c) if c.latest == session && !c.connected => {}
+            _ => return None,
         }
+        let result = f();
+        if let Some(ended) = inner.clients.remove(client_id) {
+            inner.forget_closed(&ended);
+        }
+        Some(result)
     }
 
-    /// The connection of `session` ended; the number is kept so the next one is higher.
-    pub fn close(&self, client_id: &str, session: u64) {
-        self.close_with(client_id, session, |_| ());
+    /// The connection of `session` ended, leaving what `remains`.
+    pub fn close(&self, client_id: &str, session: u64, remains: Remains) {
+        self.close_with(client_id, session, remains, |_| ());
     }
 
     /// [`SessionTable::close`], running `f(superseded)` with the table held: `superseded`
@@ -68,16 +139,87 @@ impl SessionTable {
     /// starts while `f` runs, so what `f` hands over is either there before the newer
     /// connection's [`SessionTable::open`] (which then reports no running predecessor), or
     /// handed over knowing it is awaited (`redelivery`).
-    pub fn close_with<R>(&self, client_id: &str, session: u64, f: impl FnOnce(bool) -> R) -> R {
-        let mut sessions = self.sessions.lock().unwrap_or_else(PoisonError::into_inner);
-        let entry = sessions.get_mut(client_id);
-        let superseded = entry.as_ref().is_some_and(|(latest, _)| *latest != session);
-        if let Some(entry) = entry {
-            if entry.0 == session {
-                entry.1 = false;
+    pub fn close_with<R>(
+        &self,
+        client_id: &str,
+        session: u64,
+        remains: Remains,
+        f: impl FnOnce(bool) -> R,
+    ) -> R {
+        let mut inner = self.inner();
+        let superseded = match inner.clients.get(client_id) {
+            Some(c) => c.latest != session,
+            None => true,
+        };
+        if !superseded {
+            match remains {
+                Remains::Nothing => {
+                    inner.clients.remove(client_id);
+                }
+                Remains::Kept(expires_after) => inner.keep(client_id, expires_after, self.limit),
             }
         }
         f(superseded)
+    }
+
+    /// Sessions whose expiry is due at `now`: (client id, session) to end with
+    /// `session_lifetime::end_idle_session`. They stay in the table until then.
+    pub fn due(&self, now: Instant) -> Vec<(String, u64)> {
+        let mut inner = self.inner();
+        let mut due = Vec::new();
+        while let Some(entry) = inner.expiries.first_entry() {
+            if entry.key().0 > now {
+                break;
+            }
+            let ((_, session), client_id) = entry.remove_entry();
+            due.push((client_id, session));
+        }
+        due
+    }
+
+    /// (connected, offline) sessions in the table.
+    pub fn len(&self) -> (usize, usize) {
+        let inner = self.inner();
+        let offline = inner.offline.len();
+        (inner.clients.len() - offline, offline)
+    }
+}
+
+impl Inner {
+    /// `client_id`'s current session went offline and is kept.
+    fn keep(&mut self, client_id: &str, expires_after: Option<Duration>, limit: usize) {
+        self.closes += 1;
+        let order = self.closes;
+        let Some(client) = self.clients.get_mut(client_id) else {
+            return;
+        };
+        let expiry = expires_after.map(|after| Instant::now() + after);
+        client.connected = false;
+        client.closed = Some((order, expiry));
+        let session = client.latest;
+        self.offline.insert(order, client_id.to_owned());
+        if let Some(at) = expiry {
+            self.expiries.insert((at, session), client_id.to_owned());
+        }
+        while self.offline.len() > limit {
+            let Some((_, oldest)) = self.offline.pop_first() else {
+                break;
+            };
+            if let Some(dropped) = self.clients.remove(&oldest) {
+                self.forget_closed(&dropped);
+            }
+        }
+    }
+
+    /// The places of `client`'s offline session in `offline` and `expiries`, if it had
+    /// one, are gone (it left the table).
+    fn forget_closed(&mut self, client: &Client) {
+        if let Some((order, expiry)) = client.closed {
+            self.offline.remove(&order);
+            if let Some(at) = expiry {
+                self.expiries.remove(&(at, client.latest));
+            }
+        }
     }
 }
 
@@ -87,7 +229,8 @@ mod tests {
 
     #[test]
     fn a_newer_session_makes_the_older_one_stale() {
-        let t = SessionTable::default();
+        let t = SessionTable::new(10);
+        let kept = Remains::Kept(None);
         let (a, running) = t.open("plc");
         assert!(!running);
         assert!(t.is_current("plc", a));
@@ -95,16 +238,70 @@ mod tests {
         assert!(b > a);
         assert!(running, "a has not closed");
         assert!(!t.is_current("plc", a));
-        t.close("plc", a);
+        t.close("plc", a, kept);
         assert!(t.is_current("plc", b));
         assert_eq!(t.with_idle("plc", b, || ()), None, "connected");
-        t.close("plc", b);
-        assert_eq!(t.with_idle("plc", b, || 7), Some(7));
+        t.close("plc", b, kept);
         assert_eq!(t.with_idle("plc", a, || 7), None, "stale");
         assert!(
-            t.close_with("plc", a, |superseded| superseded),
+            t.close_with("plc", a, kept, |superseded| superseded),
             "b is newer"
         );
-        assert_eq!(t.open("plc"), (b + 1, false));
+        assert_eq!(t.with_idle("plc", b, || 7), Some(7));
+        assert_eq!(t.len(), (0, 0), "an ended session leaves the table");
+        let (c, running) = t.open("plc");
+        assert!(c > b && !running);
+    }
+
+    /// Issue 14: a clean session leaves nothing, and numbers still grow per client id.
+    #[test]
+    fn clean_sessions_leave_nothing() {
+        let t = SessionTable::new(10);
+        let mut last = 0;
+        for i in 0..1000 {
+            let id = format!("client-{}", i % 7);
+            let (session, _) = t.open(&id);
+            assert!(session > last);
+            last = session;
+            t.close(&id, session, Remains::Nothing);
+        }
+        assert_eq!(t.len(), (0, 0));
+        t.seed(5000);
+        assert_eq!(t.open("x").0, 5001);
+    }
+
+    /// Issue 14: at most `limit` offline sessions, the oldest closed dropped first, with
+    /// their expiries.
+    #[tokio::test(start_paused = true)]
+    async fn offline_sessions_are_bounded_oldest_first() {
+        let t = SessionTable::new(3);
+        let mut sessions = Vec::new();
+        for id in ["a", "b", "c", "d"] {
+            let (s, _) = t.open(id);
+            sessions.push(s);
+            t.close(id, s, Remains::Kept(Some(Duration::from_secs(60))));
+        }
+        assert_eq!(t.len(), (0, 3));
+        assert!(
+            !t.is_current("a", sessions[0]),
+            "a, the oldest, was dropped"
+        );
+        assert!(t.is_current("d", sessions[3]));
+        // "b" comes back: connected, no longer offline, its expiry gone.
+        let (b2, running) = t.open("b");
+        assert!(!running);
+        assert_eq!(t.len(), (1, 2));
+        tokio::time::advance(Duration::from_secs(61)).await;
+        let mut due = t.due(Instant::now());
+        due.sort();
+        assert_eq!(
+            due,
+            vec![("c".to_owned(), sessions[2]), ("d".to_owned(), sessions[3])]
+        );
+        assert!(t.due(Instant::now()).is_empty());
+        assert_eq!(t.with_idle("c", sessions[2], || ()), Some(()));
+        assert_eq!(t.len(), (1, 1));
+        t.close("b", b2, Remains::Nothing);
+        assert_eq!(t.len(), (0, 1));
     }
 }

@@ -398,6 +398,10 @@ fn mqtt5_subscription_options_are_honoured() {
     let mut retained = raw::publish_v5("opt/t", None, 0, 0, b"kept");
     retained[0] |= 1; // RETAIN
     retainer.send(&retained);
+    // Routed before anyone subscribes: the router answers a connection's PINGREQ after
+    // the packets it sent before.
+    retainer.send(&raw::packet(0xC0, &[]));
+    assert_eq!(retainer.read_packet().expect("PINGRESP").0, 0xD0);
 
     let (_, mut c) = connect_v5(port, "options", true, 0);
     // No Local + Retain As Published + Retain Handling 2 on one filter.
@@ -773,6 +777,12 @@ async fn back_to_back_subscribes_each_get_the_retained_messages() {
         .publish("bb/t", rumqttc::QoS::AtLeastOnce, true, "kept")
         .await
         .unwrap();
+    // Routed (acknowledged) before anyone subscribes, else it is delivered live.
+    let mut publisher = publisher;
+    publisher
+        .next(WAIT, |p| matches!(p, rumqttc::Packet::PubAck(_)).then_some(()))
+        .await
+        .expect("PUBACK");
     // Stored once a subscriber got it.
     let mut probe = V4::connect(broker.port(), "bb-probe", None).await.unwrap();
     probe.subscribe("bb/#").await;
