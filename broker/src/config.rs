@@ -28,6 +28,14 @@ allow_anonymous = true
 bind = "127.0.0.1:9883"
 "#;
 
+/// Most connections `broker.max_connections` may allow. The router reserves a slot per
+/// connection when it starts, and the connection semaphore counts at most
+/// `tokio::sync::Semaphore::MAX_PERMITS`: before this bound, a typo such as
+/// `max_connections = 9000000000000000000` validated and then panicked at startup
+/// (found with broker/fuzz `config_load`).
+pub const MAX_CONNECTIONS: usize = 1_000_000;
+const _: () = assert!(MAX_CONNECTIONS < tokio::sync::Semaphore::MAX_PERMITS);
+
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("cannot read config file {path}: {source}")]
@@ -329,11 +337,11 @@ impl Config {
                 "must be a non-empty name without `/`, `+` or `#`",
             ));
         }
-        if b.max_connections == 0 {
+        if !(1..=MAX_CONNECTIONS).contains(&b.max_connections) {
             return Err(invalid(
                 file,
                 "broker.max_connections",
-                "must be at least 1",
+                format!("must be between 1 and {MAX_CONNECTIONS}"),
             ));
         }
         if !(64..=268_435_455).contains(&b.max_packet_bytes) {
@@ -560,5 +568,24 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("broker.max_connections"), "{err}");
+    }
+
+    /// Regression (broker/fuzz/regressions/config_load): a max_connections the broker
+    /// cannot start with is refused when the file is read.
+    #[test]
+    fn max_connections_is_bounded() {
+        let config = |n: u64| {
+            Config::parse(
+                &format!(
+                    "[broker]\nmax_connections = {n}\n[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n"
+                ),
+                "f",
+            )
+        };
+        for n in [0, MAX_CONNECTIONS as u64 + 1, 9_000_000_000_000_000_000] {
+            let err = config(n).unwrap_err().to_string();
+            assert!(err.contains("broker.max_connections"), "{n}: {err}");
+        }
+        assert!(config(MAX_CONNECTIONS as u64).is_ok());
     }
 }

@@ -60,7 +60,10 @@ async fn clients_may_not_publish_on_the_probe_topic() {
         .await
         .unwrap();
     let e = client.error(WAIT).await.expect("PUBACK refusal");
-    assert!(e.contains("PubAckFail") && e.contains("NotAuthorized"), "{e}");
+    assert!(
+        e.contains("PubAckFail") && e.contains("NotAuthorized"),
+        "{e}"
+    );
     assert_eq!(http_get(broker.admin, "/readyz").map(|r| r.0), Some(200));
 }
 

@@ -198,7 +198,10 @@ impl FromStr for DataType {
             Some((lo, hi)) => {
                 let lo: i64 = lo.trim().parse().map_err(|_| unknown())?;
                 let hi: i64 = hi.trim().parse().map_err(|_| unknown())?;
-                usize::try_from(hi - lo + 1).map_err(|_| unknown())?
+                // Checked: `hi - lo + 1` overflowed for bounds far apart, a panic with
+                // overflow checks on (found by broker/fuzz `declaration`).
+                let len = hi.checked_sub(lo).and_then(|n| n.checked_add(1));
+                usize::try_from(len.ok_or_else(unknown)?).map_err(|_| unknown())?
             }
             None => bounds.parse().map_err(|_| unknown())?,
         };
@@ -263,5 +266,23 @@ mod tests {
         ] {
             assert!(bad.parse::<DataType>().is_err(), "{bad}");
         }
+    }
+
+    /// Regression (broker/fuzz/regressions/declaration): subrange bounds far apart are
+    /// refused, not an arithmetic overflow.
+    #[test]
+    fn subrange_bounds_never_overflow() {
+        for bad in [
+            "ARRAY [-2..9223372036854775807] OF INT",
+            "ARRAY [-9223372036854775808..9223372036854775807] OF INT",
+            "ARRAY [9223372036854775807..-9223372036854775808] OF INT",
+            "ARRAY [0..-2] OF INT",
+        ] {
+            assert!(bad.parse::<DataType>().is_err(), "{bad}");
+        }
+        assert_eq!(
+            "ARRAY [-1..2] OF INT".parse(),
+            Ok(DataType::Array(ElementaryType::Int, 4))
+        );
     }
 }

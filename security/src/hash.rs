@@ -81,9 +81,31 @@ impl Argon2Params {
     }
 
     fn to_argon2(self) -> Result<Params, HashError> {
+        if self.parallelism > Params::MAX_P_COST {
+            // Checked first: see `argon2_params`.
+            return Err(HashError::InvalidParams(argon2::Error::ThreadsTooMany));
+        }
         Params::new(self.memory_kib, self.iterations, self.parallelism, None)
             .map_err(HashError::InvalidParams)
     }
+}
+
+/// The argon2 parameters of a parsed PHC string.
+///
+/// argon2 0.5.3's `Params::new` computes `p_cost * 8` before it checks `p_cost` against
+/// its maximum (2^24 - 1), so a `p` of 2^29 or more overflowed inside the crate: a panic
+/// wherever overflow checks are on (debug builds, tests), for one line of a password
+/// file. The lane count is checked here first (found by broker/fuzz
+/// `password_file_parse`).
+fn argon2_params(parsed: &PasswordHash<'_>) -> Option<Params> {
+    if parsed
+        .params
+        .get_decimal("p")
+        .is_some_and(|p| p > Params::MAX_P_COST)
+    {
+        return None;
+    }
+    Params::try_from(parsed).ok()
 }
 
 /// Why a hash could not be created or understood.
@@ -275,7 +297,7 @@ pub fn kept_verify_buffers() -> usize {
 /// keeping: the next verification overwrites it, or it is freed
 /// ([`release_verify_buffers`]).
 fn verify_argon2id(password: &[u8], parsed: &PasswordHash<'_>) -> bool {
-    let (Ok(params), Some(expected)) = (Params::try_from(parsed), parsed.hash) else {
+    let (Some(params), Some(expected)) = (argon2_params(parsed), parsed.hash) else {
         return false;
     };
     let Some(salt) = parsed.salt else {
@@ -327,7 +349,7 @@ fn parse_argon2id(s: &str) -> Result<StoredHash, HashError> {
     // character of the input.
     let invalid = HashError::InvalidArgon2id;
     let parsed = PasswordHash::new(s).map_err(|_| invalid("not a PHC string"))?;
-    Params::try_from(&parsed).map_err(|_| invalid("parameters out of range"))?;
+    argon2_params(&parsed).ok_or(invalid("parameters out of range"))?;
     if let Some(version) = parsed.version {
         Version::try_from(version).map_err(|_| invalid("unsupported version"))?;
     }
@@ -426,6 +448,25 @@ mod tests {
         let a = hash_password(b"same", &FAST).unwrap();
         let b = hash_password(b"same", &FAST).unwrap();
         assert_ne!(a, b);
+    }
+
+    /// Regression (broker/fuzz/regressions/password_file_parse): a lane count of 2^29 or
+    /// more overflowed inside argon2 (`p_cost * 8`) instead of being refused.
+    #[test]
+    fn huge_lane_counts_are_refused_without_overflow() {
+        for p in [Params::MAX_P_COST + 1, 1 << 29, 777_777_777, u32::MAX] {
+            let line = format!("$argon2id$v=19$m=64,t=1,p={p}$Y2hlYXBzYWx0Y2hlYXA$xA6phcuUKMYdTVySFVVEq0B2sh5LnDskCu162it3BHs");
+            assert!(
+                matches!(StoredHash::parse(&line), Err(HashError::InvalidArgon2id(_))),
+                "p={p}"
+            );
+            let params = Argon2Params {
+                memory_kib: u32::MAX,
+                iterations: 1,
+                parallelism: p,
+            };
+            assert!(params.validate().is_err(), "p={p}");
+        }
     }
 
     #[test]

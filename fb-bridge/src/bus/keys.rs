@@ -26,9 +26,11 @@ pub fn valid_line(line: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
 }
 
-/// A topic level can be a zenoh chunk as it is.
+/// A topic level can be a zenoh chunk as it is. (No NUL either: MQTT forbids it in topics
+/// and filters, and a `[bridge]` filter with one validated; found by broker/fuzz
+/// `topic_match`.)
 fn plain_level(level: &str) -> bool {
-    !level.is_empty() && !level.contains(['*', '$', '?', '#', '+', '@'])
+    !level.is_empty() && !level.contains(['*', '$', '?', '#', '+', '@', '\0'])
 }
 
 /// `fbbus/<line>/<topic>`, or None for a topic that cannot cross (outside `fb/`, or with
@@ -269,5 +271,16 @@ mod tests {
         assert!(!filter_matches("fb/+/b", "fb/a/b/c"));
         assert!(filter_matches("fb/a/b/c", "fb/a/b/c"));
         assert!(!filter_matches("fb/a/b/d", "fb/a/b/c"));
+    }
+
+    /// Regression (broker/fuzz/regressions/topic_match): a NUL is not allowed in an MQTT
+    /// topic or filter, so it cannot be in a bridged one.
+    #[test]
+    fn filters_and_topics_with_nul_do_not_cross() {
+        assert!(bridgeable_filter("fb/plc/+/#"));
+        assert!(!bridgeable_filter("fb/p\0c-/+/+"));
+        assert_eq!(import_key("fb/p\0c/#"), None);
+        assert_eq!(data_key("line-1", "fb/p\0c/CONV/SPEED"), None);
+        assert!(data_key("line-1", "fb/plc/CONV/SPEED").is_some());
     }
 }

@@ -1613,6 +1613,22 @@ pub(crate) mod tests {
         assert!(message.len() < 200, "{message}");
     }
 
+    /// Regression (broker/fuzz/regressions/typed_codec): numbers are read correctly
+    /// rounded (`serde_json`'s `float_roundtrip`), so an LREAL keeps its value through
+    /// every hop between encodings. Without it `-4.5e300` read as the next double, and
+    /// each re-encoding moved it one more.
+    #[test]
+    fn lreal_and_real_read_exactly_and_round_trip() {
+        let port = data(DataType::Elementary(T::Lreal));
+        let message = decode(b"-4.5e300", &port).unwrap();
+        assert_eq!(message, Message::Data(Value::Lreal(-4.5e300)));
+        assert_eq!(decode(&encode(&message, &port), &port), Ok(message));
+        let port = data(DataType::Elementary(T::Real));
+        let message = decode(b"3.4028235e38", &port).unwrap();
+        assert_eq!(message, Message::Data(Value::Real(f32::MAX)));
+        assert_eq!(decode(&encode(&message, &port), &port), Ok(message));
+    }
+
     #[test]
     fn decode_named_names_the_data_port() {
         let port = data(DataType::Elementary(T::Bool));

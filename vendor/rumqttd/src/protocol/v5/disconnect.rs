@@ -18,7 +18,11 @@ fn len(disconnect: &Disconnect, properties: &Option<DisconnectProperties>) -> us
         let properties_len_len = len_len(properties_len);
         length += properties_len_len + properties_len;
     } else {
-        length += 1;
+        // fbbus: the reason code and the property length 0 that `write` puts after it;
+        // counting only the reason code announced 1 byte and sent 2, so the client read
+        // the extra 0x00 as the start of another packet (found by broker/fuzz
+        // `mqtt_decode`).
+        length += 2;
     }
 
     length
@@ -69,7 +73,9 @@ pub fn write(
 
     let length = len(disconnect, properties);
 
-    if length == 2 {
+    // fbbus: the condition itself, not `length == 2`, which is also the remaining length
+    // of a reason code without properties (see `len`).
+    if disconnect.reason_code == DisconnectReasonCode::NormalDisconnection && properties.is_none() {
         buffer.put_u8(0x00);
         return Ok(length);
     }

@@ -187,7 +187,11 @@ mod properties {
                 }
                 PropertyType::SubscriptionIdentifier => {
                     let (id_len, id) = length(bytes.iter())?;
-                    cursor += 1 + id_len;
+                    // fbbus: the identifier's own bytes; its property byte is already
+                    // counted. `1 + id_len` ended the properties early after several
+                    // identifiers and left the rest in the payload (found by broker/fuzz
+                    // `mqtt_decode`).
+                    cursor += id_len;
                     bytes.advance(id_len);
                     subscription_identifiers.push(id);
                 }

@@ -196,8 +196,11 @@ mod properties {
             match property(prop)? {
                 PropertyType::SubscriptionIdentifier => {
                     let (id_len, sub_id) = length(bytes.iter())?;
-                    // TODO: Validate 1 +. Tests are working either way
-                    cursor += 1 + id_len;
+                    // fbbus: the identifier's own bytes; its property byte is already
+                    // counted (upstream: `1 + id_len`, "TODO: Validate 1 +"), which ended
+                    // the properties early after a repeated identifier and read the rest
+                    // as topic filters (found by broker/fuzz `mqtt_decode`).
+                    cursor += id_len;
                     bytes.advance(id_len);
                     id = Some(sub_id)
                 }
