@@ -85,6 +85,10 @@ impl Argon2Params {
             // Checked first: see `argon2_params`.
             return Err(HashError::InvalidParams(argon2::Error::ThreadsTooMany));
         }
+        // No hash a password file could not be loaded with (`argon2_params`).
+        if self.memory_kib > MAX_STORED_MEMORY_KIB || self.iterations > MAX_STORED_ITERATIONS {
+            return Err(HashError::TooCostly);
+        }
         Params::new(self.memory_kib, self.iterations, self.parallelism, None)
             .map_err(HashError::InvalidParams)
     }
@@ -97,16 +101,31 @@ impl Argon2Params {
 /// wherever overflow checks are on (debug builds, tests), for one line of a password
 /// file. The lane count is checked here first (found by broker/fuzz
 /// `password_file_parse`).
+///
+/// A stored hash may also not ask for more than [`MAX_STORED_MEMORY_KIB`] of memory or
+/// [`MAX_STORED_ITERATIONS`] passes: a password file is outside input, and one line with
+/// `m=4294967295` made the first login of that user allocate 4 TiB.
 fn argon2_params(parsed: &PasswordHash<'_>) -> Option<Params> {
-    if parsed
-        .params
-        .get_decimal("p")
-        .is_some_and(|p| p > Params::MAX_P_COST)
+    let param = |name| parsed.params.get_decimal(name);
+    if param("p").is_some_and(|p| p > Params::MAX_P_COST)
+        || param("m").is_some_and(|m| m > MAX_STORED_MEMORY_KIB)
+        || param("t").is_some_and(|t| t > MAX_STORED_ITERATIONS)
     {
         return None;
     }
     Params::try_from(parsed).ok()
 }
+
+/// The most memory a stored argon2id hash may ask for: 1 GiB, 128 times fbbus's default
+/// (8 MiB) and more than OWASP's strongest recommendation (46 MiB, t=1).
+pub const MAX_STORED_MEMORY_KIB: u32 = 1024 * 1024;
+
+/// The most passes a stored argon2id hash may ask for.
+pub const MAX_STORED_ITERATIONS: u32 = 100;
+
+/// The most PBKDF2 iterations a stored Mosquitto `$7$` hash may ask for: Mosquitto writes
+/// 101; a line with 4 billion would keep a verifier thread busy for hours per login.
+pub const MAX_STORED_PBKDF2_ITERATIONS: u32 = 10_000_000;
 
 /// Why a hash could not be created or understood.
 #[derive(Debug, thiserror::Error)]
@@ -137,6 +156,11 @@ pub enum HashError {
          iterations at least 1 and parallelism between 1 and 16777215"
     )]
     InvalidParams(argon2::Error),
+    #[error(
+        "argon2id parameters over fbbus's limits: memory at most 1048576 KiB (1 GiB), \
+         at most 100 iterations"
+    )]
+    TooCostly,
     #[error("argon2id hashing failed: {0}")]
     Hashing(argon2::password_hash::Error),
 }
@@ -373,6 +397,9 @@ fn parse_mosquitto_pbkdf2(rest: &str) -> Result<StoredHash, HashError> {
     if iterations == 0 {
         return Err(invalid("iteration count is zero"));
     }
+    if iterations > MAX_STORED_PBKDF2_ITERATIONS {
+        return Err(invalid("iteration count is over 10,000,000"));
+    }
     let salt = decode_base64(salt).ok_or(invalid("salt is not base64"))?;
     let hash = decode_base64(hash).ok_or(invalid("hash is not base64"))?;
     if salt.is_empty() || hash.is_empty() {
@@ -601,5 +628,27 @@ mod tests {
     fn dummy_verify_runs() {
         dummy_verify(b"anything");
         dummy_verify(b"");
+    }
+
+    /// A password file is outside input: a hash asking for absurd work is refused when
+    /// the file is read, not at the user's first login (found reading broker/fuzz).
+    #[test]
+    fn stored_hashes_may_not_ask_for_unbounded_work() {
+        let good = hash_password(b"pw", &Argon2Params::default()).unwrap();
+        assert!(StoredHash::parse(&good).is_ok());
+        for (from, to) in [("m=8192", "m=4294967295"), ("t=1", "t=1000")] {
+            let bad = good.replace(from, to);
+            assert!(
+                matches!(StoredHash::parse(&bad), Err(HashError::InvalidArgon2id(_))),
+                "{bad}"
+            );
+        }
+        let ok_limit = good.replace("m=8192", &format!("m={MAX_STORED_MEMORY_KIB}"));
+        assert!(StoredHash::parse(&ok_limit).is_ok());
+        assert!(matches!(
+            StoredHash::parse("$7$4294967295$c2FsdA==$aGFzaA=="),
+            Err(HashError::InvalidMosquittoPbkdf2(_))
+        ));
+        assert!(StoredHash::parse("$7$101$c2FsdA==$aGFzaA==").is_ok());
     }
 }
