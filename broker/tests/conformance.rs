@@ -780,7 +780,9 @@ async fn back_to_back_subscribes_each_get_the_retained_messages() {
     // Routed (acknowledged) before anyone subscribes, else it is delivered live.
     let mut publisher = publisher;
     publisher
-        .next(WAIT, |p| matches!(p, rumqttc::Packet::PubAck(_)).then_some(()))
+        .next(WAIT, |p| {
+            matches!(p, rumqttc::Packet::PubAck(_)).then_some(())
+        })
         .await
         .expect("PUBACK");
     // Stored once a subscriber got it.

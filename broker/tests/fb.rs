@@ -1598,7 +1598,10 @@ async fn a_takeover_never_shows_the_device_offline() {
     // The last connection's number, as the device learns it: session numbers come from one
     // counter for all client ids, so it is not s1 + ROUNDS.
     let last = declare_ok(&mut current, CONV, &mut diag_sub, &broker).await;
-    assert!(last >= s1 + ROUNDS, "{last} after {s1} and {ROUNDS} takeovers");
+    assert!(
+        last >= s1 + ROUNDS,
+        "{last} after {s1} and {ROUNDS} takeovers"
+    );
     let rec = wait_record(&broker, "conv-a", "reached the last session", |r| {
         r["session"].as_u64() == Some(last)
     })
