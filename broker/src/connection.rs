@@ -633,6 +633,13 @@ impl Session {
         let deadline =
             tokio::time::sleep_until(self.keep_alive.map_or(far_future, |k| Instant::now() + k));
         tokio::pin!(deadline);
+        // Packets that came in the same read as CONNECT (a client that does not wait for
+        // CONNACK): handled now, not when the socket next has something.
+        if !self.io.read.is_empty() {
+            if let Err(end) = Box::pin(self.read_packets()).await {
+                return end;
+            }
+        }
         loop {
             // Backpressure: while the router has not taken this client's previous packets,
             // stop reading its socket, so a fast publisher is slowed by TCP instead of

@@ -904,3 +904,38 @@ fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
     silent_v4.send(&raw::PINGREQ);
     assert_eq!(silent_v4.read_packet().expect("PINGRESP").0, 0xD0);
 }
+
+/// A client need not wait for CONNACK [MQTT-3.1.4-5 allows sending before it]: packets in
+/// the same write as CONNECT are handled at once. They used to wait for the socket's
+/// next bytes, so CONNECT + PUBLISH + DISCONNECT in one write delivered nothing and the
+/// connection hung until keep-alive (found by `fbbus-loadtest churn`, kind `pipelined`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn packets_sent_with_connect_are_handled_at_once() {
+    let broker = Broker::start();
+    let mut sub = V4::connect(broker.port(), "pipe-sub", None).await.unwrap();
+    sub.subscribe("pipe/#").await;
+
+    let mut c = RawClient::connect(broker.port());
+    let mut bytes = raw::Connect {
+        client_id: "pipe-pub",
+        ..Default::default()
+    }
+    .bytes();
+    bytes.extend(raw::publish_qos0("pipe/t", b"with connect"));
+    bytes.extend(raw::packet(0xE0, &[])); // DISCONNECT
+    c.send(&bytes);
+
+    let m = sub.next_publish(WAIT).await.expect("the pipelined PUBLISH");
+    assert_eq!(&m.payload[..], b"with connect");
+    // DISCONNECT handled too: the broker closes at once (a read timeout would also end
+    // `closed_by_broker`, hence the clock: keep-alive is 60 s).
+    let started = std::time::Instant::now();
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    assert!(c.closed_by_broker());
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "the connection stayed open"
+    );
+}
