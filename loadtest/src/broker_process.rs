@@ -61,6 +61,36 @@ pub fn rss_kib(pid: u32) -> Option<u64> {
         .and_then(|v| v.split_whitespace().next()?.parse().ok())
 }
 
+/// A `/proc/<pid>/status` field in KiB (`VmRSS`, `VmHWM`: the peak resident memory).
+pub fn status_kib(pid: u32, field: &str) -> Option<u64> {
+    status_number(pid, field)
+}
+
+/// The first number of a `/proc/<pid>/status` field (`Threads`, `VmRSS` in KiB).
+pub fn status_number(pid: u32, field: &str) -> Option<u64> {
+    let status = fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix(field)?.strip_prefix(':'))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+}
+
+/// Whether `pid` is still running: it exists and is not a zombie (a crashed child of
+/// this process that nobody reaped yet).
+pub fn alive(pid: u32) -> bool {
+    fs::read_to_string(format!("/proc/{pid}/status")).is_ok_and(|s| {
+        s.lines()
+            .find_map(|l| l.strip_prefix("State:"))
+            .is_some_and(|state| !state.trim_start().starts_with(['Z', 'X']))
+    })
+}
+
+/// File descriptors `pid` has open (sockets included), when its /proc/<pid>/fd is
+/// readable (same user or root).
+pub fn open_fds(pid: u32) -> Option<u64> {
+    Some(fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count() as u64)
+}
+
 /// The process's name (`mosquitto`, `fbbus`).
 pub fn name(pid: u32) -> Option<String> {
     fs::read_to_string(format!("/proc/{pid}/comm"))
@@ -78,6 +108,12 @@ mod tests {
         let port = listener.local_addr().unwrap().port();
         assert_eq!(pid_listening_on(port), Some(std::process::id()));
         assert!(rss_kib(std::process::id()).unwrap() > 0);
+        let me = std::process::id();
+        assert!(status_kib(me, "VmHWM").unwrap() >= status_kib(me, "VmRSS").unwrap() / 2);
+        assert!(status_number(me, "Threads").unwrap() >= 1);
+        assert!(open_fds(me).unwrap() >= 3);
+        assert!(alive(me));
+        assert!(!alive(u32::MAX));
         drop(listener);
         assert_eq!(pid_listening_on(port), None);
     }

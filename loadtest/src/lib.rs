@@ -2,7 +2,7 @@
 //!
 //! The harness reproduces the JMeter study of an MQTT-connected IEC 61499 conveyor line
 //! (`stress`, `loss-search`, `perf`) and goes beyond it (`fan-in`, `fan-out`, `pairs`,
-//! `bridge`, `idle`, `storm`), against fbbus or any other MQTT 3.1.1/5 broker, alone or
+//! `bridge`, `idle`, `storm`, `conveyor`, and the network campaigns `mutate` and `churn`), against fbbus or any other MQTT 3.1.1/5 broker, alone or
 //! two brokers interleaved (compare mode). See `loadtest/README.md` for every scenario,
 //! parameter and output.
 //!
@@ -19,7 +19,10 @@
 //! - [`session`] and [`scenario`]: the scenarios run batches, A B A B in compare mode;
 //!   [`run`] assembles the [`model::Report`]; [`report`] writes the table, JSON, CSV,
 //!   JTL and SVG charts from it;
-//! - [`sink`]: the trivial in-process sink that measures the harness's own ceiling.
+//! - [`sink`]: the trivial in-process sink that measures the harness's own ceiling;
+//! - the network campaigns `mutate` and `churn` ([`scenario::campaign`]) speak raw MQTT
+//!   ([`wire`]: packets and mutations byte by byte) from seeded generators ([`rng`]),
+//!   and read the broker's process ([`broker_process`]) and metrics ([`scrape`]).
 
 pub mod broker_process;
 pub mod client;
@@ -30,12 +33,15 @@ pub mod message;
 pub mod model;
 pub mod report;
 pub mod rig;
+pub mod rng;
 pub mod run;
 pub mod scenario;
+pub mod scrape;
 pub mod session;
 pub mod sink;
 pub mod tally;
 pub mod target;
+pub mod wire;
 
 pub use run::{run, Plan};
 

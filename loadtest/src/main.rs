@@ -8,9 +8,12 @@ use anyhow::{bail, Context as _, Result};
 use clap::{Args, Parser, Subcommand};
 
 use loadtest::rig::RigConfig;
+use loadtest::scenario::campaign::Campaign;
+use loadtest::scenario::churn::{self, Churn};
 use loadtest::scenario::connections::{Idle, Storm};
 use loadtest::scenario::conveyor::Conveyor;
 use loadtest::scenario::flow::{Flow, FlowKind};
+use loadtest::scenario::mutate::Mutate;
 use loadtest::scenario::study::{LossSearch, Perf, Stress};
 use loadtest::scenario::Scenario;
 use loadtest::target::{Mqtt, Target};
@@ -180,12 +183,123 @@ enum Command {
         #[arg(long, default_value_t = 3)]
         repeats: u32,
     },
+    /// Random-mutation campaign over the network: --connections connections, each a
+    /// CONNECT and a session of packets, every packet mutated with --mutate-prob; the
+    /// broker must still route (probe) before, every --probe-every connections and after,
+    /// and keep its memory (exit 1 otherwise).
+    Mutate {
+        #[arg(long, default_value_t = 20_000)]
+        connections: u64,
+        /// Stop starting connections after this long (e.g. 90s, 5m).
+        #[arg(long, default_value = "5m", value_parser = humantime::parse_duration)]
+        duration: Duration,
+        /// A routing probe after every this many connections (0: before and after only).
+        #[arg(long, default_value_t = 5_000)]
+        probe_every: u64,
+        /// Probability that a packet (CONNECT included) is mutated.
+        #[arg(long, default_value_t = 0.15)]
+        mutate_prob: f64,
+        /// Packets after the CONNECT, at most.
+        #[arg(long, default_value_t = 8)]
+        max_packets: u64,
+        #[command(flatten)]
+        campaign: CampaignArgs,
+    },
+    /// Connection churn: --connections short-lived connections (valid, persistent with new
+    /// and recurring ids, abrupt, malformed, abandoned mid-CONNECT; MQTT 3.1.1 and 5); the
+    /// broker must still route and keep its memory (exit 1 otherwise).
+    Churn {
+        #[arg(long, default_value_t = 100_000)]
+        connections: u64,
+        /// Stop starting connections after this long (e.g. 90s, 10m).
+        #[arg(long, default_value = "10m", value_parser = humantime::parse_duration)]
+        duration: Duration,
+        /// A routing probe after every this many connections (0: before and after only).
+        #[arg(long, default_value_t = 10_000)]
+        probe_every: u64,
+        /// Client ids of the persistent connections that come back.
+        #[arg(long, default_value_t = 200)]
+        recurring_ids: u64,
+        /// Weights of the kinds of connection, e.g. `persistent_random=1` (kinds not named:
+        /// 0). Default: valid=25, pipelined=5, persistent_random=15, persistent_recurring=15,
+        /// abrupt=15, malformed=10, abandoned=15.
+        #[arg(long, default_value = "", hide_default_value = true)]
+        mix: String,
+        #[command(flatten)]
+        campaign: CampaignArgs,
+    },
     /// Writes the table, CSV, JTL and charts again from an earlier run's report.json
     /// (into --out, default: the report's own directory).
     Render {
         #[arg(value_name = "REPORT_JSON")]
         report: PathBuf,
     },
+}
+
+/// What `mutate` and `churn` share.
+#[derive(Args)]
+struct CampaignArgs {
+    /// Connections in progress at once.
+    #[arg(long, default_value_t = 64)]
+    concurrency: usize,
+    /// Seed of every connection's generator: the same seed sends the same packets.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Wait for whatever the broker answers a mutated or malformed packet, and for it to
+    /// close after DISCONNECT (ms).
+    #[arg(long, default_value_t = 100)]
+    read_ms: u64,
+    /// Wait for the CONNACK of a valid CONNECT (ms).
+    #[arg(long, default_value_t = 5000)]
+    connack_ms: u64,
+    /// A probe message must arrive within this (ms).
+    #[arg(long, default_value_t = 5000)]
+    probe_timeout_ms: u64,
+    /// Idle time after the campaign before the last memory reading and probe (s).
+    #[arg(long, default_value_t = 15)]
+    settle_s: u64,
+    /// Fail when resident memory after the settle exceeds this times the memory before.
+    #[arg(long, default_value_t = 2.0)]
+    max_rss_ratio: f64,
+    /// The broker's process id (default: the process listening on the broker's port,
+    /// when it runs on this machine).
+    #[arg(long)]
+    pid: Option<u32>,
+    /// The second broker's process id (compare mode).
+    #[arg(long)]
+    compare_pid: Option<u32>,
+    /// The broker's Prometheus endpoint, read before, after and after the settle
+    /// (e.g. http://127.0.0.1:9883/metrics).
+    #[arg(long, value_name = "URL")]
+    metrics: Option<String>,
+    /// The second broker's Prometheus endpoint (compare mode).
+    #[arg(long, value_name = "URL")]
+    compare_metrics: Option<String>,
+    /// Connect every campaign connection from 127.0.0.1 (by default they come from
+    /// 127.0.0.2-127.0.0.33 when the broker is on 127.0.0.1, so their failed logins never
+    /// throttle the probe's address).
+    #[arg(long)]
+    no_spread_sources: bool,
+}
+
+impl CampaignArgs {
+    fn campaign(&self, connections: u64, duration: Duration, probe_every: u64) -> Campaign {
+        Campaign {
+            connections,
+            concurrency: self.concurrency.max(1),
+            duration_s: duration.as_secs().max(1),
+            seed: self.seed,
+            probe_every,
+            read_ms: self.read_ms,
+            connack_ms: self.connack_ms,
+            probe_timeout_ms: self.probe_timeout_ms,
+            settle_s: self.settle_s,
+            max_rss_ratio: self.max_rss_ratio,
+            pids: vec![self.pid, self.compare_pid],
+            metrics: vec![self.metrics.clone(), self.compare_metrics.clone()],
+            spread_sources: !self.no_spread_sources,
+        }
+    }
 }
 
 #[derive(Args)]
@@ -309,6 +423,30 @@ async fn run(cli: Cli) -> Result<()> {
             devices: *devices,
             repeats: *repeats,
         }),
+        Command::Mutate {
+            connections,
+            duration,
+            probe_every,
+            mutate_prob,
+            max_packets,
+            campaign,
+        } => Scenario::Mutate(Mutate {
+            campaign: campaign.campaign(*connections, *duration, *probe_every),
+            mutate_prob: mutate_prob.clamp(0.0, 1.0),
+            max_packets: *max_packets,
+        }),
+        Command::Churn {
+            connections,
+            duration,
+            probe_every,
+            recurring_ids,
+            mix,
+            campaign,
+        } => Scenario::Churn(Churn {
+            campaign: campaign.campaign(*connections, *duration, *probe_every),
+            recurring_ids: *recurring_ids,
+            mix: churn::parse_mix(mix).map_err(|e| anyhow::anyhow!("--mix {e}"))?,
+        }),
         Command::Render { .. } => unreachable!("handled above"),
         Command::Conveyor {
             devices,
@@ -324,7 +462,11 @@ async fn run(cli: Cli) -> Result<()> {
     };
     let message_scenario = !matches!(
         scenario,
-        Scenario::Idle(_) | Scenario::Storm(_) | Scenario::Conveyor(_)
+        Scenario::Idle(_)
+            | Scenario::Storm(_)
+            | Scenario::Conveyor(_)
+            | Scenario::Mutate(_)
+            | Scenario::Churn(_)
     );
     let plan = Plan {
         targets,
@@ -350,6 +492,13 @@ async fn run(cli: Cli) -> Result<()> {
     clear_old_outputs(&c.out);
     let files = report::write_all(&report, &c.out)?;
     println!("\nwrote {} files to {}", files.len(), c.out.display());
+    if !report.failures.is_empty() {
+        bail!(
+            "{} failed:\n  {}",
+            report.scenario,
+            report.failures.join("\n  ")
+        );
+    }
     Ok(())
 }
 

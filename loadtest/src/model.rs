@@ -33,6 +33,11 @@ pub struct Report {
     /// Things the reader must know to read the numbers right (e.g. "FB subscriber not
     /// used: the broker does not answer fbbus declarations").
     pub notes: Vec<String>,
+    /// Why the run failed its verdict (the campaigns `mutate` and `churn`: the broker
+    /// stopped routing, crashed, or kept too much memory); empty: it passed. A run with
+    /// failures exits 1 after writing its outputs.
+    #[serde(default)]
+    pub failures: Vec<String>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -52,7 +52,11 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
     };
 
     let mut session = match &plan.scenario {
-        Scenario::Idle(_) | Scenario::Storm(_) | Scenario::Conveyor(_) => {
+        Scenario::Idle(_)
+        | Scenario::Storm(_)
+        | Scenario::Conveyor(_)
+        | Scenario::Mutate(_)
+        | Scenario::Churn(_) => {
             Session::new(labels.clone(), Vec::new(), plan.time_limit, planned(plan))
         }
         scenario => {
@@ -80,6 +84,7 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
     let speaks_fbbus: Vec<bool> = session.rigs.iter().map(|r| r.speaks_fbbus).collect();
 
     let (timeout, prefix) = (plan.rig.timeout, plan.rig.prefix.as_str());
+    let mut failures = Vec::new();
     match &plan.scenario {
         Scenario::Stress(s) => s.run(&mut session).await,
         Scenario::LossSearch(s) => s.run(&mut session).await,
@@ -92,6 +97,8 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
             s.run(&mut session, &plan.targets, prefix, timeout, quiet)
                 .await
         }
+        Scenario::Mutate(s) => failures = s.run(&mut session, &plan.targets, prefix).await,
+        Scenario::Churn(s) => failures = s.run(&mut session, &plan.targets, prefix).await,
     }
     let (batches, summaries, ratios, notes) = session.finish().await;
 
@@ -119,6 +126,7 @@ pub async fn run(plan: &Plan) -> Result<Report, Error> {
         summaries,
         ratios,
         notes,
+        failures,
     })
 }
 
@@ -149,6 +157,8 @@ fn planned(plan: &Plan) -> Option<u64> {
         Scenario::Idle(s) => Some(s.planned(n)),
         Scenario::Storm(s) => Some(s.planned(n)),
         Scenario::Conveyor(s) => Some(s.planned(n)),
+        Scenario::Mutate(s) => Some(s.planned(n)),
+        Scenario::Churn(s) => Some(s.planned(n)),
     }
 }
 

@@ -260,6 +260,17 @@ fn charts(report: &Report) -> Vec<Chart> {
                 lines(|p| p.processing_us / 1000.0),
             ));
         }
+        // The campaigns: connections per second of each round, against connections so far.
+        "mutate" | "churn" if xs.len() > 1 => {
+            charts.push(chart(
+                "throughput.svg",
+                "connections per second, round by round",
+                "connections so far",
+                "connections/s",
+                XScale::Linear,
+                lines(|p| p.throughput),
+            ));
+        }
         _ if xs.len() > 1 => {
             charts.push(chart(
                 "throughput.svg",

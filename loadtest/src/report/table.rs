@@ -71,6 +71,9 @@ fn header(r: &Report, out: &mut String) {
     for note in &r.notes {
         let _ = writeln!(out, "note: {note}");
     }
+    for failure in &r.failures {
+        let _ = writeln!(out, "FAILED: {failure}");
+    }
 }
 
 fn batches(r: &Report, out: &mut String) {

@@ -94,6 +94,7 @@ fn report(scenario: &str, targets: Vec<Target>, batches: Vec<Batch>) -> Report {
         summaries,
         ratios,
         notes: vec!["FB subscriber not used: test note".into()],
+        failures: vec![],
     }
 }
 

@@ -1,10 +1,13 @@
-//! The scenarios: the study's three tests ([`study`]), many-client flows ([`flow`]) and
-//! connection scenarios ([`connections`]) and the
-//! simulated conveyor line ([`conveyor`]).
+//! The scenarios: the study's three tests ([`study`]), many-client flows ([`flow`]),
+//! connection scenarios ([`connections`]), the simulated conveyor line ([`conveyor`]) and
+//! the network campaigns ([`mutate`], [`churn`], sharing [`campaign`]).
 
+pub mod campaign;
+pub mod churn;
 pub mod connections;
 pub mod conveyor;
 pub mod flow;
+pub mod mutate;
 pub mod study;
 
 use serde::Serialize;
@@ -20,6 +23,8 @@ pub enum Scenario {
     Idle(connections::Idle),
     Storm(connections::Storm),
     Conveyor(conveyor::Conveyor),
+    Mutate(mutate::Mutate),
+    Churn(churn::Churn),
 }
 
 impl Scenario {
@@ -36,6 +41,8 @@ impl Scenario {
             Scenario::Idle(_) => "idle".into(),
             Scenario::Storm(_) => "storm".into(),
             Scenario::Conveyor(_) => "conveyor".into(),
+            Scenario::Mutate(_) => "mutate".into(),
+            Scenario::Churn(_) => "churn".into(),
         }
     }
 }

@@ -234,6 +234,22 @@ impl Fbbus {
         format!("mqtt://{}", self.mqtt)
     }
 
+    /// The broker's Prometheus endpoint.
+    pub fn metrics_url(&self) -> String {
+        format!("http://{}/metrics", self.admin)
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Kills the broker now (SIGKILL), as a crash would end it; not reaped.
+    pub fn kill_now(&self) {
+        let _ = Command::new("kill")
+            .args(["-KILL", &self.child.id().to_string()])
+            .status();
+    }
+
     pub fn log_text(&self) -> String {
         read(&self.log)
     }
