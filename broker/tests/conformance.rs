@@ -939,3 +939,35 @@ async fn packets_sent_with_connect_are_handled_at_once() {
         "the connection stayed open"
     );
 }
+
+/// [MQTT-3.1.2-3]: a CONNECT with the reserved flag set is refused: the connection is
+/// closed without CONNACK and counted as malformed (found by `fbbus-loadtest mutate`: 676
+/// of 681 were accepted).
+#[test]
+fn a_connect_with_the_reserved_flag_set_is_refused() {
+    let broker = Broker::start();
+    for version in [4, 5] {
+        let mut bytes = raw::Connect {
+            version,
+            client_id: "reserved",
+            ..Default::default()
+        }
+        .bytes();
+        // Fixed header (2 bytes), protocol name (6), level (1), then the flags.
+        assert_eq!(&bytes[2..8], b"\0\x04MQTT");
+        bytes[9] |= 1;
+        let mut c = RawClient::connect(broker.port());
+        c.send(&bytes);
+        assert_eq!(c.read_packet(), None, "v{version}: no CONNACK, closed");
+    }
+    assert!(broker.wait_metric(r#"fbbus_connects_refused_total{reason="malformed"}"#, 2.0) >= 2.0);
+    // A well-formed one still connects.
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            client_id: "fine",
+            ..Default::default()
+        }),
+        0
+    );
+}

@@ -32,6 +32,11 @@ pub fn read(
     }
 
     let connect_flags = read_u8(&mut bytes)?;
+    // fbbus: the reserved flag must be 0, else the server disconnects [MQTT-3.1.2-3];
+    // upstream ignored it (found by fbbus-loadtest mutate).
+    if connect_flags & 0b1 != 0 {
+        return Err(Error::IncorrectPacketFormat);
+    }
     let clean_session = (connect_flags & 0b10) != 0;
     let keep_alive = read_u16(&mut bytes)?;
 
