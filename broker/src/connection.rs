@@ -438,7 +438,7 @@ impl Session {
                         .is_none_or(|acl| acl.get().can_publish(identity, &topic));
                 if !allowed {
                     ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
-                    tracing::warn!(client_id, %topic, "will topic not allowed; CONNECT refused");
+                    tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
                     return Err(refuse(
                         ConnectReturnCode::NotAuthorized,
                         "will_not_authorized",
@@ -983,7 +983,11 @@ impl Session {
             (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
         };
         if !security::acl::valid_topic(&topic) {
-            tracing::warn!(client_id = &*self.client_id, %topic, "invalid topic name in PUBLISH; connection closed");
+            tracing::warn!(
+                client_id = &*self.client_id,
+                ?topic,
+                "invalid topic name in PUBLISH; connection closed"
+            );
             return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid));
         }
         Ok(topic)
@@ -1148,7 +1152,7 @@ impl Session {
                 client_id = &*self.client_id,
                 username = self.username.as_deref().unwrap_or(""),
                 action,
-                topic,
+                topic = ?topic,
                 "denied by ACL (logged once per client and topic)"
             );
         }

@@ -133,7 +133,7 @@ impl Wills {
         properties
             .user_properties
             .push((SESSION_PROPERTY.to_owned(), session.to_string()));
-        tracing::info!(client_id, session, topic = %String::from_utf8_lossy(&will.topic), "will published");
+        tracing::info!(client_id, session, topic = ?String::from_utf8_lossy(&will.topic), "will published");
         self.metrics.wills_published.inc();
         self.publisher.publish(Message {
             topic: will.topic,
