@@ -376,7 +376,12 @@ impl Session {
                 client_id = format!("fbbus-{:016x}", rand_id());
                 assigned = Some(client_id.clone());
             }
-            if is_reserved_client_id(&client_id) || client_id.contains(['+', '#', '/', '$']) {
+            // Control characters too (MQTT 1.5.4: a server may refuse them): a client id
+            // goes into logs, metrics' neighbours and the registry as given.
+            if is_reserved_client_id(&client_id)
+                || client_id.contains(['+', '#', '/', '$'])
+                || client_id.chars().any(char::is_control)
+            {
                 return Err(refuse(
                     ConnectReturnCode::ClientIdentifierNotValid,
                     "invalid_client_id",

@@ -971,3 +971,32 @@ fn a_connect_with_the_reserved_flag_set_is_refused() {
         0
     );
 }
+
+/// Client ids that would forge a topic level, a `$` name, the broker's own links
+/// (`fbbus:`) or control characters in the log are refused with CONNACK 2 (identifier
+/// rejected); an ordinary one, multi-byte included, is accepted.
+#[test]
+fn unusable_client_ids_are_refused() {
+    let broker = Broker::start();
+    let handshake = |client_id: &str| {
+        RawClient::connect(broker.port()).handshake(&raw::Connect {
+            client_id,
+            ..Default::default()
+        })
+    };
+    for bad in [
+        "a/b",
+        "a+",
+        "#",
+        "$SYS",
+        "fbbus:probe",
+        "line\nbreak",
+        "nul\0",
+        "bell\u{7}",
+    ] {
+        assert_eq!(handshake(bad), 2, "{bad:?}");
+    }
+    for good in ["plc-1", "Förderband_1", "日本"] {
+        assert_eq!(handshake(good), 0, "{good:?}");
+    }
+}
