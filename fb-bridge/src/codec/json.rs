@@ -40,6 +40,10 @@
 //! same `REAL`/`LREAL`.
 
 mod de;
+/// The tree-building reference the streaming decoder is checked against (tests, fuzzing).
+#[cfg(any(test, feature = "reference-decoder"))]
+#[doc(hidden)]
+pub mod tree;
 
 use serde::{Serialize, Serializer};
 use serde_json::{Map, Number, Value as Json};
