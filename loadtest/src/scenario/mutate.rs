@@ -332,17 +332,7 @@ pub async fn connection(ctx: Arc<Ctx>, i: u64, p: f64, max_packets: u64) -> Outc
         o.closed_by_broker = true;
         return o;
     }
-    let wait = if o.valid_connect {
-        ctx.connack
-    } else {
-        ctx.read
-    };
-    conn.await_answer(&mut o, wait, sent).await;
-    if connect_mutated && o.start == Start::Accepted {
-        // Not necessarily wrong (a flipped bit in a client id is still a client id), but
-        // worth a look: which mutations of a CONNECT did the broker accept?
-        o.label("mutated_connects_accepted");
-    }
+    await_connack(&ctx, &mut conn, &mut o, sent, connect_mutated).await;
     if conn.closed {
         o.closed_by_broker = true;
         return o;
@@ -378,6 +368,28 @@ pub async fn connection(ctx: Arc<Ctx>, i: u64, p: f64, max_packets: u64) -> Outc
 /// mutated, ending with DISCONNECT) must see the broker close the connection within
 /// `--read-ms` of the CONNACK: `pipelined_valid_closed`, else `pipelined_valid_left_open`
 /// (the broker did not act on packets that came with the CONNECT).
+/// Waits for the broker's answer to the CONNECT: as long as a CONNACK may take for a valid
+/// one, the short read time for a mutated one; labels mutated CONNECTs it accepted.
+async fn await_connack(
+    ctx: &Ctx,
+    conn: &mut Conn,
+    o: &mut Outcome,
+    sent: Instant,
+    connect_mutated: bool,
+) {
+    let wait = if o.valid_connect {
+        ctx.connack
+    } else {
+        ctx.read
+    };
+    conn.await_answer(o, wait, sent).await;
+    if connect_mutated && o.start == Start::Accepted {
+        // Not necessarily wrong (a flipped bit in a client id is still a client id), but
+        // worth a look: which mutations of a CONNECT did the broker accept?
+        o.label("mutated_connects_accepted");
+    }
+}
+
 async fn pipelined(ctx: &Ctx, plan: &Plan, mut conn: Conn, mut o: Outcome) -> Outcome {
     o.label("pipelined");
     let mut bytes = plan.first.clone();
@@ -408,15 +420,7 @@ async fn pipelined(ctx: &Ctx, plan: &Plan, mut conn: Conn, mut o: Outcome) -> Ou
     let valid = !connect_mutated
         && plan.packets.iter().all(|(_, l)| l.is_none())
         && plan.close == Close::Disconnect;
-    let wait = if o.valid_connect {
-        ctx.connack
-    } else {
-        ctx.read
-    };
-    conn.await_answer(&mut o, wait, sent).await;
-    if connect_mutated && o.start == Start::Accepted {
-        o.label("mutated_connects_accepted");
-    }
+    await_connack(ctx, &mut conn, &mut o, sent, connect_mutated).await;
     let accepted = o.start == Start::Accepted;
     let closed = conn.close(&mut o, plan.close, ctx.read).await;
     if valid && accepted {
