@@ -14,8 +14,8 @@
 //! ```
 //!
 //! - [`connection`]: one client's session; its module doc is the packet path, in order.
-//!   Around it: [`framed`] (the socket and its buffers), [`codec`] (rumqttd's MQTT codecs
-//!   and the guards in front of them), [`frame`] (the bytes fbbus reads itself),
+//!   Around it: [`wire`] (the socket, framing, and rumqttd's MQTT codecs
+//!   with the guards in front of them),
 //!   [`ack_order`], [`origin`], [`packet_ids`] and [`redelivery`] (delivery rules the
 //!   router leaves out),
 //!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
@@ -47,12 +47,9 @@ pub mod authenticator;
 #[cfg(feature = "bridge")]
 pub mod bridge;
 pub mod broker_publisher;
-pub mod codec;
 pub mod config;
 pub mod connection;
 pub mod fb_topics;
-pub mod frame;
-pub mod framed;
 pub mod health;
 pub mod listener;
 pub mod logging;
@@ -71,6 +68,7 @@ pub mod tls;
 pub mod verifier;
 pub mod watched_file;
 pub mod wills;
+pub mod wire;
 
 pub use config::Config;
 pub use server::Broker;

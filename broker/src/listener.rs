@@ -15,7 +15,7 @@ use tokio::sync::Semaphore;
 use tokio_rustls::TlsAcceptor;
 
 use crate::connection::{self, Context, ListenerPolicy};
-use crate::framed::Stream;
+use crate::wire::framed::Stream;
 
 pub struct Listener {
     pub policy: Arc<ListenerPolicy>,

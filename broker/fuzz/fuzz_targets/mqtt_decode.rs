@@ -2,7 +2,7 @@
 //!
 //! The input is the byte stream a client sends on a TCP connection. It goes through:
 //!
-//! 1. **The session path**: `broker::framed::Io` over an in-memory stream: `read_connect`
+//! 1. **The session path**: `broker::wire::framed::Io` over an in-memory stream: `read_connect`
 //!    (first-byte check, framing, the CONNECT's protocol level choosing the 3.1.1 or 5
 //!    codec, decoding), then `next_frame` / `frame::publish_qos_and_pkid` / `decode` for
 //!    every following packet, exactly as `connection.rs` reads them, until the stream ends
@@ -24,9 +24,9 @@ use std::io::Cursor;
 use std::pin::pin;
 use std::task::{Context, Poll, Waker};
 
-use broker::codec::{decode_frame, Codec, ReadError, Version};
-use broker::frame;
-use broker::framed::Io;
+use broker::wire::codec::{decode_frame, Codec, ReadError, Version};
+use broker::wire::frame;
+use broker::wire::framed::Io;
 use bytes::BytesMut;
 use libfuzzer_sys::fuzz_target;
 use rumqttd::protocol::Packet;

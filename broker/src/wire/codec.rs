@@ -14,7 +14,7 @@ use rumqttd::protocol::{
     v4::V4, v5::V5, ConnAck, ConnAckProperties, ConnectReturnCode, Packet, Protocol,
 };
 
-use crate::frame;
+use crate::wire::frame;
 
 /// MQTT version of a connection, chosen from CONNECT's protocol level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -11,8 +11,8 @@ use bytes::BytesMut;
 use rumqttd::protocol::{ConnectReturnCode, Packet};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 
-use crate::codec::{decode_frame, Codec, ReadError, Version};
-use crate::frame::{self, FrameError};
+use crate::wire::codec::{decode_frame, Codec, ReadError, Version};
+use crate::wire::frame::{self, FrameError};
 use crate::metrics::Metrics;
 
 /// A byte stream a client connected over: TCP or TLS over TCP.
