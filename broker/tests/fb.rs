@@ -1,4 +1,4 @@
-//! The device contract of `fb-bridge/README.md`, end to end against the real `fbbus`
+//! The device contract of `docs/device-contract.md`, end to end against the real `fbbus`
 //! binary: declarations and their answers on `fbbus/diag/<id>`, typed topics in the three
 //! encodings, refusals with their exact MQTT 5 reason codes, lenient mode, the registry
 //! over MQTT, HTTP and `fbbus devices`, wills, takeovers, restarts and identity.
@@ -1562,7 +1562,7 @@ async fn a_takeover_leaves_the_device_online_on_the_new_session() {
     assert_eq!(rec["session"], s2);
 }
 
-/// README section 4: "An end that belongs to an older session (a takeover, a delayed
+/// Device contract section 4: "An end that belongs to an older session (a takeover, a delayed
 /// will) never marks a newer session offline." A watcher of the record and of the online
 /// count must not see the device go offline while it takes its own client id over.
 /// Repeated, because whether the old connection's end lands before or after the new
@@ -2109,7 +2109,7 @@ async fn rejection_diagnostics_are_rate_limited() {
     );
 }
 
-/// README section 3: `fb/...` carries canonical JSON, and the type table lists the
+/// Device contract section 3: `fb/...` carries canonical JSON, and the type table lists the
 /// non-canonical forms a device may publish ("input may also be", "accepted"). A device
 /// publishing an accepted non-canonical form on fb/... must not make fb/ subscribers parse
 /// every input form: they get the canonical one, as they do when the same value arrives
@@ -2156,8 +2156,8 @@ async fn fb_subscribers_get_canonical_json_whatever_form_was_published() {
 
 const CONTRACT_SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/fb_contract.py");
 
-/// A paho-mqtt device that knows only fb-bridge/README.md declares, publishes, is refused,
-/// reads both encodings and the registry (see the script's docstring).
+/// A paho-mqtt device that knows only docs/device-contract.md declares, publishes, is
+/// refused, reads both encodings and the registry (see the script's docstring).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_device_follows_the_readme_contract() {
     if !common::require_paho() {

@@ -19,7 +19,7 @@
 //!
 //! The broker uses this crate to check every publication on a typed topic; device
 //! software uses the same types through the client API. The device contract (topics,
-//! encodings, registry) is written down in this crate's README.
+//! encodings, registry) is written down in the repository's `docs/device-contract.md`.
 
 pub mod bus;
 #[cfg(feature = "client")]

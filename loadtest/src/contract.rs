@@ -1,4 +1,4 @@
-//! The fbbus device contract, as far as the load needs it (fb-bridge/README.md).
+//! The fbbus device contract, as far as the load needs it (docs/device-contract.md).
 //!
 //! Each publisher is a device `<prefix>-pub-<i>` with one FB `LOAD` whose event output
 //! `MSG` carries no data: the load messages of [`crate::message`] are its events, on

@@ -2,8 +2,8 @@
 
 use serde_json::Value as Json;
 
-/// One message from the broker on the device's diag topic (README section 2 and "When a
-/// publication is refused").
+/// One message from the broker on the device's diag topic (`docs/device-contract.md`
+/// section 2 and "When a publication is refused").
 #[derive(Debug, Clone, PartialEq)]
 pub enum Diagnostic {
     /// The declaration was accepted: the connection's session number and the line.

@@ -1,8 +1,9 @@
 //! The device client: IEC 61499 communication service-interface FBs over fbbus.
 //!
-//! A [`Device`] is one MQTT 3.1.1 connection speaking the device contract of this crate's
-//! README: it declares its FB interface, publishes its output ports on typed topics and
-//! subscribes to other devices' output ports with the types the registry holds for them.
+//! A [`Device`] is one MQTT 3.1.1 connection speaking the device contract
+//! (`docs/device-contract.md` in the repository): it declares its FB interface, publishes
+//! its output ports on typed topics and subscribes to other devices' output ports with the
+//! types the registry holds for them.
 //! Its handles follow the PUBLISH_n / SUBSCRIBE_n service primitives:
 //!
 //! | IEC 61499 | here |
