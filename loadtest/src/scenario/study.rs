@@ -1,4 +1,6 @@
-//! The JMeter study's three tests (REFERENCE section 1), with its defaults.
+//! The JMeter study's three tests (stress, loss search, performance: Mosquitto on a
+//! Raspberry Pi 3 with a DINASORE FB subscriber; its figures are quoted in
+//! loadtest/RESULTS.md), with its defaults.
 //!
 //! All three send closed-loop bursts from one publisher to one subscriber (plus the FB
 //! subscriber on fbbus), repeat each burst, and in compare mode run A and B batch by
