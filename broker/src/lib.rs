@@ -41,14 +41,13 @@
 //!
 //! Password files, access rules and throttling are the `security` crate's.
 
-pub mod ack_order;
 pub mod admin;
 pub mod authenticator;
 #[cfg(feature = "bridge")]
 pub mod bridge;
 pub mod broker_publisher;
 pub mod config;
-pub mod connection;
+pub mod context;
 pub mod fb_topics;
 pub mod health;
 pub mod listener;
@@ -56,13 +55,10 @@ pub mod logging;
 pub mod memory;
 pub mod metrics;
 pub mod origin;
-pub mod packet_ids;
-pub mod redelivery;
 pub mod registry;
 pub mod router;
 pub mod server;
-pub mod session_lifetime;
-pub mod session_table;
+pub mod session;
 pub mod supervisor;
 pub mod tls;
 pub mod verifier;

@@ -1,5 +1,5 @@
 //! A listener: accepts TCP connections, completes TLS if configured, enforces the
-//! connection limit, and hands each connection to `connection::serve` on its own task.
+//! connection limit, and hands each connection to `session::serve` on its own task.
 //!
 //! Unlike rumqttd's `Server`, it does not pause between accepts: a line that comes back
 //! after a power cut reconnects all at once, and the limit that matters is
@@ -14,7 +14,8 @@ use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_rustls::TlsAcceptor;
 
-use crate::connection::{self, Context, ListenerPolicy};
+use crate::context::Context;
+use crate::session;
 use crate::wire::framed::Stream;
 
 pub struct Listener {
@@ -74,8 +75,15 @@ impl Listener {
                         }
                     }
                 };
-                connection::serve(stream, peer, policy, ctx, slot).await;
+                session::serve(stream, peer, policy, ctx, slot).await;
             });
         }
     }
+}
+
+/// What a listener decides for the connections it accepts.
+#[derive(Debug)]
+pub struct ListenerPolicy {
+    pub name: String,
+    pub anonymous: bool,
 }

@@ -15,15 +15,16 @@ use crate::admin::{self, AdminState};
 use crate::authenticator::Authenticator;
 use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
-use crate::connection::{Context, ListenerPolicy};
+use crate::context::Context;
 use crate::fb_topics::FbTopics;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::listener::Listener;
+use crate::listener::ListenerPolicy;
 use crate::metrics::Metrics;
-use crate::redelivery::Redeliveries;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
-use crate::session_table::SessionTable;
+use crate::session::redelivery::Redeliveries;
+use crate::session::table::SessionTable;
 use crate::supervisor::spawn_core;
 use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
@@ -194,7 +195,7 @@ impl Broker {
         tasks.push(spawn_core(
             &health,
             "session expiry",
-            crate::session_lifetime::expire_sessions(Arc::clone(&ctx), shutdown_rx.clone()),
+            crate::session::lifetime::expire_sessions(Arc::clone(&ctx), shutdown_rx.clone()),
         ));
 
         let mut admin_shutdown = shutdown_rx.clone();

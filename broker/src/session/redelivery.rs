@@ -32,7 +32,7 @@ use std::hash::{Hash, Hasher};
 use std::sync::Mutex;
 use std::time::Duration;
 
-use crate::packet_ids::Resume;
+use crate::session::packet_ids::Resume;
 
 /// A delivery's fingerprint: a hash of its topic and payload.
 pub fn fingerprint(topic: &[u8], payload: &[u8]) -> u64 {
@@ -164,7 +164,7 @@ impl Redeliveries {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::packet_ids::PacketIds;
+    use crate::session::packet_ids::PacketIds;
 
     fn open_exchange(print: u64) -> Resume {
         let mut ids = PacketIds::default();

@@ -14,9 +14,9 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
-use crate::connection::Context;
+use crate::context::Context;
 use crate::router::{unlink, RouterHandle};
-use crate::session_table::Remains;
+use crate::session::table::Remains;
 
 /// When the router's copy of a session ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

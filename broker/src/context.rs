@@ -1,0 +1,46 @@
+//! What every connection shares, built once at start-up by `server`.
+//!
+//! The session layer reads it; nothing in it belongs to one connection. Kept apart from the
+//! session code so the bridge and the session-expiry task can use it without reaching into
+//! a connection's internals.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use security::AclRules;
+use tokio::sync::watch;
+
+use crate::authenticator::Authenticator;
+use crate::fb_topics::FbTopics;
+use crate::metrics::Metrics;
+use crate::router::RouterHandle;
+use crate::session::redelivery::Redeliveries;
+use crate::session::table::SessionTable;
+use crate::session::SubscriptionObserver;
+use crate::watched_file::WatchedFile;
+use crate::wills::Wills;
+
+/// Everything connections share, built once by `server`.
+pub struct Context {
+    pub router: RouterHandle,
+    pub authenticator: Arc<Authenticator>,
+    /// None: no ACL file, every authenticated client may publish and subscribe anywhere.
+    pub acl: Option<Arc<WatchedFile<AclRules>>>,
+    pub wills: Arc<Wills>,
+    pub fb: FbTopics,
+    pub sessions: SessionTable,
+    pub redeliveries: Redeliveries,
+    pub metrics: Arc<Metrics>,
+    pub max_packet: usize,
+    pub max_inflight: u16,
+    /// `broker.max_keep_alive_s` (see [`keep_alive`]).
+    pub max_keep_alive: u16,
+    pub connect_timeout: Duration,
+    /// Becomes true when the broker shuts down.
+    pub shutdown: watch::Receiver<bool>,
+    /// Tests only: a publication on this topic makes its session panic (`supervisor`).
+    pub test_panic_topic: Option<String>,
+    /// Who else wants to know what clients subscribe to: the zenoh bridge to the other
+    /// lines, once started (`[bridge]` configured), imports what local clients read.
+    pub bridge: std::sync::OnceLock<Arc<dyn SubscriptionObserver>>,
+}

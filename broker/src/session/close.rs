@@ -1,0 +1,158 @@
+//! The end of a session: why it ended ([`End`]) decides the MQTT 5 DISCONNECT reason,
+//! whether the will fires and the disconnect metric's label.
+
+use std::time::Duration;
+
+use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
+use tokio::io::AsyncWriteExt;
+use tokio::time::timeout;
+
+use super::lifetime::end_idle_session;
+use super::packet_ids::Resume;
+use super::Session;
+use crate::fb_topics::Check;
+use crate::metrics::DisconnectReason;
+use crate::router::unlink;
+use crate::wire::codec::Version;
+
+/// Why a session ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum End {
+    Client {
+        with_will: bool,
+    },
+    Abrupt,
+    KeepAlive,
+    Takeover,
+    Malformed,
+    Oversized,
+    ProtocolError(DisconnectReasonCode),
+    Router,
+    Shutdown,
+    /// The session's task panicked (`supervisor`): closed as a lost connection.
+    Panic,
+}
+
+impl End {
+    /// MQTT 3.1.1 3.1.2.5 / MQTT 5 3.1.2.5: the will is published unless the client
+    /// disconnected normally. A broker shutdown is not the device failing: no will.
+    pub(super) fn fires_will(self) -> bool {
+        !matches!(self, End::Client { with_will: false } | End::Shutdown)
+    }
+
+    pub(super) fn reason(self) -> DisconnectReason {
+        match self {
+            End::Client { with_will: false } => DisconnectReason::Client,
+            End::Client { with_will: true } => DisconnectReason::ClientWithWill,
+            End::Abrupt => DisconnectReason::Abrupt,
+            End::KeepAlive => DisconnectReason::KeepAlive,
+            End::Takeover => DisconnectReason::Takeover,
+            End::Malformed => DisconnectReason::Malformed,
+            End::Oversized => DisconnectReason::Oversized,
+            End::ProtocolError(_) => DisconnectReason::ProtocolError,
+            End::Router => DisconnectReason::Router,
+            End::Shutdown => DisconnectReason::Shutdown,
+            End::Panic => DisconnectReason::Internal,
+        }
+    }
+
+    /// The DISCONNECT an MQTT 5 client is sent, when the server ends the connection.
+    pub(super) fn v5_disconnect(self) -> Option<DisconnectReasonCode> {
+        match self {
+            End::KeepAlive => Some(DisconnectReasonCode::KeepAliveTimeout),
+            End::Takeover => Some(DisconnectReasonCode::SessionTakenOver),
+            End::Malformed => Some(DisconnectReasonCode::MalformedPacket),
+            End::Oversized => Some(DisconnectReasonCode::PacketTooLarge),
+            End::ProtocolError(code) => Some(code),
+            End::Shutdown => Some(DisconnectReasonCode::ServerShuttingDown),
+            End::Panic => Some(DisconnectReasonCode::UnspecifiedError),
+            End::Client { .. } | End::Abrupt | End::Router => None,
+        }
+    }
+
+    /// Whether the router still holds this connection and must be told it ended.
+    pub(super) fn router_link_alive(self) -> bool {
+        !matches!(self, End::Takeover | End::Router)
+    }
+}
+
+impl Session {
+    /// Ends the session: tells the client why (MQTT 5), the router that it is gone,
+    /// fires the will if the end calls for it, and meters the disconnect.
+    pub(super) async fn close(mut self, end: End) {
+        // First, so a reconnecting client's next connection, which may already wait for
+        // it, gets this session's open exchanges at once (`redelivery`).
+        let open = if self.lifetime.clean_link {
+            Resume::default()
+        } else {
+            std::mem::take(&mut self.ids).into_resume()
+        };
+        let (redeliveries, client_id, session) =
+            (&self.ctx.redeliveries, &*self.client_id, self.session);
+        // A kept session with an expiry is ended by the expiry task (`session_lifetime`).
+        let remains = self.lifetime.remains();
+        self.ctx
+            .sessions
+            .close_with(client_id, session, remains, |superseded| {
+                redeliveries.save(client_id, session, open, superseded)
+            });
+        if self.version == Version::V5 {
+            if let Some(reason_code) = end.v5_disconnect() {
+                self.io
+                    .queue(Packet::Disconnect(Disconnect { reason_code }, None));
+                let _ = timeout(Duration::from_secs(1), self.io.flush()).await;
+            }
+        }
+        let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
+        if end.router_link_alive() {
+            let _ = unlink(self.link_tx).await;
+        }
+        let will = self.will.take().filter(|_| end.fires_will());
+        if let Some(will) = will.map(|w| *w) {
+            // A will on a typed topic is a publication like any other: checked against
+            // the declaration now, and re-encoded like one (the reference line's CONNECT
+            // FB sets a BOOL output to FALSE this way).
+            let topic = String::from_utf8_lossy(&will.topic).into_owned();
+            match self.fb.check(&self.ctx.fb, &topic, &will.payload) {
+                Check::Pass => self.ctx.wills.fire(&self.client_id, self.session, will),
+                Check::Route(routes) => {
+                    for (topic, payload) in routes {
+                        let mut copy = will.clone();
+                        copy.topic = topic.into();
+                        copy.payload = payload;
+                        self.ctx.wills.fire(&self.client_id, self.session, copy);
+                    }
+                }
+                Check::Consumed | Check::Refused(_) => {}
+            }
+            self.ctx.fb.publish(self.fb.take_outbox());
+        }
+        // A clean session's subscriptions end with it; a persistent session's stay (the
+        // router keeps queueing for it), and so does the bridge's import of them.
+        if self.lifetime.clean_link {
+            if let Some(bridge) = self.ctx.bridge.get() {
+                for f in self.subscriptions.keys() {
+                    bridge.unsubscribed(f);
+                }
+            }
+        }
+        self.ctx.fb.registry.disconnected(
+            &self.client_id,
+            self.session,
+            end.reason().description(),
+        );
+        // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0); later
+        // ones are the expiry task's (`session_lifetime::expire_sessions`).
+        if self.lifetime.expires_after == Some(Duration::ZERO) {
+            end_idle_session(&self.ctx, &self.client_id, self.session).await;
+        }
+        self.ctx.metrics.disconnected(end.reason());
+        self.ctx.metrics.connections.dec();
+        tracing::info!(
+            peer = %self.peer,
+            client_id = &*self.client_id,
+            reason = end.reason().label(),
+            "client disconnected"
+        );
+    }
+}

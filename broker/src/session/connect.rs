@@ -1,0 +1,377 @@
+//! Opening a session: the CONNECT is checked, the client authenticated (step 1 of the
+//! packet path), its will authorized, and the session linked to the router and answered
+//! with CONNACK.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{ConnectReturnCode, Packet};
+use rumqttd::Notification;
+use security::Identity;
+
+use super::ack_order::AckOrder;
+use super::lifetime::{purge_router_session, SessionLifetime};
+use super::packet_ids::PacketIds;
+use super::table::Remains;
+use super::Session;
+use crate::authenticator::Outcome;
+use crate::broker_publisher::is_reserved_client_id;
+use crate::context::Context;
+use crate::fb_topics::FbSession;
+use crate::listener::ListenerPolicy;
+use crate::metrics::DisconnectReason;
+use crate::router::unlink;
+use crate::wills::Will;
+use crate::wire::codec::{connack, Version};
+use crate::wire::framed::Io;
+
+impl Session {
+    /// Authenticates the CONNECT, registers the client with the router and answers CONNACK.
+    /// Returns None when the client was refused (the CONNACK said why).
+    pub(super) async fn open(
+        mut io: Io,
+        connect: Packet,
+        peer: SocketAddr,
+        listener: &ListenerPolicy,
+        ctx: &Arc<Context>,
+    ) -> Option<Session> {
+        let Packet::Connect(connect, properties, will, will_properties, login) = connect else {
+            unreachable!("read_connect only returns CONNECT")
+        };
+        let version = io.codec.0;
+        let refuse = |code: ConnectReturnCode, reason: &'static str| {
+            ctx.metrics.refused(reason);
+            (code, reason)
+        };
+
+        let result = async {
+            // Client identifier.
+            let mut client_id = connect.client_id.clone();
+            let mut assigned = None;
+            if client_id.is_empty() {
+                if !connect.clean_session {
+                    return Err(refuse(
+                        ConnectReturnCode::ClientIdentifierNotValid,
+                        "invalid_client_id",
+                    ));
+                }
+                client_id = format!("fbbus-{:016x}", rand_id());
+                assigned = Some(client_id.clone());
+            }
+            // Control characters too (MQTT 1.5.4: a server may refuse them): a client id
+            // goes into logs, metrics' neighbours and the registry as given.
+            if is_reserved_client_id(&client_id)
+                || client_id.contains(['+', '#', '/', '$'])
+                || client_id.chars().any(char::is_control)
+            {
+                return Err(refuse(
+                    ConnectReturnCode::ClientIdentifierNotValid,
+                    "invalid_client_id",
+                ));
+            }
+
+            // 1. Authenticate.
+            let username = login
+                .as_ref()
+                .map(|l| l.username.clone())
+                .filter(|u| !u.is_empty());
+            let credentials = login
+                .map(|l| (l.username, l.password))
+                .filter(|(u, _)| !u.is_empty());
+            match ctx
+                .authenticator
+                .authenticate(peer.ip(), credentials, listener.anonymous)
+                .await
+            {
+                Outcome::Accepted => {}
+                Outcome::BadCredentials => {
+                    return Err(refuse(
+                        ConnectReturnCode::BadUserNamePassword,
+                        "bad_credentials",
+                    ))
+                }
+                Outcome::MissingCredentials => {
+                    return Err(refuse(
+                        ConnectReturnCode::NotAuthorized,
+                        "missing_credentials",
+                    ))
+                }
+                Outcome::Throttled(_) => {
+                    return Err(refuse(
+                        ConnectReturnCode::ConnectionRateExceeded,
+                        "throttled",
+                    ))
+                }
+            }
+
+            // 2. Authorize the will topic: a will may only go where the client may publish.
+            let session_expiry = properties
+                .as_ref()
+                .and_then(|p| p.session_expiry_interval)
+                .unwrap_or(0);
+            let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
+            if let Some(w) = &will {
+                let topic = String::from_utf8_lossy(&w.topic);
+                let identity = Identity {
+                    username: username.as_deref(),
+                    client_id: &client_id,
+                };
+                // `fbbus/` is the broker's: a will there could forge registry records.
+                let allowed = security::acl::valid_topic(&topic)
+                    && !topic.starts_with(fb_bridge::topic::BROKER_NAMESPACE)
+                    && ctx
+                        .acl
+                        .as_ref()
+                        .is_none_or(|acl| acl.get().can_publish(identity, &topic));
+                if !allowed {
+                    ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
+                    tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
+                    return Err(refuse(
+                        ConnectReturnCode::NotAuthorized,
+                        "will_not_authorized",
+                    ));
+                }
+            }
+
+            // Register with the router (this takes over an older session with the same id).
+            ctx.wills.cancel_delayed(&client_id);
+            // The session number is taken before the router link, because linking is what
+            // ends an older connection with this id, and that one must see it is stale.
+            let (session, predecessor_running) = ctx.sessions.open(&client_id);
+            if match username.as_deref() {
+                Some(user) => user == client_id,
+                None => ctx.fb.anonymous_devices,
+            } {
+                ctx.fb.registry.session_started(&client_id, session);
+            }
+            // Session lifetime. rumqttd keeps a link's session after it ends unless the link
+            // is clean (the MQTT 3.1.1 rule). MQTT 5 separates the two: Clean Start discards
+            // an existing session now, Session Expiry decides whether this one outlives the
+            // connection. So a v5 link is clean only for Clean Start with expiry 0; Clean
+            // Start with expiry > 0 first ends the old session with a purge link.
+            let lifetime = match version {
+                Version::V311 => SessionLifetime::v311(connect.clean_session),
+                Version::V5 => SessionLifetime::v5(connect.clean_session, session_expiry),
+            };
+            if lifetime.purge_before_link {
+                purge_router_session(&ctx.router, &client_id).await;
+            }
+            // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it
+            // sends by subscription filter, so two topics matching one wildcard would share
+            // an alias. fbbus sends full topic names.
+            let linked = ctx.router.link(&client_id, lifetime.clean_link, 0).await;
+            let (link_tx, link_rx, ack) = match linked {
+                Ok(link) => link,
+                Err(e) => {
+                    ctx.sessions
+                        .close_with(&client_id, session, Remains::Nothing, |superseded| {
+                            ctx.redeliveries.abandoned(&client_id, session, superseded)
+                        });
+                    tracing::error!(client_id, error = %e, "router refused the connection");
+                    return Err(refuse(
+                        ConnectReturnCode::ServerUnavailable,
+                        "router_refused",
+                    ));
+                }
+            };
+            Ok(Accepted {
+                client_id,
+                assigned,
+                username,
+                will,
+                session,
+                predecessor_running,
+                lifetime,
+                link_tx,
+                link_rx,
+                ack,
+            })
+        }
+        .await;
+
+        let accepted = match result {
+            Ok(accepted) => accepted,
+            Err((code, reason)) => {
+                tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
+                let _ = io.send(connack(code, None)).await;
+                return None;
+            }
+        };
+
+        let (keep_alive_s, server_keep_alive) =
+            keep_alive(version, connect.keep_alive, ctx.max_keep_alive);
+        let mut connack_packet: Option<Packet> = accepted.ack.into();
+        if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
+            let mut p = props.take().unwrap_or_default();
+            p.assigned_client_identifier = accepted.assigned;
+            p.receive_max = Some(ctx.max_inflight);
+            p.max_packet_size = Some(ctx.max_packet as u32);
+            p.server_keep_alive = server_keep_alive;
+            *props = Some(p);
+        }
+        if let Some(packet) = connack_packet {
+            io.queue(packet);
+        }
+        if io.flush().await.is_err() {
+            let _ = unlink(accepted.link_tx).await;
+            let remains = accepted.lifetime.remains();
+            ctx.sessions.close_with(
+                &accepted.client_id,
+                accepted.session,
+                remains,
+                |superseded| {
+                    ctx.redeliveries
+                        .abandoned(&accepted.client_id, accepted.session, superseded)
+                },
+            );
+            // It may have taken an online device's session over: that device is gone now.
+            ctx.fb.registry.disconnected(
+                &accepted.client_id,
+                accepted.session,
+                DisconnectReason::Abrupt.description(),
+            );
+            return None;
+        }
+
+        ctx.metrics.connects.inc();
+        ctx.metrics.connections.inc();
+        let mut fb = FbSession::new(
+            &ctx.fb,
+            &accepted.client_id,
+            accepted.username.as_deref(),
+            accepted.session,
+        );
+        if fb.identity_verified() {
+            fb.set_interface(
+                ctx.fb
+                    .registry
+                    .connected(&accepted.client_id, accepted.session),
+            );
+        }
+        tracing::info!(
+            %peer,
+            listener = listener.name,
+            client_id = accepted.client_id,
+            username = accepted.username.as_deref().unwrap_or(""),
+            version = ?version,
+            keep_alive = keep_alive_s,
+            "client connected"
+        );
+        let ids = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
+            ctx.redeliveries.forget(&accepted.client_id);
+            PacketIds::default()
+        } else {
+            let handed_over = ctx
+                .redeliveries
+                .take(
+                    &accepted.client_id,
+                    accepted.session,
+                    accepted.predecessor_running,
+                )
+                .await;
+            PacketIds::resumed(handed_over)
+        };
+        Some(Session {
+            io,
+            peer,
+            client_id: accepted.client_id.into(),
+            username: accepted.username,
+            version,
+            // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
+            keep_alive: (keep_alive_s > 0)
+                .then(|| Duration::from_secs(keep_alive_s as u64).mul_f32(1.5)),
+            client_max_packet: properties
+                .as_ref()
+                .and_then(|p| p.max_packet_size)
+                .map(|m| m as usize),
+            will: accepted.will.map(Box::new),
+            link_tx: accepted.link_tx,
+            link_rx: accepted.link_rx,
+            session: accepted.session,
+            lifetime: accepted.lifetime,
+            ctx: Arc::clone(ctx),
+            to_router: Vec::new(),
+            inflight_in: 0,
+            ack_order: AckOrder::default(),
+            client_receive_max: properties
+                .as_ref()
+                .and_then(|p| p.receive_maximum)
+                .filter(|m| *m > 0)
+                .unwrap_or(u16::MAX),
+            outstanding_out: 0,
+            ids,
+            rare: None,
+            held: VecDeque::new(),
+            wake_pending: false,
+            subscriptions: BTreeMap::new(),
+            special_subscriptions: false,
+            fb,
+        })
+    }
+}
+
+/// The keep-alive a connection runs with, in seconds (0: off), and the Server Keep Alive
+/// to announce in CONNACK. An MQTT 5 client that asks for 0 (no keep-alive) or for more
+/// than `max` (`broker.max_keep_alive_s`, 0: no maximum) is told to use `max` and is held
+/// to it [MQTT-3.2.2-21], so its death on a half-open link is noticed and its will
+/// published. An MQTT 3.1.1 client cannot be told, and keeps the value it asked for.
+fn keep_alive(version: Version, asked: u16, max: u16) -> (u16, Option<u16>) {
+    let beyond_max = max > 0 && (asked == 0 || asked > max);
+    if version == Version::V5 && beyond_max {
+        (max, Some(max))
+    } else {
+        (asked, None)
+    }
+}
+
+/// A CONNECT that passed: everything `Session::open` builds the session from.
+struct Accepted {
+    client_id: String,
+    /// The client id fbbus chose, when the client sent none.
+    assigned: Option<String>,
+    username: Option<String>,
+    will: Option<Will>,
+    session: u64,
+    /// The client id's previous connection had not closed yet when this one started.
+    predecessor_running: bool,
+    lifetime: SessionLifetime,
+    link_tx: LinkTx,
+    link_rx: LinkRx,
+    ack: Notification,
+}
+
+/// A random 64-bit id for clients that connect without one.
+fn rand_id() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    // RandomState is seeded from the OS per process and per instance: enough for a name.
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(0),
+    );
+    h.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    pub(super) fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
+        // Off, or beyond the maximum: told to use the maximum.
+        assert_eq!(keep_alive(Version::V5, 0, 300), (300, Some(300)));
+        assert_eq!(keep_alive(Version::V5, 301, 300), (300, Some(300)));
+        // Within it: their own, nothing announced.
+        assert_eq!(keep_alive(Version::V5, 60, 300), (60, None));
+        // No maximum: whatever they ask, 0 (off) included.
+        assert_eq!(keep_alive(Version::V5, 0, 0), (0, None));
+        // MQTT 3.1.1 cannot be told.
+        assert_eq!(keep_alive(Version::V311, 0, 300), (0, None));
+        assert_eq!(keep_alive(Version::V311, 900, 300), (900, None));
+    }
+}

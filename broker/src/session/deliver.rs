@@ -1,0 +1,304 @@
+//! Packets from the router to the client: deliveries with the MQTT rules rumqttd's router
+//! leaves out, SUBACKs completed for refused filters, acknowledgements kept in order.
+
+use rumqttd::local::LinkError;
+use rumqttd::protocol::{
+    Filter, Packet, PubAck, PubAckReason, PubComp, PubCompReason, PubRec, PubRecReason, Publish,
+    PublishProperties, RetainForwardRule, SubscribeReasonCode,
+};
+use rumqttd::Notification;
+
+use super::close::End;
+use super::redelivery::{self};
+use super::{Session, HOLD_LIMIT};
+use crate::origin;
+
+impl Session {
+    /// Writes what the router delivered, draining everything it has queued.
+    pub(super) async fn deliver(&mut self) -> Result<(), End> {
+        let mut unscheduled = false;
+        loop {
+            match self.link_rx.recv_deadline(std::time::Instant::now()) {
+                Ok(Some(Notification::Unschedule)) => unscheduled = true,
+                Ok(Some(notification)) => self.outbound(notification),
+                Ok(None) => {}
+                Err(LinkError::RecvTimeout(_)) => break,
+                Err(_) => return Err(self.router_dropped().await),
+            }
+        }
+        self.route().await?;
+        let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
+        self.ctx.metrics.bytes_out.inc_by(written as u64);
+        if unscheduled {
+            if self.held.len() < HOLD_LIMIT {
+                self.link_rx.wake().await.map_err(|_| End::Router)?;
+            } else {
+                self.wake_pending = true;
+            }
+        }
+        Ok(())
+    }
+
+    /// The router dropped this link: either a newer connection took the client id over,
+    /// or the router refused something this client sent.
+    pub(super) async fn router_dropped(&mut self) -> End {
+        let _ = self.io.flush().await;
+        if self.ctx.sessions.is_current(&self.client_id, self.session) {
+            tracing::warn!(
+                client_id = &*self.client_id,
+                "the router ended the connection"
+            );
+            End::Router
+        } else {
+            End::Takeover
+        }
+    }
+
+    /// Sends held deliveries while the client's Receive Maximum allows.
+    pub(super) fn release_held(&mut self) {
+        while self.outstanding_out < self.client_receive_max {
+            let Some((publish, properties)) = self.held.pop_front() else {
+                break;
+            };
+            self.deliver_publish(publish, properties);
+        }
+    }
+
+    /// One packet from the router to the client.
+    pub(super) fn outbound(&mut self, notification: Notification) {
+        let packet: Option<Packet> = notification.into();
+        match packet {
+            Some(Packet::SubAck(mut suback, properties)) => {
+                let refused = self
+                    .rare
+                    .as_mut()
+                    .and_then(|r| r.partial_subscribes.remove(&suback.pkid));
+                if let Some(refused) = refused {
+                    let mut granted = suback.return_codes.into_iter();
+                    suback.return_codes = refused
+                        .into_iter()
+                        .map(|r| {
+                            r.or_else(|| granted.next())
+                                .unwrap_or(SubscribeReasonCode::Unspecified)
+                        })
+                        .collect();
+                }
+                self.io.queue(Packet::SubAck(suback, properties));
+            }
+            Some(Packet::Publish(publish, properties)) => {
+                // Order is kept: once something is held, everything after it waits too.
+                if self.held.is_empty() && self.outstanding_out < self.client_receive_max {
+                    self.deliver_publish(publish, properties);
+                } else {
+                    self.held.push_back((publish, properties));
+                }
+            }
+            Some(Packet::PubRel(mut pubrel, properties)) => {
+                self.ack_order.released(pubrel.pkid);
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.dropped_qos2.remove(&pubrel.pkid))
+                {
+                    let complete = Packet::PubComp(
+                        PubComp {
+                            pkid: pubrel.pkid,
+                            reason: PubCompReason::Success,
+                        },
+                        None,
+                    );
+                    self.ack_order
+                        .complete(pubrel.pkid, complete, &mut self.to_router);
+                } else {
+                    pubrel.pkid = self.ids.release(pubrel.pkid);
+                    self.io.queue(Packet::PubRel(pubrel, properties));
+                }
+            }
+            Some(packet) => {
+                if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
+                    self.inflight_in = self.inflight_in.saturating_sub(1);
+                }
+                self.io.queue(packet)
+            }
+            None => {}
+        }
+    }
+
+    /// Encodes one delivery, applying the MQTT rules rumqttd 0.20's router leaves out, in
+    /// this order:
+    /// - the subscriptions' options ([`Session::subscription_options`]): No Local and
+    ///   Retain Handling 2 may drop the delivery, Retain As Published restores RETAIN;
+    /// - the delivery QoS is min(publication QoS, subscription QoS) [MQTT-3.8.4-8]: the
+    ///   router sends at the subscription's QoS, so a lower publication QoS is restored from
+    ///   the message's `origin`;
+    /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
+    ///
+    /// A QoS 1/2 delivery goes out under the packet id the client sees ([`PacketIds`]):
+    /// the original id and DUP=1 when it re-sends what an earlier connection of the session
+    /// left unacknowledged [MQTT-4.4.0-1] [MQTT-3.3.1-1]. Whatever the client is not sent at
+    /// the router's QoS is acknowledged to the router for it ([`Session::ack_for_client`]).
+    pub(super) fn deliver_publish(
+        &mut self,
+        mut publish: Publish,
+        properties: Option<PublishProperties>,
+    ) {
+        let origin = origin::take(&mut publish);
+        let published = origin.as_ref().map(|o| o.qos);
+        let (deliver, retain_as_published) = self.subscription_options(&publish, origin.as_ref());
+        if retain_as_published {
+            publish.retain = true;
+        }
+        // `pkid` stays the router's; the client sees `client_pkid`.
+        let (routed_qos, pkid) = publish.qos_and_pkid();
+        let (client_pkid, dup) = if routed_qos > 0 {
+            let print = redelivery::fingerprint(&publish.topic, &publish.payload);
+            let delivery = self.ids.deliver(pkid, print);
+            publish.set_pkid(delivery.id);
+            (delivery.id, delivery.dup)
+        } else {
+            (0, false)
+        };
+        let (topic, payload, retain) = (
+            publish.topic.clone(),
+            publish.payload.clone(),
+            publish.retain,
+        );
+        let may_lower = routed_qos > 0 && matches!(published, Some(0 | 1));
+        let kept_properties = if may_lower { properties.clone() } else { None };
+
+        let before = self.io.write.len();
+        self.io.queue(Packet::Publish(publish, properties));
+
+        if routed_qos > 0 {
+            self.ack_order.delivered(pkid);
+        }
+        if !deliver {
+            self.io.write.truncate(before);
+            self.ids.withdraw(client_pkid);
+            self.ack_for_client(routed_qos, pkid);
+            return;
+        }
+        let qos = published.map_or(routed_qos, |q| q.min(routed_qos));
+        if may_lower && qos < routed_qos {
+            self.io.write.truncate(before);
+            let lower_pkid = if qos == 0 { 0 } else { client_pkid };
+            let lower = crate::broker_publisher::publish_packet(
+                topic.clone(),
+                payload.clone(),
+                qos,
+                retain,
+                lower_pkid,
+            );
+            self.io.queue(Packet::Publish(lower, kept_properties));
+            if qos == 0 {
+                self.ids.withdraw(client_pkid);
+                self.ack_for_client(routed_qos, pkid);
+            } else {
+                self.rare().qos2_sent_as_qos1.insert(pkid);
+            }
+        }
+
+        let size = self.io.write.len() - before;
+        match self.client_max_packet {
+            Some(max) if size > max => {
+                self.io.write.truncate(before);
+                if let Some(rare) = self.rare.as_mut() {
+                    rare.qos2_sent_as_qos1.remove(&pkid);
+                }
+                if qos > 0 {
+                    self.ids.withdraw(client_pkid);
+                    self.ack_for_client(routed_qos, pkid);
+                }
+                self.ctx
+                    .metrics
+                    .messages_dropped
+                    .with_label_values(&["client_max_packet_size"])
+                    .inc();
+                tracing::debug!(
+                    client_id = &*self.client_id,
+                    size,
+                    max,
+                    "delivery larger than the client's maximum packet size; dropped"
+                );
+            }
+            _ => {
+                self.ctx.metrics.messages_out.inc();
+                if qos > 0 {
+                    self.outstanding_out = self.outstanding_out.saturating_add(1);
+                    if dup {
+                        self.io.write[before] |= 0b0000_1000;
+                    }
+                }
+            }
+        }
+    }
+
+    /// What the client's subscription options say about one delivery: whether to send it
+    /// (No Local [MQTT-3.8.3-3], Retain Handling 2 [MQTT-3.3.1-11]) and whether to set RETAIN
+    /// as published [MQTT-3.3.1-12]. rumqttd's router ignores these options; a delivery
+    /// with RETAIN set is a retained message sent at subscribe time (the router clears
+    /// RETAIN on live deliveries). When several subscriptions match, the delivery is sent
+    /// unless every matching one excludes it.
+    pub(super) fn subscription_options(
+        &self,
+        publish: &Publish,
+        origin: Option<&origin::Origin>,
+    ) -> (bool, bool) {
+        if !self.special_subscriptions {
+            return (true, false);
+        }
+        let Ok(topic) = std::str::from_utf8(&publish.topic) else {
+            return (true, false);
+        };
+        let matching: Vec<&Filter> = self
+            .subscriptions
+            .iter()
+            .filter(|(path, _)| security::acl::filter_matches(path, topic))
+            .map(|(_, f)| f)
+            .collect();
+        if matching.is_empty() {
+            return (true, false);
+        }
+        let own = origin.is_some_and(|o| o.publisher == self.client_id);
+        if own && matching.iter().all(|f| f.nolocal) {
+            return (false, false);
+        }
+        if publish.retain
+            && matching
+                .iter()
+                .all(|f| matches!(f.retain_forward_rule, RetainForwardRule::Never))
+        {
+            return (false, false);
+        }
+        let retained_origin = origin.is_some_and(|o| o.retain);
+        let rap = !publish.retain && retained_origin && matching.iter().any(|f| f.preserve_retain);
+        (true, rap)
+    }
+
+    /// Acknowledges a delivery to the router on the client's behalf (the client was not
+    /// sent it at the router's QoS), so the session's in-flight window does not leak.
+    /// At QoS 2 the router answers with PUBREL, which `outbound` completes with PUBCOMP.
+    pub(super) fn ack_for_client(&mut self, routed_qos: u8, pkid: u16) {
+        let ack = match routed_qos {
+            1 => Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: PubAckReason::Success,
+                },
+                None,
+            ),
+            2 => {
+                self.rare().dropped_qos2.insert(pkid);
+                Packet::PubRec(
+                    PubRec {
+                        pkid,
+                        reason: PubRecReason::Success,
+                    },
+                    None,
+                )
+            }
+            _ => return,
+        };
+        self.ack_order.ack(pkid, ack, &mut self.to_router);
+    }
+}

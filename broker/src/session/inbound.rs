@@ -1,0 +1,453 @@
+//! Packets from the client: one dispatch per packet type (`Session::inbound`), then the
+//! PUBLISH and SUBSCRIBE handlers.
+
+use rumqttd::protocol::{
+    DisconnectReasonCode, Filter, Packet, PingResp, PubAck, PubAckReason, PubComp, PubCompReason,
+    PubRec, PubRecReason, Publish, PublishProperties, RetainForwardRule, SubAck, Subscribe,
+    SubscribeProperties, SubscribeReasonCode,
+};
+use security::Identity;
+
+use super::close::End;
+use super::{Session, MAX_LOGGED_DENIALS};
+use crate::fb_topics::{Check, Refusal};
+use crate::origin;
+use crate::wire::codec::Version;
+
+/// The Topic Alias Maximum rumqttd's router announces in CONNACK.
+const TOPIC_ALIAS_MAX: u16 = 4096;
+
+impl Session {
+    /// The packet path for one packet from the client (see the module doc).
+    pub(super) fn inbound(
+        &mut self,
+        packet: Packet,
+        qos_pkid: Option<(u8, u16)>,
+    ) -> Result<(), End> {
+        // Acknowledgements of deliveries carry the client's packet ids; from here on the
+        // packet path works with the router's (`packet_ids`).
+        let packet = self.ids.from_client(packet);
+        match packet {
+            Packet::Publish(publish, properties) => {
+                let (qos, pkid) = qos_pkid.unwrap_or((0, 0));
+                self.on_publish(publish, properties, qos, pkid)
+            }
+            Packet::Subscribe(subscribe, properties) => {
+                self.on_subscribe(subscribe, properties);
+                Ok(())
+            }
+            Packet::PubRel(pubrel, _) => {
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.refused_qos2.remove(&pubrel.pkid))
+                {
+                    // A refused QoS 2 exchange ends here, never in the router, which drops
+                    // a connection that releases a packet id it never saw.
+                    let reason = match self.version {
+                        Version::V5 => PubCompReason::PacketIdentifierNotFound,
+                        Version::V311 => PubCompReason::Success,
+                    };
+                    self.io.queue(Packet::PubComp(
+                        PubComp {
+                            pkid: pubrel.pkid,
+                            reason,
+                        },
+                        None,
+                    ));
+                } else {
+                    // rumqttd 0.20 ignores a PUBREL carrying MQTT 5 properties (reason
+                    // string, user properties), which mean nothing to the router anyway.
+                    self.to_router.push(Packet::PubRel(pubrel, None));
+                }
+                Ok(())
+            }
+            Packet::PubAck(ack, _)
+                if self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.qos2_sent_as_qos1.remove(&ack.pkid)) =>
+            {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
+                self.ack_for_client(2, ack.pkid);
+                Ok(())
+            }
+            Packet::PubAck(ack, properties) => {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
+                let pkid = ack.pkid;
+                let packet = Packet::PubAck(ack, properties);
+                self.ack_order.ack(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            Packet::PubRec(rec, properties) => {
+                let pkid = rec.pkid;
+                let packet = Packet::PubRec(rec, properties);
+                self.ack_order.ack(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            Packet::PubComp(comp, properties) => {
+                self.outstanding_out = self.outstanding_out.saturating_sub(1);
+                let pkid = comp.pkid;
+                let packet = Packet::PubComp(comp, properties);
+                self.ack_order.complete(pkid, packet, &mut self.to_router);
+                Ok(())
+            }
+            Packet::Unsubscribe(unsubscribe, properties) => {
+                if let Some(bridge) = self.ctx.bridge.get() {
+                    for f in &unsubscribe.filters {
+                        if self.subscriptions.contains_key(f) {
+                            bridge.unsubscribed(f);
+                        }
+                    }
+                }
+                self.remember_subscriptions(std::iter::empty(), &unsubscribe.filters);
+                self.to_router
+                    .push(Packet::Unsubscribe(unsubscribe, properties));
+                Ok(())
+            }
+            Packet::PingReq(_) => {
+                self.io.queue(Packet::PingResp(PingResp));
+                Ok(())
+            }
+            Packet::Disconnect(disconnect, _) => Err(End::Client {
+                with_will: disconnect.reason_code
+                    == DisconnectReasonCode::DisconnectWithWillMessage,
+            }),
+            Packet::Connect(..) => {
+                tracing::warn!(
+                    client_id = &*self.client_id,
+                    "second CONNECT; connection closed"
+                );
+                Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
+            }
+            // Server-only types never get here: `decode_frame` refuses them.
+            _ => Err(End::ProtocolError(DisconnectReasonCode::ProtocolError)),
+        }
+    }
+
+    pub(super) fn on_publish(
+        &mut self,
+        publish: Publish,
+        properties: Option<PublishProperties>,
+        qos: u8,
+        pkid: u16,
+    ) -> Result<(), End> {
+        let topic = self.resolve_topic(&publish, properties.as_ref())?;
+        if self.ctx.test_panic_topic.as_deref() == Some(topic.as_str()) {
+            panic!("test_panic_topic: {} published on {topic}", self.client_id);
+        }
+
+        // 2. Authorize.
+        if !self.may_publish(&topic) {
+            self.ctx
+                .metrics
+                .acl_denied
+                .with_label_values(&["publish"])
+                .inc();
+            self.log_denial("publish", &topic);
+            self.refuse_publish(qos, pkid, Refusal::NotAuthorized);
+            return Ok(());
+        }
+
+        // 3. Check typed FB topics; declarations end here.
+        let routes = match self.fb.check(&self.ctx.fb, &topic, &publish.payload) {
+            Check::Pass => Vec::new(),
+            Check::Route(routes) => routes,
+            Check::Consumed => {
+                self.acknowledge_consumed(qos, pkid);
+                return Ok(());
+            }
+            Check::Refused(rejection) => {
+                self.refuse_publish(qos, pkid, rejection.refusal);
+                return Ok(());
+            }
+        };
+
+        // 4. Route, 5. meter. The router gets the full topic, never an alias.
+        if qos > 0 {
+            self.inflight_in = self.inflight_in.saturating_add(1);
+            if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
+                tracing::warn!(client_id = &*self.client_id, receive_maximum = self.ctx.max_inflight,
+                    "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
+                return Err(End::ProtocolError(
+                    DisconnectReasonCode::ReceiveMaximumExceeded,
+                ));
+            }
+        }
+        let mut publish = publish;
+        let mut properties = properties;
+        if let Some(p) = properties.as_mut().filter(|p| p.topic_alias.is_some()) {
+            p.topic_alias = None;
+            publish.topic = topic.into();
+        }
+        let retain = publish.retain;
+        let origin = origin::new(qos, retain, &self.client_id);
+        self.ctx.metrics.messages_in.inc();
+        let mut routes = routes.into_iter();
+        if let Some((topic, payload)) = routes.next() {
+            // A typed message: the canonical encoding travels at the publication's QoS and
+            // packet id (the router acknowledges it), the re-encodings as QoS 0 copies
+            // carrying the same origin, so subscribers get them at the same delivery QoS.
+            for (topic, payload) in routes {
+                let copy = crate::broker_publisher::publish_packet(topic, payload, 0, retain, 0);
+                let mut copy = copy;
+                origin::mark(&mut copy, origin.clone());
+                self.to_router
+                    .push(Packet::Publish(copy, properties.clone()));
+            }
+            publish.topic = topic.into();
+            publish.payload = payload;
+        }
+        origin::mark(&mut publish, origin);
+        self.to_router.push(Packet::Publish(publish, properties));
+        Ok(())
+    }
+
+    /// Acknowledges a publication the broker consumed (a declaration).
+    pub(super) fn acknowledge_consumed(&mut self, qos: u8, pkid: u16) {
+        match qos {
+            1 => self.io.queue(Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: PubAckReason::Success,
+                },
+                None,
+            )),
+            2 => {
+                self.io.queue(Packet::PubRec(
+                    PubRec {
+                        pkid,
+                        reason: PubRecReason::Success,
+                    },
+                    None,
+                ));
+                // The PUBREL is answered here, like a refused one's: the router never saw it.
+                self.rare().refused_qos2.insert(pkid);
+            }
+            _ => {}
+        }
+    }
+
+    /// The topic a PUBLISH goes to, following MQTT 5 topic aliases.
+    pub(super) fn resolve_topic(
+        &mut self,
+        publish: &Publish,
+        properties: Option<&PublishProperties>,
+    ) -> Result<String, End> {
+        let Ok(topic) = std::str::from_utf8(&publish.topic) else {
+            return Err(End::Malformed);
+        };
+        let alias = properties.and_then(|p| p.topic_alias);
+        let topic = match (topic.is_empty(), alias) {
+            (_, Some(alias)) if alias == 0 || alias > TOPIC_ALIAS_MAX => {
+                return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
+            }
+            (false, Some(alias)) => {
+                self.rare().topic_aliases.insert(alias, topic.to_owned());
+                topic.to_owned()
+            }
+            (false, None) => topic.to_owned(),
+            (true, Some(alias)) => {
+                match self.rare.as_ref().and_then(|r| r.topic_aliases.get(&alias)) {
+                    Some(t) => t.clone(),
+                    None => {
+                        return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
+                    }
+                }
+            }
+            (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
+        };
+        if !security::acl::valid_topic(&topic) {
+            tracing::warn!(
+                client_id = &*self.client_id,
+                ?topic,
+                "invalid topic name in PUBLISH; connection closed"
+            );
+            return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid));
+        }
+        Ok(topic)
+    }
+
+    /// Answers a refused publication. MQTT 5 says "not authorized"; MQTT 3.1.1 has no way
+    /// to refuse a PUBLISH, so like Mosquitto it is acknowledged and dropped — otherwise
+    /// the device's in-flight window would fill with retries that can never succeed.
+    pub(super) fn refuse_publish(&mut self, qos: u8, pkid: u16, refusal: Refusal) {
+        let v5 = self.version == Version::V5;
+        let (ack, rec) = match (v5, refusal) {
+            (false, _) => (PubAckReason::Success, PubRecReason::Success),
+            (true, Refusal::NotAuthorized) => {
+                (PubAckReason::NotAuthorized, PubRecReason::NotAuthorized)
+            }
+            (true, Refusal::TopicNameInvalid) => (
+                PubAckReason::TopicNameInvalid,
+                PubRecReason::TopicNameInvalid,
+            ),
+            (true, Refusal::PayloadFormatInvalid) => (
+                PubAckReason::PayloadFormatInvalid,
+                PubRecReason::PayloadFormatInvalid,
+            ),
+        };
+        match qos {
+            1 => self
+                .io
+                .queue(Packet::PubAck(PubAck { pkid, reason: ack }, None)),
+            2 => {
+                self.io
+                    .queue(Packet::PubRec(PubRec { pkid, reason: rec }, None));
+                // MQTT 5 clients should not send PUBREL after a refusing PUBREC; some
+                // (paho 2.2) do, so the id is remembered for both versions.
+                self.rare().refused_qos2.insert(pkid);
+            }
+            _ => {}
+        }
+    }
+
+    pub(super) fn on_subscribe(
+        &mut self,
+        subscribe: Subscribe,
+        properties: Option<SubscribeProperties>,
+    ) {
+        let v5 = self.version == Version::V5;
+        let mut refused = Vec::with_capacity(subscribe.filters.len());
+        for filter in &subscribe.filters {
+            let verdict = if !security::acl::valid_filter(&filter.path) {
+                Some(if v5 {
+                    SubscribeReasonCode::TopicFilterInvalid
+                } else {
+                    SubscribeReasonCode::Failure
+                })
+            } else if !self.may_subscribe(&filter.path) {
+                self.ctx
+                    .metrics
+                    .acl_denied
+                    .with_label_values(&["subscribe"])
+                    .inc();
+                self.log_denial("subscribe", &filter.path);
+                Some(if v5 {
+                    SubscribeReasonCode::NotAuthorized
+                } else {
+                    SubscribeReasonCode::Failure
+                })
+            } else if filter.path.starts_with('$') && !filter.path.starts_with("$share/") {
+                // fbbus publishes nothing under `$` topics yet, and rumqttd's router drops a
+                // connection that subscribes to one: refuse the filter, keep the client.
+                Some(if v5 {
+                    SubscribeReasonCode::ImplementationSpecific
+                } else {
+                    SubscribeReasonCode::Failure
+                })
+            } else {
+                None
+            };
+            refused.push(verdict);
+        }
+
+        let granted = subscribe
+            .filters
+            .iter()
+            .zip(&refused)
+            .filter(|(_, r)| r.is_none())
+            .map(|(f, _)| f);
+        let granted: Vec<&Filter> = granted.collect();
+        for filter in &granted {
+            self.ctx.fb.subscribed(&filter.path);
+            if let Some(bridge) = self.ctx.bridge.get() {
+                if !self.subscriptions.contains_key(&filter.path) {
+                    bridge.subscribed(&filter.path);
+                }
+            }
+        }
+        self.remember_subscriptions(granted.into_iter(), &[]);
+        if refused.iter().all(Option::is_none) {
+            self.to_router
+                .push(Packet::Subscribe(subscribe, properties));
+            return;
+        }
+        if refused.iter().all(Option::is_some) {
+            let return_codes = refused.into_iter().flatten().collect();
+            self.io.queue(Packet::SubAck(
+                SubAck {
+                    pkid: subscribe.pkid,
+                    return_codes,
+                },
+                None,
+            ));
+            return;
+        }
+        // Some filters allowed: the router gets those, and its SUBACK is completed with the
+        // refusals in `outbound` so the client sees one code per filter, in order.
+        let allowed = subscribe
+            .filters
+            .into_iter()
+            .zip(&refused)
+            .filter(|(_, r)| r.is_none())
+            .map(|(f, _)| f)
+            .collect();
+        self.rare()
+            .partial_subscribes
+            .insert(subscribe.pkid, refused);
+        self.to_router.push(Packet::Subscribe(
+            Subscribe {
+                pkid: subscribe.pkid,
+                filters: allowed,
+            },
+            properties,
+        ));
+    }
+
+    /// Records the client's subscriptions and whether any uses an option the router ignores.
+    pub(super) fn remember_subscriptions<'a>(
+        &mut self,
+        added: impl Iterator<Item = &'a Filter>,
+        removed: &[String],
+    ) {
+        for f in added {
+            self.subscriptions.insert(f.path.clone(), f.clone());
+        }
+        for path in removed {
+            self.subscriptions.remove(path);
+        }
+        self.special_subscriptions = self.subscriptions.values().any(|f| {
+            f.nolocal
+                || f.preserve_retain
+                || matches!(f.retain_forward_rule, RetainForwardRule::Never)
+        });
+    }
+
+    pub(super) fn identity(&self) -> Identity<'_> {
+        Identity {
+            username: self.username.as_deref(),
+            client_id: &self.client_id,
+        }
+    }
+
+    pub(super) fn may_publish(&self, topic: &str) -> bool {
+        self.ctx
+            .acl
+            .as_ref()
+            .is_none_or(|acl| acl.get().can_publish(self.identity(), topic))
+    }
+
+    pub(super) fn may_subscribe(&self, filter: &str) -> bool {
+        self.ctx
+            .acl
+            .as_ref()
+            .is_none_or(|acl| acl.get().can_subscribe(self.identity(), filter))
+    }
+
+    pub(super) fn log_denial(&mut self, action: &'static str, topic: &str) {
+        let logged = &mut self.rare().logged_denials;
+        if logged.len() >= MAX_LOGGED_DENIALS {
+            return;
+        }
+        if logged.insert((action, topic.to_owned())) {
+            tracing::warn!(
+                client_id = &*self.client_id,
+                username = self.username.as_deref().unwrap_or(""),
+                action,
+                topic = ?topic,
+                "denied by ACL (logged once per client and topic)"
+            );
+        }
+    }
+}

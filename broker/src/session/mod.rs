@@ -1,0 +1,381 @@
+//! One MQTT connection, from CONNECT to close: the session layer, where the packet path runs.
+//!
+//! Every packet a client sends goes through `Session::inbound`, in this order:
+//!
+//! 1. **authenticated** — once, at CONNECT (`Session::open` via the `Authenticator`);
+//!    a session only exists for a client that passed, so every later step knows who it is;
+//! 2. **authorized** — PUBLISH topics and SUBSCRIBE filters against the ACL
+//!    (`Session::on_publish`, `Session::on_subscribe`); the will topic at CONNECT;
+//! 3. **checked** — typed FB topics against the device's declared interface
+//!    (`fb_topics`), between the ACL and the router, so an ill-typed message is never
+//!    routed; declarations are consumed here;
+//! 4. **routed** — handed to rumqttd's router through the connection's `LinkTx`, one
+//!    batch per network read;
+//! 5. **metered** — counted in `Metrics` as it is accepted or refused.
+//!
+//! Packets the router sends back go through `Session::outbound`: deliveries get the MQTT
+//! rules rumqttd's router leaves out (delivery QoS, the client's Maximum Packet Size and
+//! Receive Maximum: `Session::deliver_publish`), SUBACKs are completed for filters the
+//! ACL refused, and acknowledgements towards the router keep its order (`ack_order`).
+//! The end of a connection is one `End` value: it decides the MQTT 5 DISCONNECT reason,
+//! whether the will fires, and the disconnect metric label. Bytes and packets are the
+//! `framed` and `codec` modules' business; session lifetimes are `session_lifetime`'s.
+//!
+//! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
+//! needs what that loop hides: the peer address (login throttling), keep-alive 0
+//! (refused by rumqttd 0.20), wills on takeover and keep-alive expiry, one port for
+//! MQTT 3.1.1 and 5, and refusals with the right reason codes.
+
+pub mod ack_order;
+mod close;
+mod connect;
+mod deliver;
+mod inbound;
+pub mod lifetime;
+pub mod packet_ids;
+pub mod redelivery;
+pub mod table;
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{
+    DisconnectReasonCode, Filter, Packet, Publish, PublishProperties, SubscribeReasonCode,
+};
+use tokio::sync::OwnedSemaphorePermit;
+use tokio::time::{timeout, Instant};
+
+use self::ack_order::AckOrder;
+use self::lifetime::SessionLifetime;
+use self::packet_ids::PacketIds;
+use crate::context::Context;
+use crate::fb_topics::FbSession;
+use crate::listener::ListenerPolicy;
+use crate::supervisor::CatchPanic;
+use crate::wills::Will;
+use crate::wire::codec::{connack, ReadError, Version};
+use crate::wire::frame;
+use crate::wire::framed::{Io, Stream};
+use close::End;
+
+/// Told of every filter local clients start or stop reading (the bus bridge imports what
+/// they read from the other lines). Called on the connection's task: must not block.
+pub trait SubscriptionObserver: Send + Sync {
+    /// A first local subscription to `filter` (per session).
+    fn subscribed(&self, filter: &str);
+    /// A session no longer reads `filter`.
+    fn unsubscribed(&self, filter: &str);
+}
+
+/// Serves one accepted connection: reads its CONNECT and logs it in on this task, then
+/// runs the session on a task of its own until it ends. `slot` is its place under
+/// `max_connections`, held until then.
+///
+/// Most connections spend their life idle in `Session::run`, and a task is allocated once,
+/// as large as the largest state of its future. So the session's task is spawned only once
+/// the login is done: it holds the `Session` and the waiting loop, not the room reading
+/// CONNECT, authenticating and linking needed. That room is this task's, freed right after,
+/// and reused by the next connection's login instead of leaving a hole next to each
+/// session's memory. The close, also large and short, runs boxed.
+pub async fn serve(
+    stream: Box<dyn Stream>,
+    peer: SocketAddr,
+    listener: Arc<ListenerPolicy>,
+    ctx: Arc<Context>,
+    slot: OwnedSemaphorePermit,
+) {
+    let session = match CatchPanic::new(accept(stream, peer, listener, &ctx)).await {
+        Ok(Some(session)) => session,
+        Ok(None) => return,
+        Err(message) => {
+            // Logged by the panic hook; the client had no session yet.
+            ctx.metrics.refused("internal_error");
+            tracing::error!(%peer, message, "login failed inside fbbus; connection closed");
+            return;
+        }
+    };
+    tokio::spawn(async move {
+        let _slot = slot;
+        let mut session = session;
+        // A panic in this one session (a bug, logged by the panic hook) ends this
+        // connection only, closed like a lost connection: unlinked, will published,
+        // gauges and registry updated. The rest of the line goes on.
+        let end = CatchPanic::new(session.run()).await.unwrap_or(End::Panic);
+        let client_id = Arc::clone(&session.client_id);
+        if let Err(message) = CatchPanic::new(session.close(end)).await {
+            tracing::error!(
+                client_id = &*client_id,
+                message,
+                "closing a session failed inside fbbus"
+            );
+        }
+    });
+}
+
+/// Reads the CONNECT and opens the session: None when the client was refused.
+async fn accept(
+    stream: Box<dyn Stream>,
+    peer: SocketAddr,
+    listener: Arc<ListenerPolicy>,
+    ctx: &Arc<Context>,
+) -> Option<Session> {
+    let mut io = Io::new(stream, ctx.max_packet);
+    let connect = match timeout(ctx.connect_timeout, io.read_connect()).await {
+        Ok(Ok(packet)) => packet,
+        Ok(Err(refusal)) => {
+            refusal.report(&ctx.metrics, peer);
+            if let Some(code) = refusal.connack {
+                let _ = io.send(connack(code, None)).await;
+            }
+            return None;
+        }
+        Err(_) => {
+            ctx.metrics.refused("connect_timeout");
+            tracing::debug!(%peer, "no CONNECT in time; closed");
+            return None;
+        }
+    };
+    Session::open(io, connect, peer, &listener, ctx).await
+}
+
+/// What woke a waiting connection up (`Session::run`).
+enum Wake {
+    Backlogged,
+    Read(Result<usize, ReadError>),
+    /// The router sent something (`linked`), or dropped this connection's link.
+    Router {
+        linked: bool,
+    },
+}
+
+/// An authenticated client's connection, registered with the router.
+///
+/// Every idle connection holds one, so it is kept small: per-session tables are B-tree
+/// maps (24 bytes and no allocation while empty, against 48 for a `HashMap`; they stay
+/// small, bounded by the in-flight windows), and the will, which most devices set but which
+/// is used once at the end, is boxed.
+struct Session {
+    io: Io,
+    peer: SocketAddr,
+    client_id: Arc<str>,
+    username: Option<String>,
+    version: Version,
+    keep_alive: Option<Duration>,
+    will: Option<Box<Will>>,
+    link_tx: LinkTx,
+    link_rx: LinkRx,
+    /// This connection's session number for its client id (see `session_table`).
+    session: u64,
+    /// What happens to the session in the router when this connection ends.
+    lifetime: SessionLifetime,
+    ctx: Arc<Context>,
+    /// Packets accepted from the current network read, handed to the router as one batch.
+    to_router: Vec<Packet>,
+    /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
+    /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
+    inflight_in: u16,
+    /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
+    client_max_packet: Option<usize>,
+    /// Acknowledgements to the router, kept in the order the router requires.
+    ack_order: AckOrder,
+    /// The client's Receive Maximum (MQTT 5 3.1.2.11.3): QoS 1/2 deliveries it may have
+    /// unacknowledged at once. 65535 when not given (and on 3.1.1).
+    client_receive_max: u16,
+    /// QoS 1/2 deliveries sent and not yet acknowledged by the client.
+    outstanding_out: u16,
+    /// The packet ids the client sees for deliveries, and the router's for each; what a
+    /// later connection of this session re-sends, and under which ids (`redelivery`).
+    ids: PacketIds,
+    /// Deliveries waiting for the client's window, in order.
+    held: VecDeque<(Publish, Option<PublishProperties>)>,
+    /// The router paused delivery and is woken once `held` is short again.
+    wake_pending: bool,
+    /// The client's subscriptions by filter, with their MQTT 5 options.
+    subscriptions: BTreeMap<String, Filter>,
+    /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
+    special_subscriptions: bool,
+    /// Typed-topic state: the device's interface, event sequence numbers.
+    fb: FbSession,
+    /// State most sessions never need, allocated on first use ([`Session::rare`]).
+    rare: Option<Box<Rare>>,
+}
+
+/// What a session needs only for uncommon traffic: refused or partly refused requests,
+/// QoS 2 exchanges the broker answers itself, MQTT 5 topic aliases. Boxed apart so the
+/// many sessions that never need it do not carry it.
+#[derive(Default)]
+struct Rare {
+    /// SUBSCRIBEs the ACL trimmed: pkid -> the reason code of each refused filter, by position.
+    partial_subscribes: BTreeMap<u16, Vec<Option<SubscribeReasonCode>>>,
+    /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
+    refused_qos2: BTreeSet<u16>,
+    /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
+    /// real topic and the router only ever gets full topic names.
+    topic_aliases: BTreeMap<u16, String>,
+    /// QoS 2 deliveries acknowledged to the router on the client's behalf (dropped, or sent
+    /// at a lower QoS): the router's PUBREL for them is answered here.
+    dropped_qos2: BTreeSet<u16>,
+    /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
+    /// the PUBREC the router waits for.
+    qos2_sent_as_qos1: BTreeSet<u16>,
+    /// (action, topic) pairs already logged as denied, so a looping device logs once.
+    logged_denials: BTreeSet<(&'static str, String)>,
+}
+
+const MAX_LOGGED_DENIALS: usize = 1024;
+
+/// Packets from one client waiting for the router before its socket is no longer read.
+const ROUTER_BACKLOG: usize = 1024;
+
+/// Deliveries held for a client's Receive Maximum before the router is no longer woken.
+const HOLD_LIMIT: usize = 1024;
+
+impl Session {
+    /// The connection's loop: network reads, router deliveries, keep-alive, shutdown.
+    ///
+    /// The loop only waits here; what it was woken for is handled in a boxed future, so
+    /// the connection's task holds the small waiting state while the device is idle and
+    /// the larger state of handling a batch only while it handles one (`serve`).
+    async fn run(&mut self) -> End {
+        let mut shutdown = self.ctx.shutdown.clone();
+        let far_future = Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600);
+        let deadline =
+            tokio::time::sleep_until(self.keep_alive.map_or(far_future, |k| Instant::now() + k));
+        tokio::pin!(deadline);
+        // Packets that came in the same read as CONNECT (a client that does not wait for
+        // CONNACK): handled now, not when the socket next has something.
+        if !self.io.read.is_empty() {
+            if let Err(end) = Box::pin(self.read_packets()).await {
+                return end;
+            }
+        }
+        loop {
+            // Backpressure: while the router has not taken this client's previous packets,
+            // stop reading its socket, so a fast publisher is slowed by TCP instead of
+            // growing the router's input queue without bound.
+            // Two waits, one per case; the pause timer is boxed so it only takes memory
+            // while the connection is backlogged.
+            let backlogged = self.link_tx.buffer().len() >= ROUTER_BACKLOG;
+            let wake = if backlogged {
+                tokio::select! {
+                    _ = shutdown.changed() => return End::Shutdown,
+                    _ = &mut deadline => return End::KeepAlive,
+                    _ = Box::pin(tokio::time::sleep(Duration::from_millis(1))) => Wake::Backlogged,
+                    linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                }
+            } else {
+                tokio::select! {
+                    _ = shutdown.changed() => return End::Shutdown,
+                    _ = &mut deadline => return End::KeepAlive,
+                    read = self.io.fill() => Wake::Read(read),
+                    linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                }
+            };
+            let handled = match wake {
+                Wake::Backlogged => {
+                    // Not reading is the broker's choice, not client silence.
+                    if let Some(k) = self.keep_alive {
+                        deadline.as_mut().reset(Instant::now() + k);
+                    }
+                    Ok(())
+                }
+                Wake::Read(read) => {
+                    let n = match read {
+                        Ok(n) => n,
+                        Err(_) => return End::Abrupt,
+                    };
+                    self.ctx.metrics.bytes_in.inc_by(n as u64);
+                    if let Some(k) = self.keep_alive {
+                        deadline.as_mut().reset(Instant::now() + k);
+                    }
+                    Box::pin(self.read_packets()).await
+                }
+                Wake::Router { linked: true } => Box::pin(self.deliver()).await,
+                Wake::Router { linked: false } => Err(Box::pin(self.router_dropped()).await),
+            };
+            if let Err(end) = handled {
+                return end;
+            }
+        }
+    }
+
+    /// Handles every complete packet in the read buffer, then hands the batch to the router.
+    async fn read_packets(&mut self) -> Result<(), End> {
+        loop {
+            let header = match self.io.next_frame() {
+                Ok(Some(header)) => header,
+                Ok(None) => break,
+                Err(ReadError::Oversized { size, max }) => {
+                    self.ctx.metrics.oversized_packets.inc();
+                    tracing::warn!(
+                        client_id = &*self.client_id,
+                        size,
+                        max,
+                        "packet over max_packet_bytes; connection closed"
+                    );
+                    return Err(End::Oversized);
+                }
+                Err(e) => {
+                    self.ctx.metrics.malformed_packets.inc();
+                    tracing::warn!(client_id = &*self.client_id, error = %e, "malformed packet; connection closed");
+                    return Err(End::Malformed);
+                }
+            };
+            let qos_pkid = frame::publish_qos_and_pkid(&self.io.read, &header);
+            let decoded = self.io.decode(&header);
+            let end = match decoded {
+                Ok(packet) => self.inbound(packet, qos_pkid).err(),
+                Err(ReadError::ServerOnlyType(t)) => {
+                    tracing::warn!(
+                        client_id = &*self.client_id,
+                        packet_type = t,
+                        "server-only packet type from a client; connection closed"
+                    );
+                    Some(End::ProtocolError(DisconnectReasonCode::ProtocolError))
+                }
+                Err(e) => {
+                    self.ctx.metrics.malformed_packets.inc();
+                    tracing::warn!(client_id = &*self.client_id, error = %e, "malformed packet; connection closed");
+                    Some(End::Malformed)
+                }
+            };
+            if let Some(end) = end {
+                // What the client sent before it ended (e.g. PUBLISH then DISCONNECT in one
+                // read) is still delivered.
+                self.route().await?;
+                return Err(end);
+            }
+        }
+        self.release_held();
+        self.route().await?;
+        self.io.flush().await.map_err(|_| End::Abrupt)?;
+        if self.wake_pending && self.held.len() < HOLD_LIMIT {
+            self.wake_pending = false;
+            self.link_rx.wake().await.map_err(|_| End::Router)?;
+        }
+        Ok(())
+    }
+
+    /// Hands the accepted packets of this read to the router: one wake-up per batch.
+    /// Then publishes the broker's answers to them (diagnostics), which must reach the
+    /// router after the packets they answer (a SUBSCRIBE to the diag topic among them).
+    async fn route(&mut self) -> Result<(), End> {
+        if let Some(last) = self.to_router.pop() {
+            {
+                let mut buffer = self.link_tx.buffer();
+                buffer.extend(self.to_router.drain(..));
+            }
+            self.link_tx.send(last).await.map_err(|_| End::Router)?;
+        }
+        self.ctx.fb.publish(self.fb.take_outbox());
+        Ok(())
+    }
+
+    /// The session's [`Rare`] state, allocated on first use.
+    fn rare(&mut self) -> &mut Rare {
+        self.rare.get_or_insert_with(Box::default)
+    }
+}
