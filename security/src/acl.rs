@@ -36,10 +36,19 @@
 //! every topic it could match is readable, i.e. it is a subset of a granted
 //! read filter and shares no topic with an applicable deny filter. The
 //! broker then never needs to re-check individual messages.
+//!
+//! What a topic or filter is, what matches, covers and overlaps what, and
+//! how `$share/<group>/` is split off, is MQTT's grammar, decided in
+//! `fb_bridge::topic::filter` for the ACL, the bus and the broker alike.
 
 use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
+
+use fb_bridge::topic::filter::{covers, overlaps, strip_share};
+/// The MQTT grammar lives in `fb_bridge::topic::filter`; these stay here because the
+/// broker checks its topics and filters through `security::acl`.
+pub use fb_bridge::topic::filter::{filter_matches, valid_filter, valid_topic};
 
 /// Who is asking: the authenticated user name (if any) and the client id.
 #[derive(Debug, Clone, Copy)]
@@ -228,8 +237,8 @@ impl AclRules {
         }
         // A topic is a filter that matches exactly itself.
         self.decide(who, |access, rule_filter| match access {
-            Access::Deny => is_subset(topic, rule_filter),
-            _ => access.grants_write() && is_subset(topic, rule_filter),
+            Access::Deny => covers(rule_filter, topic),
+            _ => access.grants_write() && covers(rule_filter, topic),
         })
     }
 
@@ -237,7 +246,7 @@ impl AclRules {
     /// ignored. True iff the filter is a subset of some applicable read
     /// rule's filter and overlaps no applicable deny rule's filter.
     pub fn can_subscribe(&self, who: Identity, filter: &str) -> bool {
-        let Some(filter) = strip_shared_prefix(filter) else {
+        let Some(filter) = strip_share(filter) else {
             return false;
         };
         if !valid_filter(filter) {
@@ -248,7 +257,7 @@ impl AclRules {
         }
         self.decide(who, |access, rule_filter| match access {
             Access::Deny => overlaps(filter, rule_filter),
-            _ => access.grants_read() && is_subset(filter, rule_filter),
+            _ => access.grants_read() && covers(rule_filter, filter),
         })
     }
 
@@ -362,122 +371,9 @@ fn substitute(filter: &str, who: Identity) -> Substituted {
     Substituted::Filter(out)
 }
 
-/// Splits off a `$share/<group>/` prefix. `None` if the prefix is malformed.
-fn strip_shared_prefix(filter: &str) -> Option<&str> {
-    let Some(rest) = filter.strip_prefix("$share/") else {
-        return Some(filter);
-    };
-    let (group, filter) = rest.split_once('/')?;
-    if group.is_empty() || group.contains(['+', '#']) {
-        return None;
-    }
-    Some(filter)
-}
-
-/// Maximum length of an MQTT topic or filter in bytes.
-const MAX_LEN: usize = 65_535;
-
-/// Is `t` a valid topic name to publish to: non-empty, at most 65,535
-/// bytes, no wildcards and no NUL?
-pub fn valid_topic(t: &str) -> bool {
-    !t.is_empty() && t.len() <= MAX_LEN && !t.contains(['+', '#', '\0'])
-}
-
-/// Is `f` a valid subscription filter: non-empty, at most 65,535 bytes,
-/// no NUL, `+` and `#` only as whole levels and `#` only as the last level?
-pub fn valid_filter(f: &str) -> bool {
-    if f.is_empty() || f.len() > MAX_LEN || f.contains('\0') {
-        return false;
-    }
-    let mut levels = f.split('/').peekable();
-    while let Some(level) = levels.next() {
-        let is_last = levels.peek().is_none();
-        let ok = match level {
-            "#" => is_last,
-            "+" => true,
-            _ => !level.contains(['+', '#']),
-        };
-        if !ok {
-            return false;
-        }
-    }
-    true
-}
-
-/// Does subscription `filter` (possibly `$share/<group>/...`) match `topic`?
-pub fn filter_matches(filter: &str, topic: &str) -> bool {
-    strip_shared_prefix(filter).is_some_and(|f| valid_filter(f) && is_subset(topic, f))
-}
-
-/// Does every topic matched by filter `a` also match filter `b`?
-///
-/// Both must be valid filters; a topic name is a filter that matches only
-/// itself, so this is also "does `b` match topic `a`". MQTT rules: `+`
-/// matches one level, `#` the remaining levels including none (`x/#`
-/// matches `x`), and a filter starting with a wildcard never matches a
-/// topic starting with `$`.
-fn is_subset(a: &str, b: &str) -> bool {
-    if starts_with_dollar(a) && starts_with_wildcard(b) {
-        return false;
-    }
-    let (mut a_levels, mut b_levels) = (a.split('/'), b.split('/'));
-    loop {
-        match (a_levels.next(), b_levels.next()) {
-            // `b` matches everything below this point, parent level included.
-            (_, Some("#")) => return true,
-            (None, None) => return true,
-            // One filter needs more levels than the other can provide.
-            (None, Some(_)) | (Some(_), None) => return false,
-            // Only `#` (handled above) covers `#`, only `+` or `#` covers `+`.
-            (Some("#"), Some(_)) => return false,
-            (Some("+"), Some(b)) if b != "+" => return false,
-            (Some(a), Some(b)) if b != "+" && a != b => return false,
-            _ => {}
-        }
-    }
-}
-
-/// Is there a topic that both filters match?
-fn overlaps(a: &str, b: &str) -> bool {
-    // A first-level wildcard never matches a `$` topic, and those are the
-    // only topics a filter starting with `$` can match.
-    if (starts_with_dollar(a) && starts_with_wildcard(b))
-        || (starts_with_dollar(b) && starts_with_wildcard(a))
-    {
-        return false;
-    }
-    let (mut a_levels, mut b_levels) = (a.split('/'), b.split('/'));
-    loop {
-        match (a_levels.next(), b_levels.next()) {
-            (Some("#"), _) | (_, Some("#")) | (None, None) => return true,
-            (None, Some(_)) | (Some(_), None) => return false,
-            (Some(a), Some(b)) if a != "+" && b != "+" && a != b => return false,
-            _ => {}
-        }
-    }
-}
-
-fn starts_with_dollar(filter: &str) -> bool {
-    filter.starts_with('$')
-}
-
-fn starts_with_wildcard(filter: &str) -> bool {
-    matches!(filter.split('/').next(), Some("+" | "#"))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn filters_match_topics() {
-        assert!(filter_matches("a/+/c", "a/b/c"));
-        assert!(filter_matches("a/#", "a"));
-        assert!(filter_matches("$share/g/a/#", "a/b"));
-        assert!(!filter_matches("#", "$SYS/x"));
-        assert!(filter_matches("$SYS/#", "$SYS/x"));
-        assert!(!filter_matches("a/+", "a/b/c"));
-    }
 
     const EXAMPLE: &str = "\
 # comment
@@ -753,110 +649,5 @@ topic deny secrets/#         # `deny` (Mosquitto style) overrides any grant
             AclRules::load(&dir.path().join("missing")),
             Err(AclError::Read { .. })
         ));
-    }
-
-    #[test]
-    fn filter_and_topic_validity() {
-        for f in [
-            "#", "+", "a", "a/b", "a/+", "a/#", "+/+/#", "/", "a//b", "$SYS/#", "a/%c",
-        ] {
-            assert!(valid_filter(f), "{f}");
-        }
-        for f in ["", "a/#/b", "a#", "#/a", "a/b+", "++", "a/\0"] {
-            assert!(!valid_filter(f), "{f:?}");
-        }
-        for t in ["a", "a/b", "/", "$SYS/x", "a b/c"] {
-            assert!(valid_topic(t), "{t}");
-        }
-        for t in ["", "a/+", "#", "a/#", "a\0b"] {
-            assert!(!valid_topic(t), "{t:?}");
-        }
-        assert!(!valid_topic(&"a".repeat(65_536)));
-        assert!(valid_topic(&"a".repeat(65_535)));
-    }
-
-    #[test]
-    fn subset() {
-        let yes = [
-            ("a/b", "a/b"),
-            ("a/b", "a/+"),
-            ("a/b", "a/#"),
-            ("a", "a/#"),
-            ("a/+", "a/#"),
-            ("a/+", "a/+"),
-            ("a/#", "a/#"),
-            ("a/b/#", "a/#"),
-            ("a/b/#", "a/+/#"),
-            ("+/b", "+/+"),
-            ("+/b", "#"),
-            ("a/b/c", "#"),
-            ("#", "#"),
-            ("+", "#"),
-            ("$SYS/x", "$SYS/#"),
-            ("$SYS/x", "$SYS/+"),
-            ("$SYS", "$SYS/#"),
-            ("a//b", "a/+/b"),
-            ("/x", "+/x"),
-        ];
-        for (a, b) in yes {
-            assert!(is_subset(a, b), "{a} should be a subset of {b}");
-        }
-        let no = [
-            ("a/#", "a/+"),
-            ("a/+", "a/b"),
-            ("#", "a/#"),
-            ("a/#", "a/b/#"),
-            ("a", "a/+"),
-            ("a/b", "a"),
-            ("a/b", "b/#"),
-            ("+/+", "+/b"),
-            ("a/+/c", "a/+"),
-            ("$SYS/x", "#"),
-            ("$SYS/x", "+/x"),
-            ("$SYS/x", "+/+"),
-            ("#", "$SYS/#"),
-            ("+/x", "$SYS/x"),
-            ("a/#", "a"),
-            ("+", "a"),
-        ];
-        for (a, b) in no {
-            assert!(!is_subset(a, b), "{a} should not be a subset of {b}");
-        }
-    }
-
-    #[test]
-    fn overlap() {
-        let yes = [
-            ("a/b", "a/b"),
-            ("a/+", "a/b"),
-            ("a/#", "a"),
-            ("a", "a/#"),
-            ("#", "a/b/c"),
-            ("+/b", "a/+"),
-            ("a/+/c", "a/b/+"),
-            ("a/#", "+/x/y"),
-            ("+", "#"),
-            ("$SYS/#", "$SYS/x"),
-            ("$SYS/+", "$SYS/#"),
-        ];
-        for (a, b) in yes {
-            assert!(overlaps(a, b), "{a} should overlap {b}");
-            assert!(overlaps(b, a), "{b} should overlap {a}");
-        }
-        let no = [
-            ("a/b", "a/c"),
-            ("a/+", "a"),
-            ("a/+", "a/b/c"),
-            ("+/+", "a/b/c"),
-            ("a/b/#", "a/c/#"),
-            ("#", "$SYS/x"),
-            ("+/x", "$SYS/x"),
-            ("#", "$SYS/#"),
-            ("$SYS/#", "$other/#"),
-        ];
-        for (a, b) in no {
-            assert!(!overlaps(a, b), "{a} should not overlap {b}");
-            assert!(!overlaps(b, a), "{b} should not overlap {a}");
-        }
     }
 }

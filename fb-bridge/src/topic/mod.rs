@@ -9,6 +9,11 @@
 //! | `fbbus/diag/<device>` | the broker | answers to the declaration, rejected publications |
 //! | `fbbus/devices/<device>` | the broker, retained | the device's registry record |
 //! | `fbbus/lines/<line>/online` | the broker, retained | how many devices of the line are online |
+//!
+//! The MQTT grammar underneath every topic (validity, wildcards, `$share/`, matching and
+//! coverage) is [`filter`], shared with the ACL and the bus.
+
+pub mod filter;
 
 use crate::codec::Encoding;
 
