@@ -62,11 +62,11 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use fb_bridge::bus::link::{
-    flume, zenoh, DeviceToken, Event, Import, Inbound, Link, LinkError, RouteKeys,
+    DeviceToken, Event, Import, Inbound, Inbox, Link, LinkError, RetainedQueries, RouteKeys,
 };
 use fb_bridge::bus::{keys, BusConfig, Dedup, Mode};
 use fb_bridge::interface::OutputPort;
-use fb_bridge::topic::TypedTopic;
+use fb_bridge::topic::{filter, TypedTopic};
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{
     Filter, Packet, PubAck, PubAckReason, QoS, RetainForwardRule, Subscribe, Unsubscribe,
@@ -134,17 +134,14 @@ impl Bridge {
     /// in the canonical `fb/` form (`dinasore/` and `fbdk/` are re-encoded here), narrowed
     /// to the configured import filters.
     fn imports_for(&self, filter: &str) -> Vec<String> {
-        let filter = match filter.strip_prefix("$share/") {
-            Some(rest) => rest.split_once('/').map_or("", |(_, f)| f),
-            None => filter,
-        };
+        let filter = filter::unshared(filter);
         let canonical = match filter.split_once('/') {
             Some(("dinasore" | "fbdk", rest)) => format!("fb/{rest}"),
             _ => filter.to_owned(),
         };
         let mut out = Vec::new();
         for allowed in &self.import_filters {
-            if keys::covers(allowed, &canonical) {
+            if filter::covers(allowed, &canonical) {
                 if keys::bridgeable_filter(&canonical) {
                     out.push(canonical);
                 }
@@ -152,7 +149,7 @@ impl Bridge {
             }
         }
         for allowed in &self.import_filters {
-            if keys::covers(&canonical, allowed) {
+            if filter::covers(&canonical, allowed) {
                 out.push(allowed.clone());
             }
         }
@@ -188,7 +185,7 @@ const ROUTER_PATIENCE: Duration = Duration::from_secs(2);
 /// subscriptions made meanwhile are imported then.
 pub async fn start(config: &BusConfig, ctx: Arc<Context>) -> Result<Arc<Bridge>, BridgeError> {
     // A bad `[bridge]` section fails the start whatever the mode.
-    fb_bridge::bus::link::zenoh_config(config)?;
+    fb_bridge::bus::link::validate(config)?;
     let (interest, interest_rx) = mpsc::unbounded_channel();
     let bridge = Arc::new(Bridge {
         import_filters: config.import.clone(),
@@ -231,7 +228,7 @@ pub async fn start(config: &BusConfig, ctx: Arc<Context>) -> Result<Arc<Bridge>,
 /// queries, and the import, export and event tasks.
 async fn run(
     bridge: &Bridge,
-    (link, inbox, events): (Link, flume::Receiver<Inbound>, flume::Receiver<Event>),
+    (link, inbox, events): (Link, Inbox<Inbound>, Inbox<Event>),
     config: &BusConfig,
     ctx: Arc<Context>,
     interest_rx: mpsc::UnboundedReceiver<Interest>,
@@ -368,7 +365,7 @@ async fn imports(
 /// import link. Whatever the inbox holds is taken at once (up to [`INJECT_BATCH`]) and
 /// handed to the router in one go: one router wake-up per batch, not per message.
 async fn inject_loop(
-    inbox: flume::Receiver<Inbound>,
+    inbox: Inbox<Inbound>,
     route_keys: RouteKeys,
     ctx: Arc<Context>,
     (mut tx, mut rx): (LinkTx, LinkRx),
@@ -391,7 +388,7 @@ async fn inject_loop(
         pkid: 0,
         packets: Vec::new(),
     };
-    while let Ok(first) = inbox.recv_async().await {
+    while let Some(first) = inbox.recv().await {
         injector.take(&ctx, first);
         for message in inbox.try_iter().take(INJECT_BATCH) {
             injector.take(&ctx, message);
@@ -648,10 +645,7 @@ impl Exports {
         let wanted = !from_bus
             && !replay
             && BusConfig::allows(&self.export, &topic)
-            && self
-                .interest
-                .keys()
-                .any(|f| keys::filter_matches(f, &topic));
+            && self.interest.keys().any(|f| filter::matches(f, &topic));
         if wanted {
             let ctx = &self.ctx;
             let event = *self
@@ -715,7 +709,7 @@ fn event_port(ctx: &Context, topic: &str) -> bool {
 /// Liveliness and records of the other lines: the registry, and the exporter's interest.
 async fn bus_events(
     link: Arc<Link>,
-    events: flume::Receiver<Event>,
+    events: Inbox<Event>,
     remote_interest: mpsc::UnboundedSender<(bool, String, String)>,
     ctx: Arc<Context>,
 ) {
@@ -726,7 +720,7 @@ async fn bus_events(
             .with_label_values(&[kind])
             .inc()
     };
-    while let Ok(event) = events.recv_async().await {
+    while let Some(event) = events.recv().await {
         match event {
             Event::InterestAdded { line, filter } => {
                 let _ = remote_interest.send((true, line, filter));
@@ -844,15 +838,12 @@ static RETAINED_LINKS: AtomicU64 = AtomicU64::new(0);
 /// link subscribes to the filter and collects what the router replays as retained.
 async fn serve_retained(
     link: Arc<Link>,
-    queries: zenoh::query::Queryable<flume::Receiver<zenoh::query::Query>>,
+    queries: RetainedQueries,
     ctx: Arc<Context>,
     export: Vec<String>,
 ) {
-    while let Ok(query) = queries.recv_async().await {
-        let Some((_, filter)) = keys::parse_retained_query(query.key_expr().as_str()) else {
-            continue;
-        };
-        let messages = retained(&ctx, &filter, &export).await;
+    while let Some(query) = queries.recv().await {
+        let messages = retained(&ctx, query.filter(), &export).await;
         link.reply_retained(&query, messages).await;
     }
 }

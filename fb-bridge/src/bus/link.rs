@@ -11,8 +11,12 @@
 //!   subscribe locally to the filter (nothing leaves a line nobody asked for);
 //! - liveliness of lines and devices ([`Event`]), registry records (put, queried) and
 //!   retained messages (queried when a line starts importing a filter).
+//!
+//! No zenoh or flume type appears in this module's public API: the broker sees fbbus
+//! types ([`Inbox`], [`RetainedQueries`], [`LinkError`]), so it does not depend on zenoh's
+//! version or on the channel crate zenoh's handlers happen to use.
 
-use std::sync::{Arc, PoisonError};
+use std::sync::PoisonError;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use zenoh::key_expr::KeyExpr;
@@ -24,9 +28,6 @@ use zenoh::sample::SampleKind;
 use zenoh::Session;
 
 use super::{keys, BusConfig, Stamp};
-
-/// The versions the link is built with, for the broker's tasks that hold its handles.
-pub use {flume, zenoh};
 
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
@@ -82,6 +83,57 @@ pub enum Event {
 /// dropping.
 pub const INBOX: usize = 8_192;
 
+/// The receiving end of what the link hands the broker, in arrival order: the messages
+/// of imported filters ([`Inbound`]) or the bus's events ([`Event`]).
+pub struct Inbox<T>(flume::Receiver<T>);
+
+impl<T> Inbox<T> {
+    /// The next item; `None` once the link is gone and everything was taken.
+    pub async fn recv(&self) -> Option<T> {
+        self.0.recv_async().await.ok()
+    }
+
+    /// The next item if one is waiting.
+    pub fn try_recv(&self) -> Option<T> {
+        self.0.try_recv().ok()
+    }
+
+    /// Every item waiting now, without waiting for more.
+    pub fn try_iter(&self) -> impl Iterator<Item = T> + '_ {
+        self.0.try_iter()
+    }
+}
+
+/// Other lines' queries for this line's retained messages; dropping it stops answering.
+pub struct RetainedQueries(Queryable<flume::Receiver<Query>>);
+
+impl RetainedQueries {
+    /// The next query with a filter this line can answer (others are skipped); `None`
+    /// once the link is closed.
+    pub async fn recv(&self) -> Option<RetainedQuery> {
+        loop {
+            let query = self.0.recv_async().await.ok()?;
+            if let Some((_, filter)) = keys::parse_retained_query(query.key_expr().as_str()) {
+                return Some(RetainedQuery { query, filter });
+            }
+        }
+    }
+}
+
+/// One other line's query for this line's retained messages matching an MQTT filter;
+/// answered with [`Link::reply_retained`].
+pub struct RetainedQuery {
+    query: Query,
+    filter: String,
+}
+
+impl RetainedQuery {
+    /// The MQTT filter (within `fb/#`) the other line imports.
+    pub fn filter(&self) -> &str {
+        &self.filter
+    }
+}
+
 pub struct Link {
     session: Session,
     line: String,
@@ -100,8 +152,14 @@ pub struct Import {
 /// A device announced online on the bus; dropping it announces it gone.
 pub struct DeviceToken(#[allow(dead_code)] LivelinessToken);
 
+/// Checks that the `[bridge]` section makes a zenoh configuration, without opening
+/// anything: a bad section fails the broker's start whatever the mode.
+pub fn validate(config: &BusConfig) -> Result<(), LinkError> {
+    zenoh_config(config).map(drop)
+}
+
 /// Builds zenoh's configuration from the `[bridge]` section.
-pub fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
+fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
     let mut c = zenoh::Config::default();
     let mut set = |key: &str, value: String| {
         c.insert_json5(key, &value).map_err(|e| LinkError::Config {
@@ -164,7 +222,7 @@ impl Link {
     pub async fn open(
         config: &BusConfig,
         line: &str,
-    ) -> Result<(Link, flume::Receiver<Inbound>, flume::Receiver<Event>), LinkError> {
+    ) -> Result<(Link, Inbox<Inbound>, Inbox<Event>), LinkError> {
         let zenoh = zenoh_config(config)?;
         // zenoh's `open` blocks its thread until the session is up (a client's: until its
         // router answers), even when awaited: keep it off the async workers.
@@ -273,8 +331,8 @@ impl Link {
                 inbox,
                 line_token: std::sync::Mutex::new(None),
             },
-            inbox_rx,
-            events_rx,
+            Inbox(inbox_rx),
+            Inbox(events_rx),
         ))
     }
 
@@ -438,12 +496,13 @@ impl Link {
         Ok(out)
     }
 
-    /// The queryable other lines ask for this line's retained messages.
-    pub async fn retained_queries(&self) -> Result<Queryable<flume::Receiver<Query>>, LinkError> {
+    /// The queries other lines ask for this line's retained messages.
+    pub async fn retained_queries(&self) -> Result<RetainedQueries, LinkError> {
         self.session
             .declare_queryable(keys::retained_queryable(&self.line))
             .with(flume::bounded(64))
             .await
+            .map(RetainedQueries)
             .map_err(zerr)
     }
 
@@ -482,7 +541,8 @@ impl Link {
     }
 
     /// Answers one retained-message query with `messages` (topic, payload).
-    pub async fn reply_retained(&self, query: &Query, messages: Vec<(String, Vec<u8>)>) {
+    pub async fn reply_retained(&self, query: &RetainedQuery, messages: Vec<(String, Vec<u8>)>) {
+        let query = &query.query;
         for (topic, payload) in messages {
             let Some(key) = keys::retained_reply(&self.line, &topic) else {
                 continue;
@@ -523,7 +583,7 @@ impl Exporter {
     pub async fn export(
         &mut self,
         topic: &str,
-        payload: impl Into<zenoh::bytes::ZBytes>,
+        payload: bytes::Bytes,
         qos: u8,
         retain: bool,
         event: bool,
@@ -612,5 +672,3 @@ impl RouteKeys {
     }
 }
 
-/// Keeps `Arc` in scope for callers that share the link between tasks.
-pub type SharedLink = Arc<Link>;
