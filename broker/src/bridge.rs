@@ -77,9 +77,10 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
 use crate::broker_publisher;
-use crate::connection::Context;
-use crate::fb_topics::{Check, FbSession};
-use crate::origin;
+use crate::context::Context;
+use crate::policy::origin;
+use crate::policy::typed::FbSession;
+use crate::policy::{Admission, Door, Publication, Stage};
 use crate::registry::{Record, Status};
 
 /// The router link messages from the bus enter through.
@@ -113,7 +114,7 @@ pub struct Bridge {
 }
 
 /// Local subscriptions become imports.
-impl crate::connection::SubscriptionObserver for Bridge {
+impl crate::session::SubscriptionObserver for Bridge {
     /// A local client was granted `filter`.
     fn subscribed(&self, filter: &str) {
         for f in self.imports_for(filter) {
@@ -438,29 +439,11 @@ impl Injector {
             return dropped("unbridgeable");
         };
         let device = typed.device;
-        let allowed = ctx.acl.as_ref().is_none_or(|acl| {
-            acl.get().can_publish(
-                Identity {
-                    username: Some(device),
-                    client_id: device,
-                },
-                &message.topic,
-            )
-        });
-        if !allowed {
-            tracing::debug!(
-                topic = message.topic,
-                line = message.stamp.line,
-                "message from another line refused by this line's ACL"
-            );
-            return dropped("acl");
-        }
-        let payload = Bytes::from(message.payload);
-        let routes = match ctx
-            .fb
-            .registry
-            .remote_interface(device, &message.stamp.line)
-        {
+        // The device's typed-topic state: its declared interface once the registry has its
+        // record from the other line, none until then (see `PublishPolicy::admit`).
+        let interface = ctx.fb.registry.remote_interface(device, &message.stamp.line);
+        let mut unknown;
+        let publisher = match interface {
             Some(interface) => {
                 let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
                     (
@@ -472,24 +455,49 @@ impl Injector {
                     entry.0 = Arc::clone(&interface);
                     entry.1.set_interface(Some(interface));
                 }
-                let check = entry.1.check(&ctx.fb, &message.topic, &payload);
-                drop(entry.1.take_outbox());
-                match check {
-                    Check::Pass => vec![(message.topic, payload)],
-                    Check::Route(routes) => routes,
-                    Check::Consumed | Check::Refused(_) => return dropped("type"),
-                }
+                &mut entry.1
             }
-            // The record has not arrived yet: the origin line checked the message against
-            // the same declaration; pass it as it came.
-            None => vec![(message.topic, payload)],
+            None => {
+                unknown = FbSession::new(&ctx.fb, device, Some(device), 0);
+                &mut unknown
+            }
         };
+        let payload = Bytes::from(message.payload);
+        let publication = Publication {
+            topic: &message.topic,
+            payload: &payload,
+            qos: message.stamp.qos.min(1),
+            retain: message.stamp.retain,
+        };
+        let admission = ctx
+            .policy
+            .admit(Door::Bus, publisher, &self.publisher, publication);
+        // The device's diagnostics are its own line's to publish.
+        drop(publisher.take_outbox());
+        let (origin, routes) = match admission {
+            Admission::Route { origin, routes } => (origin, routes),
+            Admission::Refused {
+                stage: Stage::Access,
+                ..
+            } => {
+                tracing::debug!(
+                    topic = message.topic,
+                    line = message.stamp.line,
+                    "message from another line refused by this line's ACL"
+                );
+                return;
+            }
+            // Counted by the policy (`bridge_dropped{reason="type"}`); a declaration is
+            // never a bridged topic, but would not be routed either.
+            Admission::Refused { .. } => return,
+            Admission::Consumed => return dropped("type"),
+        };
+        let routes = routes.unwrap_or_else(|| vec![(message.topic, payload)]);
         ctx.metrics
             .bridge_messages
             .with_label_values(&["import"])
             .inc();
         let qos = message.stamp.qos.min(1);
-        let origin = origin::new(qos, message.stamp.retain, &self.publisher);
         for (topic, payload) in routes {
             let pkid = if qos > 0 {
                 self.pkid = self.pkid % u16::MAX + 1;

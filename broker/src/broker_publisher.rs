@@ -13,7 +13,7 @@ use rumqttd::protocol::{Packet, Publish, PublishProperties};
 use tokio::sync::mpsc;
 
 use crate::health::Health;
-use crate::origin;
+use crate::policy::origin;
 use crate::supervisor::spawn_core;
 
 /// The client id of the broker's own router link; clients may not use it.

@@ -80,7 +80,7 @@ pub struct FbSection {
     /// Typed-namespace topics (fb/, dinasore/, fbdk/) no device declared: "reject" them
     /// (MQTT 5: 0x90), or "pass" them unchecked while migrating an untyped line.
     /// Declared ports are checked in both modes.
-    pub undeclared: crate::fb_topics::Undeclared,
+    pub undeclared: crate::policy::typed::Undeclared,
 }
 
 impl Default for FbSection {

@@ -7,27 +7,28 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use security::AclRules;
 use tokio::sync::watch;
 
 use crate::authenticator::Authenticator;
-use crate::fb_topics::FbTopics;
 use crate::metrics::Metrics;
+use crate::policy::typed::FbTopics;
+use crate::policy::PublishPolicy;
 use crate::router::RouterHandle;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
 use crate::session::SubscriptionObserver;
-use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
 
 /// Everything connections share, built once by `server`.
 pub struct Context {
     pub router: RouterHandle,
     pub authenticator: Arc<Authenticator>,
-    /// None: no ACL file, every authenticated client may publish and subscribe anywhere.
-    pub acl: Option<Arc<WatchedFile<AclRules>>>,
+    /// What every publication passes, whichever way it came in: access, typed check,
+    /// origin mark (`policy`).
+    pub policy: PublishPolicy,
     pub wills: Arc<Wills>,
-    pub fb: FbTopics,
+    /// Typed topics and the device registry, shared with the policy's typed stage.
+    pub fb: Arc<FbTopics>,
     pub sessions: SessionTable,
     pub redeliveries: Redeliveries,
     pub metrics: Arc<Metrics>,

@@ -17,7 +17,7 @@
 //!   [`PROBE_FRESH`], so polling `/readyz` costs the router at most a few messages a
 //!   second, however many pollers there are. `$` topics match no wildcard filter
 //!   [MQTT-4.7.2-1] and clients may not subscribe to `$` filters, so no client sees them;
-//!   a client publication under `$fbbus/` is refused (`fb_topics`), so none can feed it.
+//!   a client publication under `$fbbus/` is refused (`policy::typed`), so none can feed it.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};

@@ -16,7 +16,9 @@ use crate::authenticator::Authenticator;
 use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
 use crate::context::Context;
-use crate::fb_topics::FbTopics;
+use crate::policy::access::Access;
+use crate::policy::typed::FbTopics;
+use crate::policy::PublishPolicy;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::listener::Listener;
 use crate::listener::ListenerPolicy;
@@ -121,18 +123,23 @@ impl Broker {
         }
 
         let (shutdown, shutdown_rx) = watch::channel(false);
+        let fb = Arc::new(FbTopics::new(
+            Arc::clone(&registry),
+            config.fb.undeclared,
+            config.auth.password_file.is_none(),
+            publisher,
+            Arc::clone(&metrics),
+        ));
         let ctx = Arc::new(Context {
             router,
             authenticator,
-            acl: acl.clone(),
-            wills,
-            fb: FbTopics::new(
-                Arc::clone(&registry),
-                config.fb.undeclared,
-                config.auth.password_file.is_none(),
-                publisher,
+            policy: PublishPolicy::new(
+                Access::new(acl.clone()),
+                Arc::clone(&fb),
                 Arc::clone(&metrics),
             ),
+            wills,
+            fb,
             sessions,
             redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(&config.broker)),
             metrics: Arc::clone(&metrics),

@@ -10,8 +10,8 @@ use tokio::time::timeout;
 use super::lifetime::end_idle_session;
 use super::packet_ids::Resume;
 use super::Session;
-use crate::fb_topics::Check;
 use crate::metrics::DisconnectReason;
+use crate::policy::{Admission, Door, Publication};
 use crate::router::unlink;
 use crate::wire::codec::Version;
 
@@ -113,9 +113,24 @@ impl Session {
             // the declaration now, and re-encoded like one (the reference line's CONNECT
             // FB sets a BOOL output to FALSE this way).
             let topic = String::from_utf8_lossy(&will.topic).into_owned();
-            match self.fb.check(&self.ctx.fb, &topic, &will.payload) {
-                Check::Pass => self.ctx.wills.fire(&self.client_id, self.session, will),
-                Check::Route(routes) => {
+            let publication = Publication {
+                topic: &topic,
+                payload: &will.payload,
+                qos: will.qos,
+                retain: will.retain,
+            };
+            let admission =
+                self.ctx
+                    .policy
+                    .admit(Door::Will, &mut self.fb, &self.client_id, publication);
+            match admission {
+                Admission::Route { routes: None, .. } => {
+                    self.ctx.wills.fire(&self.client_id, self.session, will)
+                }
+                Admission::Route {
+                    routes: Some(routes),
+                    ..
+                } => {
                     for (topic, payload) in routes {
                         let mut copy = will.clone();
                         copy.topic = topic.into();
@@ -123,7 +138,7 @@ impl Session {
                         self.ctx.wills.fire(&self.client_id, self.session, copy);
                     }
                 }
-                Check::Consumed | Check::Refused(_) => {}
+                Admission::Consumed | Admission::Refused { .. } => {}
             }
             self.ctx.fb.publish(self.fb.take_outbox());
         }

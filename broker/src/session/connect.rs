@@ -20,9 +20,9 @@ use super::Session;
 use crate::authenticator::Outcome;
 use crate::broker_publisher::is_reserved_client_id;
 use crate::context::Context;
-use crate::fb_topics::FbSession;
 use crate::listener::ListenerPolicy;
 use crate::metrics::DisconnectReason;
+use crate::policy::typed::FbSession;
 use crate::router::unlink;
 use crate::wills::Will;
 use crate::wire::codec::{connack, Version};
@@ -119,15 +119,8 @@ impl Session {
                     username: username.as_deref(),
                     client_id: &client_id,
                 };
-                // `fbbus/` is the broker's: a will there could forge registry records.
-                let allowed = security::acl::valid_topic(&topic)
-                    && !topic.starts_with(fb_bridge::topic::BROKER_NAMESPACE)
-                    && ctx
-                        .acl
-                        .as_ref()
-                        .is_none_or(|acl| acl.get().can_publish(identity, &topic));
+                let allowed = ctx.policy.will_allowed(identity, &topic);
                 if !allowed {
-                    ctx.metrics.acl_denied.with_label_values(&["will"]).inc();
                     tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
                     return Err(refuse(
                         ConnectReturnCode::NotAuthorized,

@@ -11,7 +11,7 @@ use rumqttd::Notification;
 use super::close::End;
 use super::redelivery::{self};
 use super::{Session, HOLD_LIMIT};
-use crate::origin;
+use crate::policy::origin;
 
 impl Session {
     /// Writes what the router delivered, draining everything it has queued.

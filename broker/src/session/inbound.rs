@@ -10,8 +10,9 @@ use security::Identity;
 
 use super::close::End;
 use super::{Session, MAX_LOGGED_DENIALS};
-use crate::fb_topics::{Check, Refusal};
-use crate::origin;
+use crate::policy::origin;
+use crate::policy::typed::Refusal;
+use crate::policy::{Admission, Door, Publication, Stage};
 use crate::wire::codec::Version;
 
 /// The Topic Alias Maximum rumqttd's router announces in CONNACK.
@@ -137,33 +138,33 @@ impl Session {
             panic!("test_panic_topic: {} published on {topic}", self.client_id);
         }
 
-        // 2. Authorize.
-        if !self.may_publish(&topic) {
+        // The publish policy: access, typed check, origin mark (`policy`).
+        let publication = Publication {
+            topic: &topic,
+            payload: &publish.payload,
+            qos,
+            retain: publish.retain,
+        };
+        let admission =
             self.ctx
-                .metrics
-                .acl_denied
-                .with_label_values(&["publish"])
-                .inc();
-            self.log_denial("publish", &topic);
-            self.refuse_publish(qos, pkid, Refusal::NotAuthorized);
-            return Ok(());
-        }
-
-        // 3. Check typed FB topics; declarations end here.
-        let routes = match self.fb.check(&self.ctx.fb, &topic, &publish.payload) {
-            Check::Pass => Vec::new(),
-            Check::Route(routes) => routes,
-            Check::Consumed => {
+                .policy
+                .admit(Door::Client, &mut self.fb, &self.client_id, publication);
+        let (origin, routes) = match admission {
+            Admission::Route { origin, routes } => (origin, routes),
+            Admission::Consumed => {
                 self.acknowledge_consumed(qos, pkid);
                 return Ok(());
             }
-            Check::Refused(rejection) => {
-                self.refuse_publish(qos, pkid, rejection.refusal);
+            Admission::Refused { stage, refusal } => {
+                if stage == Stage::Access {
+                    self.log_denial("publish", &topic);
+                }
+                self.refuse_publish(qos, pkid, refusal);
                 return Ok(());
             }
         };
 
-        // 4. Route, 5. meter. The router gets the full topic, never an alias.
+        // Route and meter. The router gets the full topic, never an alias.
         if qos > 0 {
             self.inflight_in = self.inflight_in.saturating_add(1);
             if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
@@ -181,16 +182,15 @@ impl Session {
             publish.topic = topic.into();
         }
         let retain = publish.retain;
-        let origin = origin::new(qos, retain, &self.client_id);
         self.ctx.metrics.messages_in.inc();
-        let mut routes = routes.into_iter();
+        let mut routes = routes.unwrap_or_default().into_iter();
         if let Some((topic, payload)) = routes.next() {
             // A typed message: the canonical encoding travels at the publication's QoS and
             // packet id (the router acknowledges it), the re-encodings as QoS 0 copies
             // carrying the same origin, so subscribers get them at the same delivery QoS.
             for (topic, payload) in routes {
-                let copy = crate::broker_publisher::publish_packet(topic, payload, 0, retain, 0);
-                let mut copy = copy;
+                let mut copy =
+                    crate::broker_publisher::publish_packet(topic, payload, 0, retain, 0);
                 origin::mark(&mut copy, origin.clone());
                 self.to_router
                     .push(Packet::Publish(copy, properties.clone()));
@@ -421,18 +421,11 @@ impl Session {
         }
     }
 
-    pub(super) fn may_publish(&self, topic: &str) -> bool {
-        self.ctx
-            .acl
-            .as_ref()
-            .is_none_or(|acl| acl.get().can_publish(self.identity(), topic))
-    }
-
     pub(super) fn may_subscribe(&self, filter: &str) -> bool {
         self.ctx
-            .acl
-            .as_ref()
-            .is_none_or(|acl| acl.get().can_subscribe(self.identity(), filter))
+            .policy
+            .access()
+            .can_subscribe(self.identity(), filter)
     }
 
     pub(super) fn log_denial(&mut self, action: &'static str, topic: &str) {

@@ -1,4 +1,4 @@
-//! Step 3 of the packet path: typed FB topics, checked before anything is routed.
+//! Stage 2 of the publish policy: typed FB topics, checked before anything is routed.
 //!
 //! A publication is one of:
 //!
@@ -218,6 +218,14 @@ impl FbSession {
     /// The interface the registry had for this device when it connected.
     pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
         self.interface = interface;
+    }
+
+    /// Who publishes, as the access rules see it.
+    pub fn identity(&self) -> security::Identity<'_> {
+        security::Identity {
+            username: self.username.as_deref(),
+            client_id: &self.device,
+        }
     }
 
     /// Whether this connection speaks for the device its client id names. Client ids are

@@ -1,0 +1,41 @@
+//! Stage 1 of the publish policy, and the rule for subscriptions: the access rules.
+//!
+//! A broker without an ACL file lets every authenticated client publish and subscribe
+//! anywhere (fbbus's own namespaces aside, which the typed stage guards). That is one of
+//! the two values of [`Access`], not an `Option` every caller has to remember to check.
+
+use std::sync::Arc;
+
+use security::{AclRules, Identity};
+
+use crate::watched_file::WatchedFile;
+
+/// The access rules the broker serves with.
+pub enum Access {
+    /// No ACL file configured.
+    AllowAll,
+    /// `[auth] acl_file`, reloaded when it changes.
+    Rules(Arc<WatchedFile<AclRules>>),
+}
+
+impl Access {
+    pub fn new(file: Option<Arc<WatchedFile<AclRules>>>) -> Access {
+        file.map_or(Access::AllowAll, Access::Rules)
+    }
+
+    /// May `who` publish on `topic`?
+    pub fn can_publish(&self, who: Identity<'_>, topic: &str) -> bool {
+        match self {
+            Access::AllowAll => true,
+            Access::Rules(rules) => rules.get().can_publish(who, topic),
+        }
+    }
+
+    /// May `who` subscribe to `filter`?
+    pub fn can_subscribe(&self, who: Identity<'_>, filter: &str) -> bool {
+        match self {
+            Access::AllowAll => true,
+            Access::Rules(rules) => rules.get().can_subscribe(who, filter),
+        }
+    }
+}

@@ -1,0 +1,325 @@
+//! The publish policy without a socket: each door, each stage, each refusal.
+//!
+//! These fail if any door stops applying the access rules or the typed check: the doors
+//! differ only in the [`Door`] they pass, and every refusal test runs for all three.
+
+use std::io::Write;
+
+use fb_bridge::Declaration;
+use security::AclRules;
+
+use super::*;
+use crate::broker_publisher::BrokerPublisher;
+use crate::health::Health;
+use crate::policy::typed::Undeclared;
+use crate::registry::Registry;
+use crate::watched_file::WatchedFile;
+
+const DOORS: [Door; 3] = [Door::Client, Door::Will, Door::Bus];
+
+/// Devices publish under their own id; `SECRET` is denied to everyone.
+const ACL: &str = "\
+pattern readwrite fb/%c/#
+topic deny fb/plc-1/CONV/SECRET
+";
+
+/// plc-1's interface: one INT output and the port the ACL denies.
+const DECLARATION: &str = r#"{"fbs":{"CONV":{"data_out":{"SPEED":"INT","SECRET":"INT"}}}}"#;
+
+struct Line {
+    policy: PublishPolicy,
+    fb: Arc<FbTopics>,
+    metrics: Arc<Metrics>,
+    _acl_dir: Option<tempfile::TempDir>,
+}
+
+/// A line's policy with `acl` as its ACL file (None: no file, allow all).
+fn line(acl: Option<&str>) -> Line {
+    let metrics = Arc::new(Metrics::new());
+    let (publisher, _) = BrokerPublisher::detached();
+    let registry = Registry::open(
+        "line-a",
+        None,
+        Arc::clone(&publisher),
+        Arc::clone(&metrics),
+        &Health::new(),
+    )
+    .expect("a registry without a file always opens");
+    let fb = Arc::new(FbTopics::new(
+        registry,
+        Undeclared::Reject,
+        false,
+        publisher,
+        Arc::clone(&metrics),
+    ));
+    let (access, dir) = match acl {
+        None => (Access::AllowAll, None),
+        Some(text) => {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("acl");
+            std::fs::File::create(&path)
+                .unwrap()
+                .write_all(text.as_bytes())
+                .unwrap();
+            let file = WatchedFile::load("acl_file", &path, |p| {
+                AclRules::load(p).map_err(|e| e.to_string())
+            })
+            .unwrap();
+            (Access::new(Some(Arc::new(file))), Some(dir))
+        }
+    };
+    Line {
+        policy: PublishPolicy::new(access, Arc::clone(&fb), Arc::clone(&metrics)),
+        fb,
+        metrics,
+        _acl_dir: dir,
+    }
+}
+
+impl Line {
+    /// plc-1, logged in with its id as username, with its interface declared.
+    fn device(&self) -> FbSession {
+        let mut session = FbSession::new(&self.fb, "plc-1", Some("plc-1"), 1);
+        let interface = Declaration::from_json(DECLARATION.as_bytes())
+            .unwrap()
+            .validate()
+            .unwrap();
+        session.set_interface(Some(self.fb.registry.declare("plc-1", 1, interface)));
+        session
+    }
+
+    fn admit(
+        &self,
+        door: Door,
+        publisher: &mut FbSession,
+        topic: &str,
+        payload: &str,
+    ) -> Admission {
+        let payload = Bytes::from(payload.to_owned());
+        self.policy.admit(
+            door,
+            publisher,
+            &Arc::from("plc-1"),
+            Publication {
+                topic,
+                payload: &payload,
+                qos: 1,
+                retain: true,
+            },
+        )
+    }
+
+    fn count(&self, door: Door, stage: Stage) -> u64 {
+        let (vec, label) = match (door, stage) {
+            (Door::Client, Stage::Access) => (&self.metrics.acl_denied, "publish"),
+            (Door::Will, Stage::Access) => (&self.metrics.acl_denied, "will"),
+            (Door::Bus, Stage::Access) => (&self.metrics.bridge_dropped, "acl"),
+            (Door::Bus, Stage::Typed) => (&self.metrics.bridge_dropped, "type"),
+            (_, Stage::Typed) => return 0,
+        };
+        vec.with_label_values(&[label]).get()
+    }
+
+    fn typed_rejected(&self) -> u64 {
+        self.metrics
+            .typed_rejected
+            .with_label_values(&["plc-1", "CONV.SPEED", "payload_format_invalid"])
+            .get()
+    }
+}
+
+#[test]
+fn every_door_routes_a_well_typed_message_with_its_origin() {
+    let line = line(Some(ACL));
+    for door in DOORS {
+        let mut device = line.device();
+        match line.admit(door, &mut device, "fb/plc-1/CONV/SPEED", "3") {
+            Admission::Route { origin, routes } => {
+                assert_eq!((origin.qos, origin.retain), (1, true), "{door:?}");
+                assert_eq!(&*origin.publisher, "plc-1", "{door:?}");
+                // Canonical JSON, nobody reads another encoding: routed as published.
+                assert!(routes.is_none(), "{door:?}: {routes:?}");
+            }
+            other => panic!("{door:?}: {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn every_door_applies_the_access_rules() {
+    let line = line(Some(ACL));
+    for door in DOORS {
+        let mut device = line.device();
+        // Well typed, declared, and the device's own topic: only the ACL can refuse it.
+        let admission = line.admit(door, &mut device, "fb/plc-1/CONV/SECRET", "3");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Access,
+                    refusal: Refusal::NotAuthorized
+                }
+            ),
+            "{door:?}: {admission:?}"
+        );
+        assert_eq!(line.count(door, Stage::Access), 1, "{door:?} not counted");
+    }
+}
+
+#[test]
+fn every_door_applies_the_typed_check() {
+    let line = line(Some(ACL));
+    for (n, door) in DOORS.into_iter().enumerate() {
+        let mut device = line.device();
+        // Allowed by the ACL; 70000 is out of range for INT.
+        let admission = line.admit(door, &mut device, "fb/plc-1/CONV/SPEED", "70000");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Typed,
+                    refusal: Refusal::PayloadFormatInvalid
+                }
+            ),
+            "{door:?}: {admission:?}"
+        );
+        assert_eq!(line.typed_rejected(), n as u64 + 1, "{door:?} not counted");
+        if door == Door::Bus {
+            assert_eq!(line.count(door, Stage::Typed), 1);
+        }
+    }
+}
+
+#[test]
+fn access_comes_before_the_typed_check() {
+    let line = line(Some(ACL));
+    let mut device = line.device();
+    // Denied and ill-typed: the ACL answers, the typed stage never sees it.
+    let admission = line.admit(Door::Client, &mut device, "fb/plc-1/CONV/SECRET", "x");
+    assert!(matches!(
+        admission,
+        Admission::Refused {
+            stage: Stage::Access,
+            ..
+        }
+    ));
+    assert_eq!(
+        line.metrics
+            .typed_rejected
+            .with_label_values(&["plc-1", "CONV.SECRET", "payload_format_invalid"])
+            .get(),
+        0
+    );
+}
+
+#[test]
+fn without_an_acl_file_access_allows_all_and_the_typed_check_still_runs() {
+    let line = line(None);
+    assert!(matches!(line.policy.access(), Access::AllowAll));
+    for door in DOORS {
+        let mut device = line.device();
+        let admission = line.admit(door, &mut device, "fb/plc-1/CONV/SECRET", "3");
+        assert!(matches!(admission, Admission::Route { .. }), "{door:?}");
+        let admission = line.admit(door, &mut device, "fb/plc-1/CONV/SPEED", "true");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Typed,
+                    ..
+                }
+            ),
+            "{door:?}: {admission:?}"
+        );
+    }
+}
+
+#[test]
+fn another_devices_typed_topic_is_refused_at_every_local_door() {
+    let line = line(None);
+    for door in [Door::Client, Door::Will] {
+        let mut device = line.device();
+        let admission = line.admit(door, &mut device, "fb/plc-2/CONV/SPEED", "3");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Typed,
+                    refusal: Refusal::NotAuthorized
+                }
+            ),
+            "{door:?}: {admission:?}"
+        );
+    }
+}
+
+#[test]
+fn a_remote_device_without_a_record_yet_passes_as_its_line_checked_it() {
+    let line = line(None);
+    let mut remote = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 0);
+    let admission = line.admit(Door::Bus, &mut remote, "fb/plc-1/CONV/SPEED", "70000");
+    assert!(matches!(admission, Admission::Route { routes: None, .. }));
+    // A local device without a declaration is refused (undeclared = reject).
+    for door in [Door::Client, Door::Will] {
+        let mut local = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
+        let admission = line.admit(door, &mut local, "fb/plc-1/CONV/SPEED", "3");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Typed,
+                    refusal: Refusal::TopicNameInvalid
+                }
+            ),
+            "{door:?}: {admission:?}"
+        );
+    }
+}
+
+#[test]
+fn typed_messages_are_re_encoded_once_someone_reads_another_encoding() {
+    let line = line(None);
+    line.fb.subscribed("fbdk/#");
+    let mut device = line.device();
+    match line.admit(Door::Client, &mut device, "fb/plc-1/CONV/SPEED", "3") {
+        Admission::Route {
+            routes: Some(routes),
+            ..
+        } => {
+            let topics: Vec<&str> = routes.iter().map(|(t, _)| t.as_str()).collect();
+            assert_eq!(topics, ["fb/plc-1/CONV/SPEED", "fbdk/plc-1/CONV/SPEED"]);
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn a_declaration_is_consumed() {
+    let line = line(None);
+    let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
+    let admission = line.admit(
+        Door::Client,
+        &mut device,
+        "fbbus/declare/plc-1",
+        DECLARATION,
+    );
+    assert!(matches!(admission, Admission::Consumed), "{admission:?}");
+    assert!(device.interface().is_some());
+}
+
+#[test]
+fn a_will_is_checked_at_connect() {
+    let line = line(Some(ACL));
+    let who = Identity {
+        username: Some("plc-1"),
+        client_id: "plc-1",
+    };
+    assert!(line.policy.will_allowed(who, "fb/plc-1/CONV/SPEED"));
+    // The ACL, the broker's namespace, an invalid topic name.
+    for topic in ["fb/plc-1/CONV/SECRET", "fbbus/registry/plc-1", "fb/plc-1/#"] {
+        assert!(!line.policy.will_allowed(who, topic), "{topic}");
+    }
+    assert_eq!(line.count(Door::Will, Stage::Access), 3);
+    let all = self::line(None);
+    assert!(!all.policy.will_allowed(who, "fbbus/registry/plc-1"));
+}
