@@ -22,7 +22,7 @@ use std::fmt;
 use serde::de::{DeserializeSeed, Deserializer, MapAccess, SeqAccess, Visitor};
 use serde_json::Map;
 
-use super::{mismatch, object_fields, scalar_from_token, Token};
+use super::read::{mismatch, object_fields, scalar_from_token, Token};
 use crate::codec::{CodecError, EventMessage};
 use crate::types::{DataType, ElementaryType};
 use crate::value::{TypeError, Value};
