@@ -24,16 +24,33 @@ pub enum LinkError {
     NotConnectionAck,
     #[error("ConnAck error {0}")]
     ConnectionAck(String),
+    // fbbus: the event that could not be sent is dropped, not carried in the error:
+    // `Event::Connect` made every `Result<_, LinkError>` several hundred bytes
+    // (clippy::result_large_err), in every link call of every connection.
     #[error("Channel try send error")]
-    TrySend(#[from] TrySendError<(ConnectionId, Event)>),
+    TrySend(TrySendError<()>),
     #[error("Channel send error")]
-    Send(#[from] SendError<(ConnectionId, Event)>),
+    Send(SendError<()>),
     #[error("Channel recv error")]
     Recv(#[from] RecvError),
     #[error("Channel timeout recv error")]
     RecvTimeout(#[from] RecvTimeoutError),
-    #[error("Timeout = {0}")]
-    Elapsed(#[from] tokio::time::error::Elapsed),
+}
+
+// fbbus: see `LinkError::TrySend`.
+impl From<TrySendError<(ConnectionId, Event)>> for LinkError {
+    fn from(e: TrySendError<(ConnectionId, Event)>) -> Self {
+        LinkError::TrySend(match e {
+            TrySendError::Full(_) => TrySendError::Full(()),
+            TrySendError::Disconnected(_) => TrySendError::Disconnected(()),
+        })
+    }
+}
+
+impl From<SendError<(ConnectionId, Event)>> for LinkError {
+    fn from(_: SendError<(ConnectionId, Event)>) -> Self {
+        LinkError::Send(SendError(()))
+    }
 }
 
 // used to build LinkTx and LinkRx
@@ -197,7 +214,7 @@ impl LinkTx {
         }
     }
 
-    pub fn buffer(&self) -> MutexGuard<RawMutex, VecDeque<Packet>> {
+    pub fn buffer(&self) -> MutexGuard<'_, RawMutex, VecDeque<Packet>> {
         self.recv_buffer.lock()
     }
 
@@ -239,14 +256,6 @@ impl LinkTx {
         self.router_tx
             .try_send((self.connection_id, Event::DeviceData))?;
         Ok(len)
-    }
-
-    pub(crate) async fn notify(&mut self) -> Result<(), LinkError> {
-        self.router_tx
-            .send_async((self.connection_id, Event::DeviceData))
-            .await?;
-
-        Ok(())
     }
 
     /// Sends a MQTT Publish to the router
@@ -454,15 +463,6 @@ impl LinkRx {
                 Ok(self.cache.pop_front())
             }
         }
-    }
-
-    pub(crate) async fn exchange(
-        &mut self,
-        notifications: &mut VecDeque<Notification>,
-    ) -> Result<(), LinkError> {
-        self.router_rx.recv_async().await?;
-        mem::swap(&mut *self.send_buffer.lock(), notifications);
-        Ok(())
     }
 
     pub fn ready(&self) -> Result<(), LinkError> {

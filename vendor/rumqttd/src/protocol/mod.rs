@@ -1,17 +1,13 @@
-#![allow(dead_code, unused)]
-
 pub mod v4;
 pub mod v5;
 
-use std::{io, str::Utf8Error, string::FromUtf8Error};
+use std::str::Utf8Error;
 
 /// This module is the place where all the protocol specifics gets abstracted
 /// out and creates a structures which are common across protocols. Since,
 /// MQTT is the core protocol that this broker supports, a lot of structs closely
 /// map to what MQTT specifies in its protocol
 use bytes::{Buf, BufMut, Bytes, BytesMut};
-
-use crate::Notification;
 
 // TODO: Handle the cases when there are no properties using Inner struct, so
 // handling of properties can be made simplier internally
@@ -445,13 +441,6 @@ pub struct UnsubAckProperties {
     pub user_properties: Vec<(String, String)>,
 }
 
-//--------------------------- Ping packet -------------------------------
-
-struct Ping;
-struct PingResponse;
-
-//------------------------------------------------------------------------
-
 //--------------------------- PubRec packet -------------------------------
 
 /// Return code in connack
@@ -637,7 +626,7 @@ pub fn qos(num: u8) -> Option<QoS> {
         0 => Some(QoS::AtMostOnce),
         1 => Some(QoS::AtLeastOnce),
         2 => Some(QoS::ExactlyOnce),
-        qos => None,
+        _qos => None,
     }
 }
 

@@ -79,8 +79,9 @@ impl Graveyard {
         Some(saved)
     }
 
-    /// fbbus: the saved session of `id`, left in place (`print_status`; upstream used
-    /// `retrieve`, which ended the session it printed).
+    /// fbbus: the saved session of `id`, left in place (for tests; upstream's
+    /// `print_status`, removed with the console, used `retrieve`, which ended the session).
+    #[cfg(test)]
     pub fn get(&self, id: &str) -> Option<&SavedState> {
         self.connections.get(id).map(|(_, saved)| saved)
     }
@@ -151,6 +152,7 @@ impl Graveyard {
     }
 
     /// fbbus: sessions saved now.
+    #[cfg(test)]
     pub fn len(&self) -> usize {
         self.connections.len()
     }

@@ -13,7 +13,7 @@ use crate::{
     Cursor, Notification,
 };
 
-use super::{Forward, OutgoingMeter};
+use super::Forward;
 
 const MAX_INFLIGHT: usize = 100;
 const MAX_PKID: u16 = MAX_INFLIGHT as u16;
@@ -74,8 +74,6 @@ pub struct Outgoing {
     pub(crate) unacked_pubrels: VecDeque<u16>,
     /// Last packet id
     last_pkid: u16,
-    /// Metrics of outgoing messages of this connection
-    pub(crate) meter: OutgoingMeter,
 }
 
 impl Outgoing {
@@ -96,7 +94,6 @@ impl Outgoing {
             unacked_pubrels,
             handle,
             last_pkid: 0,
-            meter: Default::default(),
         };
 
         (outgoing, rx)
@@ -139,12 +136,9 @@ impl Outgoing {
 
         if qos == 0 {
             for p in publishes {
-                self.meter.publish_count += 1;
                 buffer.push_back(Notification::Forward(p));
-                // self.meter.total_size += p.len();
             }
 
-            // self.meter.update_data_rate(total_size);
             let buffer_count = buffer.len();
             let inflight_count = self.inflight_buffer.len();
             return (buffer_count, inflight_count);
@@ -163,8 +157,6 @@ impl Outgoing {
                 self.last_pkid = 0;
             }
 
-            self.meter.publish_count += 1;
-            self.meter.total_size += p.publish.topic.len() + p.publish.payload.len();
             buffer.push_back(Notification::Forward(p));
         }
 

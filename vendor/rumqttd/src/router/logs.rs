@@ -8,7 +8,7 @@ use crate::protocol::{
     PublishProperties, SubAck, UnsubAck,
 };
 use crate::router::iobufs::shrink_if_empty;
-use crate::router::{DataRequest, FilterIdx, SubscriptionMeter, Waiters};
+use crate::router::{DataRequest, FilterIdx, Waiters};
 use crate::{ConnectionId, Filter, Offset, RouterConfig, Topic};
 
 use crate::segments::{CommitLog, Position};
@@ -104,17 +104,6 @@ impl DataLog {
             filter_indexes,
             retained_publishes,
         })
-    }
-
-    pub fn meter(&mut self, filter: &str) -> Option<&mut SubscriptionMeter> {
-        let data = self.native.get_mut(*self.filter_indexes.get(filter)?)?;
-        Some(&mut data.meter)
-    }
-
-    pub fn waiters(&self, filter: &Filter) -> Option<&Waiters<DataRequest>> {
-        self.native
-            .get(*self.filter_indexes.get(filter)?)
-            .map(|data| &data.waiters)
     }
 
     /// The request of connection `id` for `subscription` parked in the log of `filter`.
@@ -408,7 +397,6 @@ pub struct Data<T> {
     filter: Filter,
     pub log: CommitLog<T>,
     pub waiters: Waiters<DataRequest>,
-    meter: SubscriptionMeter,
 }
 
 impl<T> Data<T>
@@ -435,12 +423,10 @@ where
 
         // fbbus: allocated on first use.
         let waiters = Waiters::with_capacity(0);
-        let metrics = SubscriptionMeter::default();
         Data {
             filter: filter.to_owned(),
             log,
             waiters,
-            meter: metrics,
         }
     }
 
@@ -456,14 +442,10 @@ where
         item: T,
         notifications: &mut VecDeque<(ConnectionId, DataRequest)>,
     ) -> (Offset, &Filter) {
-        let size = item.size();
         let offset = self.log.append(item);
         if let Some(mut parked) = self.waiters.take() {
             notifications.append(&mut parked);
         }
-
-        self.meter.count += 1;
-        self.meter.total_size += size;
 
         (offset, &self.filter)
     }

@@ -1,7 +1,4 @@
-use std::{
-    collections::{HashMap, HashSet, VecDeque},
-    fmt,
-};
+use std::collections::VecDeque;
 
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -12,10 +9,9 @@ use crate::{
         PubAckProperties, PubComp, PubCompProperties, PubRec, PubRecProperties, PubRel,
         PubRelProperties, Publish, PublishProperties, SubAck, SubAckProperties, UnsubAck,
     },
-    ConnectionId, Filter, RouterId, Topic,
+    ConnectionId, Filter,
 };
 
-mod alertlog;
 mod connection;
 mod graveyard;
 mod holds;
@@ -26,18 +22,22 @@ mod scheduler;
 pub(crate) mod shared_subs;
 mod waiters;
 
-pub use alertlog::Alert;
 pub use connection::Connection;
 pub use graveyard::{SavedSessions, DEFAULT_MAX_SAVED_SESSIONS};
 pub use routing::Router;
 pub use waiters::Waiters;
+
+/// fbbus: called for every skip (`RouterHooks::skipped`).
+pub type SkipHook = Box<dyn FnMut(&Skipped<'_>) + Send>;
+/// fbbus: called for every released hold (`RouterHooks::held`).
+pub type HeldHook = Box<dyn FnMut(&Held<'_>) + Send>;
 
 /// fbbus: what the router tells the broker embedding it. The callbacks run on the router
 /// thread, between two events: they must be quick and must not wait on the router.
 pub struct RouterHooks {
     /// A subscriber read past messages the filter's commit log no longer held: it lagged
     /// by more than `max_segment_count` segments and retention dropped them unread.
-    pub skipped: Option<Box<dyn FnMut(&Skipped<'_>) + Send>>,
+    pub skipped: Option<SkipHook>,
     /// The offline persistent sessions the router keeps, and how many it dropped at
     /// `RouterConfig::max_saved_sessions`: the router updates the counters, the embedder
     /// reads them (keep a clone of the `Arc`).
@@ -55,7 +55,7 @@ pub struct RouterHooks {
     /// skips what retention drops).
     pub hold_limit: std::time::Duration,
     /// Called when publishers held for a filter are let go.
-    pub held: Option<Box<dyn FnMut(&Held<'_>) + Send>>,
+    pub held: Option<HeldHook>,
     /// Called on the router thread when the router stops for good: its loop returned
     /// (`RouterError`, e.g. every link gone) or it panicked (the panic's message). Nothing
     /// is routed after this: the embedder must stop serving (fbbus exits non-zero).
@@ -120,10 +120,6 @@ pub enum Event {
         incoming: iobufs::Incoming,
         outgoing: iobufs::Outgoing,
     },
-    /// New meter link
-    NewMeter(flume::Sender<Vec<Meter>>),
-    /// New alert link
-    NewAlert(flume::Sender<Vec<Alert>>),
     /// Connection ready to receive more data
     Ready,
     /// Data for native commitlog
@@ -132,12 +128,6 @@ pub enum Event {
     Disconnect,
     /// Shadow
     Shadow(ShadowRequest),
-    /// Collect and send alerts to all alerts links
-    SendAlerts,
-    /// Collect and send meters to all meters links
-    SendMeters,
-    /// Get metrics of a connection or all connections
-    PrintStatus(Print),
     /// Publish Will message
     PublishWill((String, Option<String>)),
 }
@@ -284,65 +274,6 @@ pub struct DataRequest {
     pub(crate) slow: bool,
 }
 
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct AcksRequest;
-
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Request {
-    Data(DataRequest),
-    Ack(AcksRequest),
-}
-
-/// A single message from connection to router
-pub struct Message {
-    /// Log to sweep
-    pub topic: String,
-    /// Qos of the topic
-    pub _qos: u8,
-    /// Reply data chain
-    pub payload: Bytes,
-}
-
-impl fmt::Debug for Message {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "Topic = {:?}, Payload size = {}",
-            self.topic,
-            self.payload.len()
-        )
-    }
-}
-
-/// A batch of messages from connection to router
-pub struct Data {
-    /// (segment, offset) tuples per replica (1 native and 2 replicas)
-    pub offset: (u64, u64),
-    /// Payload size
-    pub size: usize,
-    /// Reply data chain
-    pub payload: Vec<Publish>,
-}
-
-impl fmt::Debug for Data {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "Cursors = {:?}, Payload size = {}, Payload count = {}",
-            self.offset,
-            self.size,
-            self.payload.len()
-        )
-    }
-}
-
-// #[derive(Debug, Clone)]
-// pub struct Disconnection {
-//     pub id: String,
-//     pub execute_will: bool,
-//     pub pending: Vec<Notification>,
-// }
-
 #[derive(Debug, Clone)]
 pub struct ShadowRequest {
     pub filter: String,
@@ -355,145 +286,6 @@ pub struct ShadowReply {
 }
 
 #[derive(Debug, Default, Clone, Serialize, Deserialize)]
-pub struct RouterMeter {
-    pub timestamp: u128,
-    pub sequence: usize,
-    pub router_id: RouterId,
-    pub total_connections: usize,
-    pub total_subscriptions: usize,
-    pub total_publishes: usize,
-    pub failed_publishes: usize,
-}
-
-impl RouterMeter {
-    pub fn get(&mut self) -> Option<Self> {
-        if self.total_publishes > 0 || self.failed_publishes > 0 {
-            self.timestamp = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-                .as_millis();
-            self.sequence += 1;
-
-            let meter = self.clone();
-            self.reset();
-
-            Some(meter)
-        } else {
-            None
-        }
-    }
-
-    fn reset(&mut self) {
-        self.total_publishes = 0;
-        self.failed_publishes = 0;
-    }
-}
-
-#[derive(Debug, Default, Clone, Serialize, Deserialize)]
-pub struct SubscriptionMeter {
-    pub timestamp: u128,
-    pub sequence: usize,
-    pub count: usize,
-    pub total_size: usize,
-}
-
-impl SubscriptionMeter {
-    pub fn get(&mut self) -> Option<Self> {
-        if self.count > 0 {
-            self.timestamp = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-                .as_millis();
-            self.sequence += 1;
-
-            let meter = self.clone();
-            self.reset();
-
-            Some(meter)
-        } else {
-            None
-        }
-    }
-
-    fn reset(&mut self) {
-        self.count = 0;
-        self.total_size = 0;
-    }
-}
-
-#[derive(Debug, Default, Clone)]
-pub struct MeterData {
-    pub count: usize,
-    pub size: usize,
-}
-
-#[derive(Debug, Default, Clone)]
-pub struct IncomingMeter {
-    publishes: HashMap<Topic, MeterData>,
-    subscribes: HashSet<Filter>,
-    total_publishes: MeterData,
-}
-
-impl IncomingMeter {
-    pub fn register_publish(&mut self, publish: &Publish) -> Result<(), std::str::Utf8Error> {
-        let meter = {
-            let topic = std::str::from_utf8(&publish.topic)?.to_string();
-            self.publishes.entry(topic).or_default()
-        };
-        meter.count += 1;
-        meter.size += publish.len();
-
-        self.total_publishes.count += 1;
-        self.total_publishes.size += publish.len();
-
-        Ok(())
-    }
-
-    pub fn get_topic_meters(&self) -> &HashMap<Topic, MeterData> {
-        &self.publishes
-    }
-
-    pub fn register_subscription(&mut self, filter: Filter) -> bool {
-        self.subscribes.insert(filter)
-    }
-
-    pub fn unregister_subscription(&mut self, filter: &Filter) -> bool {
-        self.subscribes.remove(filter)
-    }
-
-    pub fn get_total_count(&self) -> usize {
-        self.total_publishes.count
-    }
-
-    pub fn get_total_size(&self) -> usize {
-        self.total_publishes.size
-    }
-}
-
-#[derive(Debug, Default, Clone)]
-pub struct OutgoingMeter {
-    pub publish_count: usize,
-    pub total_size: usize,
-}
-
-#[derive(Debug, Default, Clone, Serialize, Deserialize)]
 pub struct ConnectionEvents {
     events: VecDeque<String>,
-}
-
-#[derive(Serialize, Debug, Clone)]
-pub enum Meter {
-    Router(usize, RouterMeter),
-    Subscription(String, SubscriptionMeter),
-}
-
-#[derive(Debug, Clone)]
-pub enum Print {
-    Config,
-    Router,
-    ReadyQueue,
-    Connection(String),
-    Subscriptions,
-    Subscription(Filter),
-    Waiters(Filter),
 }

@@ -4,7 +4,6 @@ use crate::protocol::{
     PubRecReason, PubRel, PubRelReason, Publish, PublishProperties, QoS, RetainForwardRule, SubAck,
     SubscribeReasonCode, UnsubAck, UnsubAckReason,
 };
-use crate::router::alertlog::alert;
 use crate::router::scheduler::{PauseReason, Tracker};
 use crate::router::{ConnectionEvents, Forward};
 use crate::segments::Position;
@@ -17,7 +16,6 @@ use std::thread;
 use thiserror::Error;
 use tracing::{debug, error, info, trace, warn};
 
-use super::alertlog::{Alert, AlertLog};
 use super::graveyard::Graveyard;
 use super::holds::Holds;
 use super::iobufs::{Incoming, Outgoing};
@@ -25,9 +23,8 @@ use super::logs::{AckLog, DataLog};
 use super::scheduler::{ScheduleReason, Scheduler};
 use super::shared_subs::SharedGroup;
 use super::{
-    packetid, Connection, DataRequest, Event, FilterIdx, Held, Meter, Notification, Print,
-    RouterHooks, RouterMeter, ShadowRequest, Skipped, MAX_CHANNEL_CAPACITY,
-    MAX_SCHEDULE_ITERATIONS,
+    packetid, Connection, DataRequest, Event, FilterIdx, Held, Notification, RouterHooks,
+    ShadowRequest, SkipHook, Skipped, MAX_CHANNEL_CAPACITY, MAX_SCHEDULE_ITERATIONS,
 };
 
 #[derive(Error, Debug)]
@@ -40,9 +37,6 @@ pub enum RouterError {
     Disconnected,
     #[error("Topic not utf-8")]
     NonUtf8Topic(#[from] Utf8Error),
-    #[cfg(feature = "validate-tenant-prefix")]
-    #[error("Bad Tenant")]
-    BadTenant(String, String),
     #[error("No matching filters to topic {0}")]
     NoMatchingFilters(String),
     #[error("Invalid filter prefix {0}")]
@@ -77,10 +71,6 @@ pub struct Router {
     config: RouterConfig,
     /// Saved state of dead persistent connections
     graveyard: Graveyard,
-    /// List of MetersLink's senders
-    meters: Slab<Sender<Vec<Meter>>>,
-    /// List of AlertsLink's senders with their respective subscription Filter
-    alerts: Slab<Sender<Vec<Alert>>>,
     /// List of connections
     connections: Slab<Connection>,
     /// Connection map from device id to connection id
@@ -93,8 +83,6 @@ pub struct Router {
     obufs: Slab<Outgoing>,
     /// Data log of all the subscriptions
     datalog: DataLog,
-    /// Data log of all the alert subscriptions
-    alertlog: AlertLog,
     /// Acks log per connection
     ackslog: Slab<AckLog>,
     /// Scheduler to schedule connections
@@ -109,8 +97,6 @@ pub struct Router {
     /// network connections, local connections and replicators to communicate
     /// with this router
     router_tx: Sender<(ConnectionId, Event)>,
-    /// Router metrics
-    router_meters: RouterMeter,
     /// Shared subscriptions map <group-name, group>
     shared_subscriptions: HashMap<String, SharedGroup>,
     /// Will messages per client_id
@@ -129,38 +115,27 @@ impl Router {
     pub fn new(router_id: RouterId, config: RouterConfig) -> Router {
         let (router_tx, router_rx) = bounded(1000);
 
-        let meters = Slab::with_capacity(10);
-        let alerts = Slab::with_capacity(10);
         let connections = Slab::with_capacity(config.max_connections);
         let ibufs = Slab::with_capacity(config.max_connections);
         let obufs = Slab::with_capacity(config.max_connections);
         let ackslog = Slab::with_capacity(config.max_connections);
-
-        let router_metrics = RouterMeter {
-            router_id,
-            ..RouterMeter::default()
-        };
 
         let max_connections = config.max_connections;
         Router {
             id: router_id,
             config: config.clone(),
             graveyard: Graveyard::new(config.max_saved_sessions),
-            meters,
-            alerts,
             connections,
             connection_map: Default::default(),
             subscription_map: Default::default(),
             ibufs,
             obufs,
-            datalog: DataLog::new(config.clone()).unwrap(),
-            alertlog: AlertLog::new(config),
+            datalog: DataLog::new(config).unwrap(),
             ackslog,
             scheduler: Scheduler::with_capacity(max_connections),
             notifications: VecDeque::with_capacity(1024),
             router_rx,
             router_tx,
-            router_meters: router_metrics,
             shared_subscriptions: HashMap::new(),
             last_wills: HashMap::new(),
             hooks: RouterHooks::default(),
@@ -301,7 +276,6 @@ impl Router {
             self.release_memory();
         }
 
-        // self.send_all_alerts();
         Ok(())
     }
 
@@ -317,8 +291,6 @@ impl Router {
                 incoming,
                 outgoing,
             } => self.handle_new_connection(connection, incoming, outgoing),
-            Event::NewMeter(tx) => self.handle_new_meter(tx),
-            Event::NewAlert(tx) => self.handle_new_alert(tx),
             Event::DeviceData => self.handle_device_payload(id),
             Event::Disconnect => self.handle_disconnection(id, None),
             Event::Ready => self.scheduler.reschedule(id, ScheduleReason::Ready),
@@ -329,18 +301,7 @@ impl Router {
                     retrieve_shadow(&mut self.datalog, outgoing, request)
                 }
             }
-            Event::SendAlerts => {
-                self.send_alerts();
-            }
-            Event::SendMeters => {
-                self.send_meters();
-            }
-            Event::PrintStatus(metrics) => print_status(self, metrics),
-            Event::PublishWill((client_id, _tenant_id)) => self.handle_last_will(
-                client_id,
-                #[cfg(feature = "validate-tenant-prefix")]
-                _tenant_id,
-            ),
+            Event::PublishWill((client_id, _tenant_id)) => self.handle_last_will(client_id),
         }
     }
 
@@ -359,18 +320,16 @@ impl Router {
         let span = tracing::info_span!("incoming_connect", client_id);
         let _guard = span.enter();
 
-        if cfg!(not(feature = "allow-duplicate-clientid")) {
-            // Check if same client_id already exists and if so, replace it with this new connection
-            // ref: https://docs.oasis-open.org/mqtt/mqtt/v3.1.1/os/mqtt-v3.1.1-os.html#_Toc398718032
+        // Check if same client_id already exists and if so, replace it with this new connection
+        // ref: https://docs.oasis-open.org/mqtt/mqtt/v3.1.1/os/mqtt-v3.1.1-os.html#_Toc398718032
 
-            let connection_id = self.connection_map.get(&client_id);
-            if let Some(connection_id) = connection_id {
-                error!(
-                    "Duplicate client_id, dropping previous connection with connection_id: {}",
-                    connection_id
-                );
-                self.handle_disconnection(*connection_id, None);
-            }
+        let connection_id = self.connection_map.get(&client_id);
+        if let Some(connection_id) = connection_id {
+            error!(
+                "Duplicate client_id, dropping previous connection with connection_id: {}",
+                connection_id
+            );
+            self.handle_disconnection(*connection_id, None);
         }
 
         if self.connections.len() >= self.config.max_connections {
@@ -484,16 +443,6 @@ impl Router {
 
         self.scheduler
             .reschedule(connection_id, ScheduleReason::Init);
-
-        self.router_meters.total_connections += 1;
-    }
-
-    fn handle_new_meter(&mut self, tx: Sender<Vec<Meter>>) {
-        let _meter_id = self.meters.insert(tx);
-    }
-
-    fn handle_new_alert(&mut self, tx: Sender<Vec<Alert>>) {
-        let _alert_id = self.alerts.insert(tx);
     }
 
     fn handle_disconnection(&mut self, id: ConnectionId, reason: Option<DisconnectReasonCode>) {
@@ -608,7 +557,6 @@ impl Router {
         // fbbus: nothing is kept for a clean session. Upstream saved its event history in
         // the graveyard, an entry per client id ever seen that was never removed: with
         // server-assigned ids, memory grew with every connection.
-        self.router_meters.total_connections -= 1;
     }
 
     /// Handles new incoming data on a topic
@@ -713,8 +661,6 @@ impl Router {
                         }
                     };
 
-                    self.router_meters.total_publishes += 1;
-
                     // Try to append publish to commitlog
                     match append_to_commitlog(
                         id,
@@ -735,7 +681,6 @@ impl Router {
                             error!(
                                 reason = ?e, "Failed to append to commitlog"
                             );
-                            self.router_meters.failed_publishes += 1;
                             disconnect = true;
 
                             if let RouterError::Disconnect(code) = e {
@@ -987,7 +932,6 @@ impl Router {
                             error!(
                                 reason = ?e, "Failed to append to commitlog"
                             );
-                            self.router_meters.failed_publishes += 1;
                             disconnect = true;
                             break;
                         }
@@ -1238,7 +1182,6 @@ impl Router {
 
         let ackslog = self.ackslog.get_mut(id).expect(SLABS_IN_STEP);
         let datalog = &mut self.datalog;
-        let alertlog = &mut self.alertlog;
 
         trace!("Consuming requests");
 
@@ -1282,7 +1225,6 @@ impl Router {
                 &mut request,
                 datalog,
                 outgoing,
-                alertlog,
                 connection,
                 shared_group,
                 &mut self.hooks.skipped,
@@ -1476,14 +1418,7 @@ impl Router {
         crate::freer::dispose(Box::new(()), self.hooks.released.clone());
     }
 
-    pub fn handle_last_will(
-        &mut self,
-        client_id: String,
-        #[cfg(feature = "validate-tenant-prefix")] tenant_id: Option<String>,
-    ) {
-        #[cfg(feature = "validate-tenant-prefix")]
-        let tenant_prefix = tenant_id.map(|id| format!("/tenants/{id}/"));
-
+    pub fn handle_last_will(&mut self, client_id: String) {
         let Some((will, will_props)) = self.last_wills.remove(&client_id) else {
             return;
         };
@@ -1513,8 +1448,6 @@ impl Router {
             properties,
             &mut self.datalog,
             &mut self.notifications,
-            #[cfg(feature = "validate-tenant-prefix")]
-            tenant_prefix,
         ) {
             Ok(_offset) => {
                 // Prepare all the consumers which are waiting for new data
@@ -1528,44 +1461,9 @@ impl Router {
                 error!(
                     reason = ?e, "Failed to append to commitlog"
                 );
-                self.router_meters.failed_publishes += 1;
                 // Removed disconnect = true from here because we disconnect anyways
             }
         };
-    }
-
-    fn send_meters(&mut self) {
-        let mut meters = Vec::with_capacity(10);
-        if let Some(router_meter) = self.router_meters.get() {
-            meters.push(Meter::Router(self.id, router_meter));
-        }
-        for f in self.subscription_map.keys() {
-            let filter = f.to_owned();
-            if let Some(subscription_meter) = self.datalog.meter(f).and_then(|meter| meter.get()) {
-                meters.push(Meter::Subscription(filter, subscription_meter));
-            }
-        }
-
-        if !meters.is_empty() {
-            for (meter_id, link) in self.meters.iter() {
-                if let Err(e) = link.try_send(meters.clone()) {
-                    error!(meter_id, "Failed to send meter. Error = {:?}", e);
-                }
-            }
-        }
-    }
-
-    fn send_alerts(&mut self) {
-        let alerts = self.alertlog.take();
-
-        if !alerts.is_empty() {
-            let alerts: Vec<Alert> = alerts.into();
-            for (meter_id, link) in self.alerts.iter() {
-                if let Err(e) = link.try_send(alerts.clone()) {
-                    error!(meter_id, "Failed to send alert. Error = {:?}", e);
-                }
-            }
-        }
     }
 }
 
@@ -1610,17 +1508,6 @@ fn append_to_commitlog(
     };
 
     let topic = std::str::from_utf8(&publish.topic)?;
-
-    // Ensure that only clients associated with a tenant can publish to tenant's topic
-    #[cfg(feature = "validate-tenant-prefix")]
-    if let Some(tenant_prefix) = &connection.tenant_prefix {
-        if !topic.starts_with(tenant_prefix) {
-            return Err(RouterError::BadTenant(
-                tenant_prefix.to_owned(),
-                topic.to_owned(),
-            ));
-        }
-    }
 
     if publish.payload.is_empty() {
         datalog.remove_from_retained_publishes(topic.to_owned());
@@ -1670,7 +1557,6 @@ fn append_will_message(
     properties: Option<PublishProperties>,
     datalog: &mut DataLog,
     notifications: &mut VecDeque<(ConnectionId, DataRequest)>,
-    #[cfg(feature = "validate-tenant-prefix")] tenant_prefix: Option<String>,
 ) -> Result<Offset, RouterError> {
     // TODO: broker should properly send the disconnect packet!
     if properties
@@ -1684,17 +1570,6 @@ fn append_will_message(
     }
 
     let topic = std::str::from_utf8(&publish.topic)?;
-
-    // Ensure that only clients associated with a tenant can publish to tenant's topic
-    #[cfg(feature = "validate-tenant-prefix")]
-    if let Some(tenant_prefix) = tenant_prefix {
-        if !topic.starts_with(&tenant_prefix) {
-            return Err(RouterError::BadTenant(
-                tenant_prefix.to_owned(),
-                topic.to_owned(),
-            ));
-        }
-    }
 
     if publish.payload.is_empty() {
         datalog.remove_from_retained_publishes(topic.to_owned());
@@ -1800,9 +1675,6 @@ fn ack_device_data(ackslog: &mut AckLog, outgoing: &mut Outgoing) -> bool {
     true
 }
 
-/// fbbus: see [`RouterHooks::skipped`].
-type SkipHook = Box<dyn FnMut(&Skipped<'_>) + Send>;
-
 enum ConsumeStatus {
     /// Limit for publishes on outgoing channel reached
     BufferFull,
@@ -1827,7 +1699,6 @@ fn forward_device_data(
     request: &mut DataRequest,
     datalog: &mut DataLog,
     outgoing: &mut Outgoing,
-    alertlog: &mut AlertLog,
     connection: &mut Connection,
     shared_group: Option<&mut SharedGroup>,
     on_skip: &mut Option<SkipHook>,
@@ -1948,9 +1819,6 @@ fn forward_device_data(
             });
         }
         request.skipping = true;
-
-        let alert = alert::cursorjump(&outgoing.client_id, &request.filter, 0);
-        alertlog.log(alert);
     }
     if caughtup {
         request.skipping = false;
@@ -2078,87 +1946,6 @@ fn retrieve_shadow(datalog: &mut DataLog, outgoing: &mut Outgoing, shadow: Shado
     }
 }
 
-fn print_status(router: &mut Router, metrics: Print) {
-    match metrics {
-        Print::Config => {
-            let config = router.config.clone();
-            println!("{config:#?}");
-        }
-        Print::Router => {
-            let metrics = router.router_meters.clone();
-            println!("{metrics:#?}");
-        }
-        Print::Connection(id) => {
-            let metrics = router.connection_map.get(&id).map(|v| {
-                let c = router
-                    .connections
-                    .get(*v)
-                    .map(|v| v.events.clone())
-                    .expect(SLABS_IN_STEP);
-                let t = router
-                    .scheduler
-                    .trackers
-                    .get(*v)
-                    .cloned()
-                    .expect(SLABS_IN_STEP);
-                (c, t)
-            });
-
-            // fbbus: the saved session is looked at, not taken (upstream's `retrieve` ended
-            // the session it printed).
-            let metrics = match metrics {
-                Some(v) => Some(v),
-                None => router.graveyard.get(&id).map(|v| {
-                    (
-                        v.metrics.clone(),
-                        v.session_state
-                            .as_ref()
-                            .map(|s| s.tracker.clone())
-                            .unwrap_or_else(|| Tracker::new(id.clone())),
-                    )
-                }),
-            };
-
-            println!("{metrics:#?}");
-        }
-        Print::Subscriptions => {
-            let metrics: HashMap<Filter, Vec<String>> = router
-                .subscription_map
-                .iter()
-                .map(|(filter, connections)| {
-                    let connections = connections
-                        .iter()
-                        .map(|id| router.obufs[*id].client_id.clone())
-                        .collect();
-
-                    (filter.to_owned(), connections)
-                })
-                .collect();
-
-            println!("{metrics:#?}");
-        }
-        Print::Subscription(filter) => {
-            let metrics = router.datalog.meter(&filter);
-            println!("{metrics:#?}");
-        }
-        Print::Waiters(filter) => {
-            if let Some(waiters) = router.datalog.waiters(&filter) {
-                let v: Vec<(String, DataRequest)> = waiters
-                    .waiters()
-                    .iter()
-                    .map(|(id, request)| (router.obufs[*id].client_id.clone(), request.clone()))
-                    .collect();
-
-                println!("{v:#?}");
-            }
-        }
-        Print::ReadyQueue => {
-            let metrics = router.scheduler.readyqueue.clone();
-            println!("{metrics:#?}");
-        }
-    };
-}
-
 fn validate_subscription(
     connection: &mut Connection,
     filter: &protocol::Filter,
@@ -2168,14 +1955,6 @@ fn validate_subscription(
         filter.path,
         connection.tenant_prefix
     );
-    // Ensure that only client devices of the tenant can
-    #[cfg(feature = "validate-tenant-prefix")]
-    if let Some(tenant_prefix) = &connection.tenant_prefix {
-        if !filter.path.starts_with(tenant_prefix) {
-            return Err(RouterError::InvalidFilterPrefix(filter.path.to_owned()));
-        }
-    }
-
     // fbbus: `$fbbus/` is the embedding broker's own namespace (its readiness probe);
     // fbbus refuses every other `$` filter of its clients before they reach the router.
     if filter.path.starts_with('$')

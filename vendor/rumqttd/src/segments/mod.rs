@@ -101,7 +101,7 @@ where
     }
 
     /// Size of data in all the segments
-    #[allow(dead_code)]
+    #[cfg(test)]
     pub fn size(&self) -> u64 {
         let mut size = 0;
         for segment in self.segments.iter() {
@@ -111,17 +111,10 @@ where
     }
 
     /// Number of segments
-    #[allow(dead_code)]
+    #[cfg(test)]
     #[inline]
     pub fn len(&self) -> usize {
         self.segments.len()
-    }
-
-    /// Number of packets
-    #[inline]
-    #[allow(dead_code)]
-    pub fn entries(&self) -> u64 {
-        self.active_segment().next_offset()
     }
 
     #[inline]
@@ -326,7 +319,6 @@ where
 mod tests {
     use super::{Position::*, *};
     use bytes::Bytes;
-    use pretty_assertions::assert_eq;
 
     fn random_payload(id: u8, size: u64) -> Bytes {
         Bytes::from(vec![id; size as usize])

@@ -109,7 +109,7 @@ mod will {
         len
     }
 
-    pub fn read(connect_flags: u8, mut bytes: &mut Bytes) -> Result<Option<LastWill>, Error> {
+    pub fn read(connect_flags: u8, bytes: &mut Bytes) -> Result<Option<LastWill>, Error> {
         let last_will = match connect_flags & 0b100 {
             0 if (connect_flags & 0b0011_1000) != 0 => {
                 return Err(Error::IncorrectPacketFormat);
@@ -149,7 +149,7 @@ mod will {
 mod login {
     use super::*;
 
-    pub fn read(connect_flags: u8, mut bytes: &mut Bytes) -> Result<Option<Login>, Error> {
+    pub fn read(connect_flags: u8, bytes: &mut Bytes) -> Result<Option<Login>, Error> {
         let username = match connect_flags & 0b1000_0000 {
             0 => String::new(),
             _ => {
@@ -200,9 +200,5 @@ mod login {
         }
 
         connect_flags
-    }
-
-    pub fn validate(login: &Login, username: &str, password: &str) -> bool {
-        (login.username == *username) && (login.password == *password)
     }
 }

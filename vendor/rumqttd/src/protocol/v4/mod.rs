@@ -1,12 +1,6 @@
-use crate::router::Ack;
-
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
-use std::{
-    convert::{TryFrom, TryInto},
-    slice::Iter,
-    str::Utf8Error,
-};
+use std::slice::Iter;
 
 mod connack;
 mod connect;
@@ -269,19 +263,6 @@ pub fn write_remaining_length(stream: &mut BytesMut, len: usize) -> Result<usize
     Ok(count)
 }
 
-/// Return number of remaining length bytes required for encoding length
-fn len_len(len: usize) -> usize {
-    if len >= 2_097_152 {
-        4
-    } else if len >= 16_384 {
-        3
-    } else if len >= 128 {
-        2
-    } else {
-        1
-    }
-}
-
 #[derive(Debug, Clone)]
 pub struct V4;
 
@@ -334,7 +315,6 @@ impl Protocol for V4 {
             // v4 Disconnect packet gets handled in the previous check, this branch gets hit when
             // Disconnect packet has properties which is only valid for v5
             PacketType::Disconnect => return Err(Error::InvalidProtocol),
-            _ => unreachable!(),
         };
 
         Ok(packet)
@@ -359,8 +339,8 @@ impl Protocol for V4 {
             Packet::Unsubscribe(unsubscribe, None) => unsubscribe::write(&unsubscribe, buffer)?,
             Packet::UnsubAck(unsuback, None) => unsuback::write(&unsuback, buffer)?,
             Packet::Disconnect(disconnect, None) => disconnect::write(&disconnect, buffer)?,
-            Packet::PingReq(pingreq) => ping::pingreq::write(buffer)?,
-            Packet::PingResp(pingresp) => ping::pingresp::write(buffer)?,
+            Packet::PingReq(_pingreq) => ping::pingreq::write(buffer)?,
+            Packet::PingResp(_pingresp) => ping::pingresp::write(buffer)?,
             _ => unreachable!(
                 "This branch only matches for packets with Properties, which is not possible in v4",
             ),

@@ -1,10 +1,5 @@
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
-use std::convert::{TryFrom, TryInto};
-
-fn len(suback: &SubAck) -> usize {
-    2 + suback.return_codes.len()
-}
 
 pub fn read(fixed_header: FixedHeader, mut bytes: Bytes) -> Result<SubAck, Error> {
     let variable_header_index = fixed_header.fixed_header_len;

@@ -1,7 +1,7 @@
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 
-fn len(connack: &ConnAck, properties: &Option<ConnAckProperties>) -> usize {
+fn len(_connack: &ConnAck, properties: &Option<ConnAckProperties>) -> usize {
     let mut len = 1  // session present
                 + 1; // code
 
@@ -135,7 +135,7 @@ mod properties {
         len
     }
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<ConnAckProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<ConnAckProperties>, Error> {
         let mut session_expiry_interval = None;
         let mut receive_max = None;
         let mut max_qos = None;

@@ -151,7 +151,7 @@ mod will {
 
     pub fn read(
         connect_flags: u8,
-        mut bytes: &mut Bytes,
+        bytes: &mut Bytes,
     ) -> Result<(Option<LastWill>, Option<LastWillProperties>), Error> {
         let o = match connect_flags & 0b100 {
             0 if (connect_flags & 0b0011_1000) != 0 => {
@@ -241,7 +241,7 @@ mod willproperties {
         len
     }
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<LastWillProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<LastWillProperties>, Error> {
         let mut delay_interval = None;
         let mut payload_format_indicator = None;
         let mut message_expiry_interval = None;
@@ -358,14 +358,7 @@ mod willproperties {
 mod login {
     use super::*;
 
-    pub fn new<U: Into<String>, P: Into<String>>(u: U, p: P) -> Login {
-        Login {
-            username: u.into(),
-            password: p.into(),
-        }
-    }
-
-    pub fn read(connect_flags: u8, mut bytes: &mut Bytes) -> Result<Option<Login>, Error> {
+    pub fn read(connect_flags: u8, bytes: &mut Bytes) -> Result<Option<Login>, Error> {
         let username = match connect_flags & 0b1000_0000 {
             0 => String::new(),
             _ => read_mqtt_string(bytes)?,
@@ -416,7 +409,7 @@ mod login {
 mod properties {
     use super::*;
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<ConnectProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<ConnectProperties>, Error> {
         let mut session_expiry_interval = None;
         let mut receive_maximum = None;
         let mut max_packet_size = None;

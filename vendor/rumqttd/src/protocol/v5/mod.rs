@@ -1,7 +1,5 @@
 use std::slice::Iter;
 
-use crate::router::Ack;
-
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 
@@ -477,9 +475,8 @@ impl Protocol for V5 {
             Packet::Disconnect(disconnect, properties) => {
                 disconnect::write(&disconnect, &properties, buffer)?
             }
-            Packet::PingReq(pingreq) => ping::pingreq::write(buffer)?,
-            Packet::PingResp(pingresp) => ping::pingresp::write(buffer)?,
-            _ => unreachable!(),
+            Packet::PingReq(_pingreq) => ping::pingreq::write(buffer)?,
+            Packet::PingResp(_pingresp) => ping::pingresp::write(buffer)?,
         };
         Ok(size)
     }

@@ -1,6 +1,5 @@
 use super::*;
 use bytes::{Buf, Bytes};
-use core::fmt;
 
 pub fn len(publish: &Publish, properties: &Option<PublishProperties>) -> usize {
     let mut len = 2 + publish.topic.len();
@@ -134,7 +133,7 @@ mod properties {
         len
     }
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<PublishProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<PublishProperties>, Error> {
         let mut payload_format_indicator = None;
         let mut message_expiry_interval = None;
         let mut topic_alias = None;

@@ -102,7 +102,7 @@ mod properties {
         len
     }
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<PubRelProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<PubRelProperties>, Error> {
         let mut reason_string = None;
         let mut user_properties = Vec::new();
 

@@ -1,6 +1,5 @@
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
-use std::convert::{TryFrom, TryInto};
 
 pub fn len(suback: &SubAck, properties: &Option<SubAckProperties>) -> usize {
     let mut len = 2 + suback.return_codes.len();
@@ -82,7 +81,7 @@ mod properties {
         len
     }
 
-    pub fn read(mut bytes: &mut Bytes) -> Result<Option<SubAckProperties>, Error> {
+    pub fn read(bytes: &mut Bytes) -> Result<Option<SubAckProperties>, Error> {
         let mut reason_string = None;
         let mut user_properties = Vec::new();
 
