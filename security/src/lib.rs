@@ -7,11 +7,18 @@
 //! password guessing. The `fbbus passwd` command uses it to edit password
 //! files.
 //!
+//! **It owns** password hashes and files, access rules, login throttling
+//! and the credential cache. **It must not know** MQTT sessions, packets or
+//! the network (it is handed a user name, a client id, a topic or filter,
+//! and a peer address), nor the FB model: of `fb-bridge` it uses only the
+//! MQTT topic/filter grammar, `fb_bridge::topic::filter`, so that the ACL
+//! judges topics exactly as the broker and the bus route them.
+//!
 //! | module | concept |
 //! |---|---|
 //! | [`hash`] | password hashes: new argon2id ones, and verifying Mosquitto's |
 //! | [`password_file`] | the `user:HASH` file: load, edit, save atomically, verify |
-//! | [`acl`] | access rules (Mosquitto `acl_file` syntax) and MQTT filter logic |
+//! | [`acl`] | access rules (Mosquitto `acl_file` syntax), judged with `fb_bridge::topic::filter` |
 //! | [`throttle`] | per-address exponential backoff after failed logins |
 //! | [`credential_cache`] | skip argon2 for devices that just verified |
 //!
