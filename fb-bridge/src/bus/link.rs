@@ -81,7 +81,7 @@ pub enum Event {
 /// Samples and events, in arrival order, bounded: a full inbox blocks zenoh's receive
 /// path, which backs the link up to the sender (blocking congestion control) instead of
 /// dropping.
-pub const INBOX: usize = 8_192;
+pub(crate) const INBOX: usize = 8_192;
 
 /// The receiving end of what the link hands the broker, in arrival order: the messages
 /// of imported filters ([`Inbound`]) or the bus's events ([`Event`]).
