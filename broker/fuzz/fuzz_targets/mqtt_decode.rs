@@ -4,9 +4,10 @@
 //!
 //! 1. **The session path**: `broker::wire::framed::Io` over an in-memory stream: `read_connect`
 //!    (first-byte check, framing, the CONNECT's protocol level choosing the 3.1.1 or 5
-//!    codec, decoding), then `next_frame` / `frame::publish_qos_and_pkid` / `decode` for
-//!    every following packet, exactly as `connection.rs` reads them, until the stream ends
-//!    or a packet is refused (which closes a real connection).
+//!    codec, decoding), then `next_frame` / `decode` for every following packet, as
+//!    `connection.rs` reads them, until the stream ends or a packet is refused (which
+//!    closes a real connection). A decoded PUBLISH's QoS (`Publish::qos_and_pkid`, which
+//!    the packet path acknowledges with) must be the one its fixed header announces.
 //! 2. **Every frame with both codecs**, without a CONNECT first: `frame::check` and
 //!    `codec::decode_frame` (the broker's guarded decoder), and rumqttd's decoder itself
 //!    (`Codec::read`, no guard: it must not panic on any packet type either).
@@ -75,7 +76,6 @@ fn session(data: &[u8]) {
             },
             Err(_) => return,
         };
-        let _ = frame::publish_qos_and_pkid(&io.read, &header);
         let _ = frame::connect_protocol_level(&io.read, &header);
         let before = io.read.len();
         match io.decode(&header) {
@@ -85,9 +85,22 @@ fn session(data: &[u8]) {
                     header.frame_len(),
                     "a decoded packet must consume exactly its frame"
                 );
+                check_publish_qos(&header, &packet);
                 reencode(version, &packet);
             }
             Err(_) => return,
+        }
+    }
+}
+
+/// A decoded PUBLISH has the QoS its fixed header's flags announce, and a packet id only
+/// when that QoS is 1 or 2.
+fn check_publish_qos(header: &frame::FixedHeader, packet: &Packet) {
+    if let Packet::Publish(publish, _) = packet {
+        let (qos, pkid) = publish.qos_and_pkid();
+        assert_eq!(qos, (header.byte1 >> 1) & 0b11, "QoS of {publish:?}");
+        if qos == 0 {
+            assert_eq!(pkid, 0, "packet id of a QoS 0 {publish:?}");
         }
     }
 }
@@ -103,7 +116,6 @@ fn direct(data: &[u8], version: Version) {
             Err(_) => return,
         };
         let _ = frame::connect_protocol_level(&buf, &header);
-        let _ = frame::publish_qos_and_pkid(&buf, &header);
 
         // rumqttd's decoder on its own, every packet type included.
         let mut raw = BytesMut::from(&buf[..header.frame_len()]);
@@ -115,6 +127,7 @@ fn direct(data: &[u8], version: Version) {
         match decode_frame(&codec, &mut buf, &header, DIRECT_MAX_PACKET) {
             Ok(packet) => {
                 assert_eq!(before - buf.len(), header.frame_len());
+                check_publish_qos(&header, &packet);
                 reencode(version, &packet);
             }
             Err(ReadError::ServerOnlyType(t)) => {

@@ -152,6 +152,36 @@ impl std::fmt::Display for ReadError {
 mod tests {
     use super::*;
 
+    /// The packet path reads a client PUBLISH's QoS and packet id from the decoded packet
+    /// (rumqttd's `Publish::qos_and_pkid`), not from the raw bytes.
+    #[test]
+    fn decoded_publish_carries_its_qos_and_packet_id() {
+        let cases: [(Version, &[u8], (u8, u16)); 3] = [
+            (
+                Version::V311,
+                &[0x32, 7, 0, 1, b'a', 0x12, 0x34, b'x', b'y'],
+                (1, 0x1234),
+            ),
+            // MQTT 5: an empty property length after the packet id.
+            (
+                Version::V5,
+                &[0x34, 8, 0, 1, b'a', 0xAB, 0xCD, 0, b'x', b'y'],
+                (2, 0xABCD),
+            ),
+            (Version::V311, &[0x30, 5, 0, 1, b'a', b'x', b'y'], (0, 0)),
+        ];
+        for (version, bytes, expected) in cases {
+            let mut buf = BytesMut::from(bytes);
+            let header = frame::check(&buf, 1024).unwrap();
+            match decode_frame(&Codec(version), &mut buf, &header, 1024) {
+                Ok(Packet::Publish(publish, _)) => {
+                    assert_eq!(publish.qos_and_pkid(), expected, "{version:?} {bytes:x?}")
+                }
+                other => panic!("{version:?} {bytes:x?}: {other:?}"),
+            }
+        }
+    }
+
     /// Random and mutated packets through both codecs must never panic: a panic would end
     /// the connection task without telling the router or firing the will. (Bounded; the
     /// `mqtt_decode` fuzz target in broker/fuzz does this coverage-guided.)

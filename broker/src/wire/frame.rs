@@ -1,11 +1,13 @@
 //! MQTT framing: the few bytes fbbus reads itself before rumqttd's codec decodes a packet.
 //!
-//! Three facts are needed from the raw bytes:
+//! Two facts are needed from the raw bytes:
 //! - whether a whole packet is buffered, and whether it is over the size limit
 //!   (so an oversized packet is refused before it is decoded);
-//! - the protocol level in CONNECT, so MQTT 3.1.1 and 5 share one port;
-//! - a PUBLISH's QoS and packet id: rumqttd 0.20 keeps those fields of its `Publish`
-//!   crate-private, and the packet path needs them to acknowledge a refused publication.
+//! - the protocol level in CONNECT, so MQTT 3.1.1 and 5 share one port.
+//!
+//! A PUBLISH's QoS and packet id come from the decoded packet
+//! (`rumqttd::protocol::Publish::qos_and_pkid`); [`publish_qos_and_pkid`] is left only
+//! until its last caller (`connection.rs`) reads them there.
 
 use bytes::BytesMut;
 
@@ -91,6 +93,10 @@ pub fn connect_protocol_level(buf: &BytesMut, header: &FixedHeader) -> Option<u8
 }
 
 /// QoS and packet id of a buffered PUBLISH frame (packet id 0 for QoS 0).
+///
+/// Superseded by `Publish::qos_and_pkid` on the decoded packet, which gives the same for
+/// every PUBLISH that decodes (`codec::tests::decoded_publish_carries_its_qos_and_packet_id`);
+/// to be deleted, with its test, once `connection.rs` no longer calls it.
 pub fn publish_qos_and_pkid(buf: &[u8], header: &FixedHeader) -> Option<(u8, u16)> {
     if header.packet_type() != 3 {
         return None;
