@@ -8,8 +8,9 @@
 #
 # Prints per campaign and broker: packets, connections, crashes (the process still alive,
 # the broker still routing), resident memory before / after / after a 15 s idle settle.
-# Outputs go to loadtest/results/<campaign>/ (report.json, batches.csv, charts, and the
-# harness's table as summary.txt; the broker's log as fbbus.log).
+# Outputs go to $OUT/<campaign>/ (report.json, batches.csv, charts, and the harness's
+# table as summary.txt; the broker's log as fbbus.log); OUT defaults to target/loadtest,
+# outside the source tree, and OUT=loadtest/results replaces the committed figures.
 #
 #   bash loadtest/campaigns.sh                      # both campaigns against fbbus
 #   bash loadtest/campaigns.sh --compare-mosquitto  # and Mosquitto side by side
@@ -22,7 +23,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-OUT=${OUT:-loadtest/results}
+OUT=${OUT:-target/loadtest}
 COMPARE=0
 BUILD=1
 SELECTED=()

@@ -3,15 +3,16 @@
 # scenarios beyond it, fbbus against Mosquitto (Debian package, set_tcp_nodelay true) in
 # compare mode, each scenario interleaved A B A B. Both brokers run here on free loopback
 # ports; fresh brokers are started where memory is measured. Outputs go to
-# loadtest/results/<scenario>/ (report.json, batches.csv, batches.jtl, SVG charts, and
-# the terminal table as summary.txt).
+# $OUT/<scenario>/ (report.json, batches.csv, batches.jtl, SVG charts, and the terminal
+# table as summary.txt); OUT defaults to target/loadtest, outside the source tree, and
+# OUT=loadtest/results replaces the committed figures RESULTS.md quotes.
 #
 #   bash loadtest/study.sh            # everything (~30 min on a 2-core machine)
 #   bash loadtest/study.sh stress perf   # only these
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-OUT=${OUT:-loadtest/results}
+OUT=${OUT:-target/loadtest}
 cargo build --release -p broker -p fbbus-loadtest
 FBBUS=$PWD/target/release/fbbus
 LT=$PWD/target/release/fbbus-loadtest

@@ -22,7 +22,11 @@
 //! - [`sink`]: the trivial in-process sink that measures the harness's own ceiling;
 //! - the network campaigns `mutate` and `churn` ([`scenario::campaign`]) speak raw MQTT
 //!   ([`wire`]: packets and mutations byte by byte) from seeded generators ([`rng`]),
-//!   and read the broker's process ([`broker_process`]) and metrics ([`scrape`]).
+//!   and read the broker's process ([`broker_process`]) and metrics ([`scrape`]);
+//! - `compare` (in the binary) starts fbbus, Mosquitto and raw rumqttd as child
+//!   processes ([`broker_process::spawn`]) and runs the earlier broker study's scenarios
+//!   against each, bursts on raw sockets ([`raw_client`]), connections through
+//!   [`scenario::connections`].
 
 pub mod broker_process;
 pub mod client;
@@ -31,6 +35,7 @@ pub mod contract;
 pub mod machine;
 pub mod message;
 pub mod model;
+pub mod raw_client;
 pub mod report;
 pub mod rig;
 pub mod rng;
@@ -75,6 +80,9 @@ pub enum Error {
     },
     #[error("fbbus device contract: {0}")]
     Contract(String),
+    /// A broker process the harness starts itself (`compare`).
+    #[error("{0}")]
+    Process(String),
     #[error("{0}")]
     Io(#[from] std::io::Error),
 }

@@ -1,5 +1,7 @@
 //! `fbbus-loadtest`: see loadtest/README.md, or `fbbus-loadtest --help`.
 
+mod compare;
+
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -95,14 +97,19 @@ struct Common {
     /// Off by default: a load test against a live line's broker can starve its devices.
     #[arg(long, global = true)]
     allow_remote: bool,
-    /// Directory for report.json, batches.csv, batches.jtl and the SVG charts.
-    #[arg(
-        long,
-        global = true,
-        value_name = "DIR",
-        default_value = "loadtest-out"
-    )]
-    out: PathBuf,
+    /// Directory for report.json, batches.csv, batches.jtl and the SVG charts (compare:
+    /// compare.txt). Default: target/loadtest/<scenario>, outside the source tree.
+    #[arg(long, global = true, value_name = "DIR")]
+    out: Option<PathBuf>,
+}
+
+impl Common {
+    /// `--out`, else `target/loadtest/<scenario>` under the working directory.
+    fn out_dir(&self, scenario: &str) -> PathBuf {
+        self.out
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("target/loadtest").join(scenario))
+    }
 }
 
 #[derive(Subcommand)]
@@ -234,6 +241,26 @@ enum Command {
         #[arg(value_name = "REPORT_JSON")]
         report: PathBuf,
     },
+    /// fbbus beside Mosquitto and raw rumqttd, or two fbbus builds, on brokers it starts
+    ///
+    /// The earlier broker study's scenarios (fan-in, latency, idle memory, memory after
+    /// 1M messages, connection rate, auth storm) on brokers this command starts itself on
+    /// loopback, with ratios. Two builds: `--brokers fbbus --fbbus old=PATH --fbbus
+    /// new=PATH --rounds 3` (alternating, ratio new/old). `compare fb` and `compare
+    /// bridge`: fbbus's typed topics, registry and bridge.
+    Compare(compare::CompareArgs),
+    /// Internal (`compare`): run raw rumqttd 0.20 on 127.0.0.1:PORT until killed.
+    #[command(hide = true)]
+    ServeRumqttd {
+        #[arg(long)]
+        port: u16,
+        /// `user:password` lines for rumqttd's static auth map.
+        #[arg(long)]
+        auth_file: Option<PathBuf>,
+        /// Exit when standard input closes (the harness died).
+        #[arg(long)]
+        exit_on_stdin_eof: bool,
+    },
 }
 
 /// What `mutate` and `churn` share.
@@ -319,6 +346,25 @@ struct FlowArgs {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Command::ServeRumqttd {
+        port,
+        auth_file,
+        exit_on_stdin_eof,
+    } = &cli.scenario
+    {
+        // rumqttd runs its own threads and runtimes: no tokio runtime of ours around it.
+        return match loadtest::broker_process::rumqttd::serve(
+            *port,
+            auth_file.as_deref(),
+            *exit_on_stdin_eof,
+        ) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("fbbus-loadtest serve-rumqttd: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     // mqtts:// targets: one crypto provider for the whole process (see Cargo.toml).
     let _ = rustls::crypto::ring::default_provider().install_default();
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -336,7 +382,11 @@ fn main() -> ExitCode {
 
 async fn run(cli: Cli) -> Result<()> {
     let c = &cli.common;
-    if let Command::Render { report: path } = &cli.scenario {
+    let scenario = match cli.scenario {
+        Command::Compare(args) => return compare::run(args, &c.out_dir("compare")).await,
+        other => other,
+    };
+    if let Command::Render { report: path } = &scenario {
         return render(path, c);
     }
     let password = password(c)?;
@@ -365,7 +415,7 @@ async fn run(cli: Cli) -> Result<()> {
             repeats: a.repeats,
         })
     };
-    let scenario = match &cli.scenario {
+    let scenario = match &scenario {
         Command::Stress {
             start,
             max,
@@ -447,7 +497,9 @@ async fn run(cli: Cli) -> Result<()> {
             recurring_ids: *recurring_ids,
             mix: churn::parse_mix(mix).map_err(|e| anyhow::anyhow!("--mix {e}"))?,
         }),
-        Command::Render { .. } => unreachable!("handled above"),
+        Command::Render { .. } | Command::Compare(_) | Command::ServeRumqttd { .. } => {
+            unreachable!("handled above")
+        }
         Command::Conveyor {
             devices,
             parts,
@@ -487,11 +539,12 @@ async fn run(cli: Cli) -> Result<()> {
         time_limit: Duration::from_secs(c.time_limit_s),
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
+    let out = c.out_dir(&plan.scenario.name());
     let report = loadtest::run(&plan).await?;
     print!("{}", report::table(&report));
-    clear_old_outputs(&c.out);
-    let files = report::write_all(&report, &c.out)?;
-    println!("\nwrote {} files to {}", files.len(), c.out.display());
+    clear_old_outputs(&out);
+    let files = report::write_all(&report, &out)?;
+    println!("\nwrote {} files to {}", files.len(), out.display());
     if !report.failures.is_empty() {
         bail!(
             "{} failed:\n  {}",
@@ -520,11 +573,11 @@ fn render(path: &std::path::Path, c: &Common) -> Result<()> {
     let text = std::fs::read_to_string(path).with_context(|| format!("{}", path.display()))?;
     let report: loadtest::model::Report = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a fbbus-loadtest report.json", path.display()))?;
-    let default_out = PathBuf::from("loadtest-out");
-    let out = if c.out == default_out {
-        path.parent().map_or(default_out, |p| p.to_path_buf())
-    } else {
-        c.out.clone()
+    let out = match &c.out {
+        Some(out) => out.clone(),
+        None => path
+            .parent()
+            .map_or_else(|| c.out_dir(&report.scenario), |p| p.to_path_buf()),
     };
     print!("{}", report::table(&report));
     clear_old_outputs(&out);

@@ -1,6 +1,10 @@
 //! Connection scenarios: many idle connections (with the broker's resident memory when
 //! it runs on this machine) and connect/reconnect storms with authentication.
 //!
+//! The harness's one connection wave ([`connect_many`]) and one idle-memory measurement
+//! ([`idle_memory`]) live here; `compare`'s `idlemem`, `connrate` and `authstorm` run
+//! them too, against the brokers it starts.
+//!
 //! Their batches count connections, not messages: `sent` is connections attempted,
 //! `delivered` connections up, latency is the time from the wave's start (when every
 //! device wanted to connect) to each connection's CONNACK.
@@ -34,24 +38,32 @@ pub struct Storm {
     pub repeats: u32,
 }
 
-/// Connections opened at once, at most: the harness's own file-descriptor budget.
-const CONCURRENT_CONNECTS: usize = 512;
+/// Connections opened at once, at most, by `idle` and `storm`: the harness's own
+/// file-descriptor budget.
+pub const CONCURRENT_CONNECTS: usize = 512;
 
 /// One wave of concurrent connects and what came of it.
-struct Wave {
-    n: usize,
-    clients: Vec<Client>,
-    errors: Vec<String>,
+pub struct Wave {
+    pub n: usize,
+    pub clients: Vec<Client>,
+    pub errors: Vec<String>,
     /// Start of each connection to its CONNACK.
-    latency: hdrhistogram::Histogram<u64>,
+    pub latency: hdrhistogram::Histogram<u64>,
     /// First connect started to last CONNACK.
-    took: Duration,
-    started_ms: u64,
+    pub took: Duration,
+    pub started_ms: u64,
 }
 
-/// Connects `n` clients concurrently (at most [`CONCURRENT_CONNECTS`] in progress).
-async fn connect_many(target: &Target, prefix: &str, n: usize, timeout: Duration) -> Wave {
-    let gate = Arc::new(Semaphore::new(CONCURRENT_CONNECTS));
+/// Connects `n` clients concurrently, at most `in_flight` in progress, each bounded by
+/// `timeout`. Client `i` is `<prefix>-<i>`; a `{i}` in the target's username becomes `i`.
+pub async fn connect_many(
+    target: &Target,
+    prefix: &str,
+    n: usize,
+    in_flight: usize,
+    timeout: Duration,
+) -> Wave {
+    let gate = Arc::new(Semaphore::new(in_flight.max(1)));
     let started_ms = clock::now_ms();
     let start = Instant::now();
     let mut tasks = Vec::with_capacity(n);
@@ -97,6 +109,11 @@ async fn connect_many(target: &Target, prefix: &str, n: usize, timeout: Duration
 }
 
 impl Wave {
+    /// Connections up per second of the wave (up / first connect to last CONNACK).
+    pub fn rate(&self) -> f64 {
+        self.clients.len() as f64 / self.took.as_secs_f64().max(1e-9)
+    }
+
     /// The wave as a batch: `up` connections counted as delivered.
     fn batch(&self, target: &str, label: String, up: usize, repeat: u32) -> Batch {
         let n = self.n;
@@ -128,6 +145,49 @@ impl Wave {
     }
 }
 
+/// The broker's resident memory before and after a wave of idle connections.
+pub struct IdleMemory {
+    pub wave: Wave,
+    pub before_kib: Option<u64>,
+    pub after_kib: Option<u64>,
+}
+
+impl IdleMemory {
+    /// The growth per connection that came up, in KiB (/proc's kB), when both readings
+    /// exist.
+    pub fn kib_per_connection(&self) -> Option<f64> {
+        let (b, a) = (self.before_kib?, self.after_kib?);
+        let up = self.wave.clients.len();
+        (up > 0).then(|| (a as f64 - b as f64) / up as f64)
+    }
+}
+
+/// Reads the resident memory of `pid` after `settle`, connects `n` idle clients
+/// (keep-alive 60 s, at most `in_flight` connecting at once), holds them for `hold` and
+/// reads it again. Without a pid only the wave is measured.
+#[allow(clippy::too_many_arguments)]
+pub async fn idle_memory(
+    target: &Target,
+    pid: Option<u32>,
+    prefix: &str,
+    n: usize,
+    in_flight: usize,
+    settle: Duration,
+    hold: Duration,
+    timeout: Duration,
+) -> IdleMemory {
+    tokio::time::sleep(settle).await;
+    let before_kib = pid.and_then(broker_process::rss_kib);
+    let wave = connect_many(target, prefix, n, in_flight, timeout).await;
+    tokio::time::sleep(hold).await;
+    let after_kib = pid.and_then(broker_process::rss_kib);
+    IdleMemory {
+        wave,
+        before_kib,
+        after_kib,
+    }
+}
+
 impl Idle {
     pub fn planned(&self, targets: usize) -> u64 {
         (self.repeats as usize * targets) as u64
@@ -144,11 +204,20 @@ impl Idle {
                     .is_loopback()
                     .then(|| broker_process::pid_listening_on(target.port))
                     .flatten();
-                let before = pid.and_then(broker_process::rss_kib);
                 let id_prefix = format!("{prefix}-{}-idle{repeat}", label.to_lowercase());
-                let wave = connect_many(target, &id_prefix, self.connections, timeout).await;
-                tokio::time::sleep(Duration::from_secs(self.hold_s)).await;
-                let after = pid.and_then(broker_process::rss_kib);
+                let idle = idle_memory(
+                    target,
+                    pid,
+                    &id_prefix,
+                    self.connections,
+                    CONCURRENT_CONNECTS,
+                    Duration::ZERO,
+                    Duration::from_secs(self.hold_s),
+                    timeout,
+                )
+                .await;
+                let (per_connection, after) = (idle.kib_per_connection(), idle.after_kib);
+                let wave = idle.wave;
                 let still_up = wave.clients.iter().filter(|c| c.alive()).count();
                 let mut batch = wave.batch(
                     &label,
@@ -164,15 +233,9 @@ impl Idle {
                     ));
                 }
                 s.record(rig, batch, &wave.latency);
-                s.figure(
-                    rig,
-                    "connects_per_s",
-                    wave.clients.len() as f64 / wave.took.as_secs_f64().max(1e-9),
-                    "conn/s",
-                );
-                match (before, after) {
-                    (Some(b), Some(a)) => {
-                        let per = (a as f64 - b as f64) / self.connections.max(1) as f64;
+                s.figure(rig, "connects_per_s", wave.rate(), "conn/s");
+                match (per_connection, after) {
+                    (Some(per), Some(a)) => {
                         s.figure(rig, "rss_kib_per_idle_connection", per, "KiB");
                         s.figure(rig, "broker_rss_kib", a as f64, "KiB");
                     }
@@ -210,7 +273,14 @@ impl Storm {
                     for c in up.drain(..) {
                         c.abort();
                     }
-                    let wave = connect_many(target, &id_prefix, self.devices, timeout).await;
+                    let wave = connect_many(
+                        target,
+                        &id_prefix,
+                        self.devices,
+                        CONCURRENT_CONNECTS,
+                        timeout,
+                    )
+                    .await;
                     let name = format!("{kind} storm {}", self.devices);
                     let batch = wave.batch(&label, name, wave.clients.len(), repeat);
                     s.record(rig, batch, &wave.latency);

@@ -3,7 +3,7 @@
 #![allow(dead_code)]
 
 use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
@@ -14,33 +14,10 @@ use loadtest::model::Report;
 /// Every harness run in these tests is tiny: none should come near this.
 pub const RUN_LIMIT: Duration = Duration::from_secs(120);
 
-/// A TCP port on 127.0.0.1 that was free a moment ago, below Linux's ephemeral range.
-///
-/// Why not `bind(0)`: the kernel hands out ports for outgoing connections (every client a
-/// test opens, thousands in the storm tests) from that same ephemeral range (32768-60999
-/// by default); a port picked there and released could be taken by a client's connect
-/// before the broker bound it, and the broker failed to start with `Address already in
-/// use` (seen in CI). Ports 20000-32767 are never handed out that way; they are tried in
-/// a pseudo-random order, so parallel tests rarely try the same one.
+/// A TCP port on 127.0.0.1 that was free a moment ago, below Linux's ephemeral range
+/// (why: [`loadtest::broker_process::spawn::free_port`]).
 pub fn free_port() -> u16 {
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let seed = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-        ^ (u64::from(std::process::id()) << 20);
-    for _ in 0..1000 {
-        let n = NEXT.fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed) ^ seed;
-        let port = 20_000 + (n.wrapping_mul(0xBF58_476D_1CE4_E5B9) >> 33) % 12_768;
-        if TcpListener::bind(("127.0.0.1", port as u16)).is_ok() {
-            return port as u16;
-        }
-    }
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    loadtest::broker_process::spawn::free_port().expect("a free port on 127.0.0.1")
 }
 
 /// The `fbbus` broker binary. It is not a CARGO_BIN_EXE of this package: it sits next to

@@ -1,7 +1,11 @@
-//! The broker's process, when it runs on this machine: found by the TCP port it listens
-//! on, so its resident memory can be read (`/proc/<pid>/status` VmRSS). Linux only; where
-//! it cannot be found (another host, another user's process, no /proc) the memory figures
-//! are left out and the report says why.
+//! The broker's process. Found on this machine by the TCP port it listens on, so its
+//! resident memory can be read (`/proc/<pid>/status` VmRSS): Linux only; where it cannot
+//! be found (another host, another user's process, no /proc) the memory figures are left
+//! out and the report says why. Or started by the harness itself ([`spawn`], with raw
+//! rumqttd in [`rumqttd`]) for `compare`, which then knows the pid.
+
+pub mod rumqttd;
+pub mod spawn;
 
 use std::fs;
 

@@ -1,10 +1,16 @@
-//! The six measurements. Each runs against one freshly started broker, is bounded by a count
-//! and a deadline, and returns what it measured as an [`Outcome`] (also after a timeout).
+//! The six measurements of `compare`, the earlier broker study's. Each runs against one
+//! freshly started broker, is bounded by a count and a deadline, and returns what it
+//! measured as an [`Outcome`] (also after a timeout).
+//!
+//! The bursts (`fanin`, `latency`, `msgmem`) write raw PUBLISH packets
+//! ([`loadtest::raw_client`]): 200,000 messages into one subscriber are beyond what a
+//! client library generates on a shared 2-core machine. The connection scenarios
+//! (`idlemem`, `connrate`, `authstorm`) are the harness's own connection wave and
+//! idle-memory measurement ([`loadtest::scenario::connections`]).
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, Result};
 use hdrhistogram::Histogram;
@@ -12,7 +18,12 @@ use tokio::io::{AsyncWriteExt, BufWriter};
 use tokio::net::TcpStream;
 use tokio::sync::watch;
 
-use crate::brokers::Running;
+use std::time::{Duration, Instant};
+
+use loadtest::broker_process::spawn::{Kind, Running};
+use loadtest::raw_client::{self as mqtt, PacketReader};
+use loadtest::scenario::connections::{self, Wave};
+use loadtest::target::Target;
 
 /// Keeps the first reason a publisher stopped early (an I/O error or the deadline), for
 /// the scenario's note.
@@ -29,10 +40,16 @@ fn note_publisher_end(
         first.get_or_insert(reason);
     }
 }
-use crate::mqtt::{self, PacketReader};
+/// How the storm's devices log in: user `<STORM_USER_PREFIX><i>` for device `i`, all
+/// with one password (each user's hash has its own salt, so every login costs the broker
+/// a full verification).
+#[derive(Clone)]
+pub struct Login {
+    pub password: String,
+}
 
-/// The storm's devices: (user name, password).
-pub type Users = Arc<Vec<(String, String)>>;
+/// The storm's user names: `plc-0`, `plc-1`, ...
+pub const STORM_USER_PREFIX: &str = "plc-";
 
 /// Payload size of every message.
 pub const PAYLOAD_BYTES: usize = 32;
@@ -143,7 +160,7 @@ impl Scenario {
                 "{} devices with passwords start TCP connect + CONNECT at the same instant against a broker \
                  process started for this scenario; time until the last CONNACK. Password stores: fbbus argon2id \
                  (security::hash_password defaults), mosquitto PBKDF2-SHA512 $7$ (mosquitto_passwd), \
-                 rumqttd plaintext static map (no hashing at all).",
+                 rumqttd plaintext static map (no hashing at all). One salted hash per device.",
                 p.storm_devices
             ),
         }
@@ -182,15 +199,15 @@ impl Scenario {
         }
     }
 
-    pub async fn run(self, broker: &Running, p: &Params, storm_users: Option<Users>) -> Outcome {
+    pub async fn run(self, broker: &Running, p: &Params, storm: Option<&Login>) -> Outcome {
         let result = match self {
             Scenario::Fanin => fanin(broker, p).await,
             Scenario::Latency => latency(broker, p).await,
             Scenario::IdleMem => idle_memory(broker, p).await,
             Scenario::MsgMem => message_memory(broker, p).await,
             Scenario::ConnRate => connection_rate(broker, p).await,
-            Scenario::AuthStorm => match storm_users {
-                Some(users) => auth_storm(broker, p, users).await,
+            Scenario::AuthStorm => match storm {
+                Some(login) => auth_storm(broker, p, login).await,
                 None => Err(anyhow::anyhow!("no users were prepared")),
             },
         };
@@ -655,141 +672,53 @@ async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
     })
 }
 
-struct Opened {
-    streams: Vec<TcpStream>,
-    /// Time from the common start to each successful CONNACK.
-    done_after: Vec<Duration>,
-    failures: usize,
-    first_error: Option<String>,
-    timed_out: bool,
+/// The broker as the harness's client stack addresses it, optionally with a login.
+fn target(broker: &Running, login: Option<(&str, &str)>) -> Result<Target> {
+    let mut target = Target::parse(&broker.url())?;
+    if let Some((user, password)) = login {
+        target.username = Some(user.to_owned());
+        target.password = Some(password.to_owned());
+    }
+    Ok(target)
 }
 
-/// Opens `n` connections, at most `in_flight` at a time, all released at one instant.
-/// With `users`, connection i logs in as users[i] (and uses the user name as client id).
-async fn open_many(
-    addr: SocketAddr,
-    n: usize,
-    in_flight: usize,
-    prefix: &str,
-    users: Option<Users>,
-    end_at: Instant,
-) -> Opened {
-    let next = Arc::new(AtomicUsize::new(0));
-    let (go_tx, go_rx) = watch::channel(None::<Instant>);
-    let workers = in_flight.clamp(1, n.max(1));
-    let mut tasks = Vec::with_capacity(workers);
-    for _ in 0..workers {
-        let (mut go, next, users, prefix) = (
-            go_rx.clone(),
-            next.clone(),
-            users.clone(),
-            prefix.to_string(),
-        );
-        tasks.push(tokio::spawn(async move {
-            let start = match go.wait_for(|g| g.is_some()).await {
-                Ok(g) => g.expect("start instant"),
-                Err(_) => return (Vec::new(), Vec::new(), 0, None, false),
-            };
-            let (mut streams, mut times, mut failures, mut first_error) =
-                (Vec::new(), Vec::new(), 0usize, None::<String>);
-            let mut timed_out = false;
-            loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                if i >= n {
-                    break;
-                }
-                let (id, credentials) = match users.as_deref() {
-                    Some(users) => (users[i].0.clone(), Some((&*users[i].0, &*users[i].1))),
-                    None => (format!("{prefix}-{i:05}"), None),
-                };
-                match tokio::time::timeout_at(end_at.into(), mqtt::connect(addr, &id, credentials))
-                    .await
-                {
-                    Ok(Ok(s)) => {
-                        times.push(start.elapsed());
-                        streams.push(s);
-                    }
-                    Ok(Err(e)) => {
-                        failures += 1;
-                        first_error.get_or_insert(format!("{e:#}"));
-                    }
-                    Err(_) => {
-                        timed_out = true;
-                        break;
-                    }
-                }
-            }
-            (streams, times, failures, first_error, timed_out)
-        }));
-    }
-    go_tx.send(Some(Instant::now())).ok();
-    let mut opened = Opened {
-        streams: Vec::with_capacity(n),
-        done_after: Vec::with_capacity(n),
-        failures: 0,
-        first_error: None,
-        timed_out: false,
-    };
-    for t in tasks {
-        match t.await {
-            Ok((streams, times, failures, first_error, timed_out)) => {
-                opened.streams.extend(streams);
-                opened.done_after.extend(times);
-                opened.failures += failures;
-                if opened.first_error.is_none() {
-                    opened.first_error = first_error;
-                }
-                opened.timed_out |= timed_out;
-            }
-            Err(e) => {
-                opened.first_error.get_or_insert(format!("worker: {e}"));
-            }
-        }
-    }
-    // Connections never attempted because of the deadline count as not connected.
-    opened.done_after.sort();
-    opened
+/// Failed connections of a wave, for the scenario's note.
+fn wave_note(wave: &Wave) -> Option<String> {
+    wave.errors
+        .first()
+        .map(|first| format!("{} of {} failed: {first}", wave.errors.len(), wave.n))
 }
 
-fn opened_note(o: &Opened, n: usize) -> Option<String> {
-    let mut note = None;
-    if o.failures > 0 {
-        add_note(
-            &mut note,
-            format!(
-                "{} failed: {}",
-                o.failures,
-                o.first_error.as_deref().unwrap_or("?")
-            ),
-        );
+/// A wave's clients, dropped without DISCONNECT: the broker is stopped next anyway.
+fn close(wave: Wave) {
+    for c in wave.clients {
+        c.abort();
     }
-    if o.timed_out {
-        add_note(
-            &mut note,
-            format!("timeout ({} of {n} connected)", o.streams.len()),
-        );
-    }
-    note
 }
 
 async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome> {
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    let before = rss(broker)?;
-    let end_at = Instant::now() + p.deadline;
-    let opened = open_many(
-        broker.addr,
+    let idle = connections::idle_memory(
+        &target(broker, None)?,
+        Some(broker.pid()),
+        "bench-idle",
         p.idle_connections,
         64,
-        "bench-idle",
-        None,
-        end_at,
+        Duration::from_secs(1),
+        Duration::from_secs(1),
+        p.deadline,
     )
     .await;
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    let after = rss(broker)?;
-    let n = opened.streams.len();
+    let before = idle
+        .before_kib
+        .context("cannot read VmRSS of the broker process")?;
+    let after = idle
+        .after_kib
+        .context("cannot read VmRSS of the broker process")?;
+    let n = idle.wave.clients.len();
     // KB as /proc reports it (kB = 1024 bytes), like the reference figures.
-    let per_conn = (n > 0).then(|| (after as f64 - before as f64) / n as f64);
+    let per_conn = idle.kib_per_connection();
+    let note = wave_note(&idle.wave);
+    close(idle.wave);
     Ok(Outcome {
         cells: vec![
             mb(before),
@@ -800,8 +729,8 @@ async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome> {
             format!("{n}/{}", p.idle_connections),
         ],
         keys: vec![per_conn],
-        note: opened_note(&opened, p.idle_connections),
-        timed_out: opened.timed_out,
+        note,
+        timed_out: false,
     })
 }
 
@@ -833,68 +762,70 @@ async fn message_memory(broker: &Running, p: &Params) -> Result<Outcome> {
 }
 
 async fn connection_rate(broker: &Running, p: &Params) -> Result<Outcome> {
-    let end_at = Instant::now() + p.deadline;
-    let opened = open_many(
-        broker.addr,
+    let wave = connections::connect_many(
+        &target(broker, None)?,
+        "bench-rate",
         p.connrate_connections,
         p.connrate_inflight,
-        "bench-rate",
-        None,
-        end_at,
+        p.deadline,
     )
     .await;
-    let n = opened.streams.len();
-    let last = opened.done_after.last().copied();
-    let rate = last.and_then(|l| (l.as_secs_f64() > 0.0).then(|| n as f64 / l.as_secs_f64()));
+    let n = wave.clients.len();
+    let rate = (n > 0).then(|| wave.rate());
+    let took = wave.took;
+    let note = wave_note(&wave);
+    close(wave);
     Ok(Outcome {
         cells: vec![
             rate.map(|r| format!("{r:.0}"))
                 .unwrap_or_else(|| "-".into()),
             format!("{n}/{}", p.connrate_connections),
-            last.map(|l| format!("{:.3} s", l.as_secs_f64()))
-                .unwrap_or_else(|| "-".into()),
+            format!("{:.3} s", took.as_secs_f64()),
         ],
         keys: vec![rate],
-        note: opened_note(&opened, p.connrate_connections),
-        timed_out: opened.timed_out,
+        note,
+        timed_out: false,
     })
 }
 
-async fn auth_storm(broker: &Running, p: &Params, users: Users) -> Result<Outcome> {
-    let n = users.len();
-    let end_at = Instant::now() + p.deadline;
-    let opened = open_many(broker.addr, n, n, "bench-storm", Some(users), end_at).await;
-    let connected = opened.streams.len();
+async fn auth_storm(broker: &Running, p: &Params, login: &Login) -> Result<Outcome> {
+    let n = p.storm_devices;
+    let user = format!("{STORM_USER_PREFIX}{{i}}");
+    let target = target(broker, Some((&user, &login.password)))?;
+    // Every device at once: as many in flight as there are devices.
+    let wave = connections::connect_many(&target, "bench-storm", n, n, p.deadline).await;
+    let connected = wave.clients.len();
     let pct = |q: f64| -> Option<Duration> {
-        let d = &opened.done_after;
-        (!d.is_empty()).then(|| d[((d.len() as f64 * q) as usize).min(d.len() - 1)])
+        (connected > 0).then(|| Duration::from_micros(wave.latency.value_at_quantile(q)))
     };
     let secs = |d: Option<Duration>| {
         d.map(|d| format!("{:.3} s", d.as_secs_f64()))
             .unwrap_or_else(|| "-".into())
     };
-    let all = opened.done_after.last().copied();
+    let all = (connected > 0).then_some(wave.took);
     let store = match broker.kind {
-        crate::brokers::BrokerKind::Fbbus => "argon2id m=8192 t=1 p=1",
-        crate::brokers::BrokerKind::Rumqttd => "plaintext map",
-        _ => "PBKDF2-SHA512 $7$",
+        Kind::Fbbus => "argon2id m=8192 t=1 p=1",
+        Kind::Rumqttd => "plaintext map",
+        Kind::Mosquitto | Kind::MosquittoDefault => "PBKDF2-SHA512 $7$",
     };
-    let mut note = opened_note(&opened, n);
+    let mut note = wave_note(&wave);
     // "All have CONNACK" is only true when nobody failed.
     let complete = connected == n;
     if !complete && note.is_none() {
         add_note(&mut note, format!("{} not connected", n - connected));
     }
+    let cells = vec![
+        secs(all),
+        secs(pct(0.50)),
+        secs(pct(0.99)),
+        format!("{connected}/{n}"),
+        store.into(),
+    ];
+    close(wave);
     Ok(Outcome {
-        cells: vec![
-            secs(all),
-            secs(pct(0.50)),
-            secs(pct(0.99)),
-            format!("{connected}/{n}"),
-            store.into(),
-        ],
+        cells,
         keys: vec![all.filter(|_| complete).map(|d| d.as_secs_f64())],
         note,
-        timed_out: opened.timed_out,
+        timed_out: false,
     })
 }

@@ -1,76 +1,60 @@
-//! A minimal MQTT 3.1.1 client on a tokio `TcpStream`: CONNECT/CONNACK, SUBSCRIBE/SUBACK at
-//! QoS 0, PUBLISH at QoS 0 and a packet reader for the receive side. Just enough to be a cheap
-//! and precise load generator; nothing here retries or reconnects.
+//! A minimal MQTT 3.1.1 client on a plain tokio `TcpStream`, for the rates a client
+//! library does not reach: `compare`'s bursts of 200,000 messages into one subscriber,
+//! and readiness probes of the brokers it starts.
+//!
+//! The packets are [`wire`]'s (the campaigns' byte-level encoder); this module only
+//! adds the waits (CONNACK, SUBACK) and a reader that hands out whole packets from one
+//! reusable buffer. QoS 0 only; nothing here retries or reconnects: a drop is a result.
 
 use std::io;
 use std::net::SocketAddr;
 
-use anyhow::{bail, Context as _, Result};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-/// Keep-alive every bench client announces (rumqttd 0.20 refuses 0).
+use crate::wire::{self, Props};
+use crate::Error;
+
+/// Keep-alive every client announces (rumqttd 0.20 refuses 0).
 pub const KEEP_ALIVE_SECS: u16 = 60;
 
-fn put_remaining_length(out: &mut Vec<u8>, mut len: usize) {
-    loop {
-        let mut byte = (len % 128) as u8;
-        len /= 128;
-        if len > 0 {
-            byte |= 0x80;
-        }
-        out.push(byte);
-        if len == 0 {
-            break;
-        }
-    }
-}
-
-fn put_string(out: &mut Vec<u8>, s: &[u8]) {
-    out.extend_from_slice(&(s.len() as u16).to_be_bytes());
-    out.extend_from_slice(s);
-}
-
-/// CONNECT, protocol level 4 (3.1.1), clean session, optional username and password.
+/// CONNECT, MQTT 3.1.1, clean session, optional username and password.
 pub fn connect_packet(client_id: &str, credentials: Option<(&str, &str)>) -> Vec<u8> {
-    let mut body = Vec::with_capacity(64);
-    put_string(&mut body, b"MQTT");
-    body.push(4);
-    body.push(if credentials.is_some() { 0xC2 } else { 0x02 });
-    body.extend_from_slice(&KEEP_ALIVE_SECS.to_be_bytes());
-    put_string(&mut body, client_id.as_bytes());
+    let mut c = wire::Connect::new(wire::V311, client_id.as_bytes());
+    c.keep_alive = KEEP_ALIVE_SECS;
     if let Some((user, password)) = credentials {
-        put_string(&mut body, user.as_bytes());
-        put_string(&mut body, password.as_bytes());
+        c.username = Some(user.as_bytes().to_vec());
+        c.password = Some(password.as_bytes().to_vec());
     }
-    let mut packet = vec![0x10];
-    put_remaining_length(&mut packet, body.len());
-    packet.extend_from_slice(&body);
-    packet
+    c.encode()
 }
 
 /// SUBSCRIBE to one filter at QoS 0.
 pub fn subscribe_packet(packet_id: u16, filter: &str) -> Vec<u8> {
-    let mut body = Vec::with_capacity(filter.len() + 5);
-    body.extend_from_slice(&packet_id.to_be_bytes());
-    put_string(&mut body, filter.as_bytes());
-    body.push(0);
-    let mut packet = vec![0x82];
-    put_remaining_length(&mut packet, body.len());
-    packet.extend_from_slice(&body);
-    packet
+    wire::subscribe(
+        wire::V311,
+        packet_id,
+        &Props::new(),
+        &[(filter.as_bytes().to_vec(), 0)],
+    )
 }
 
 /// PUBLISH at QoS 0, no retain. The payload is the packet's tail, so callers can rewrite
 /// `packet[packet.len() - payload.len()..]` in place (timestamps).
 pub fn publish_packet(topic: &str, payload: &[u8]) -> Vec<u8> {
-    let mut packet = vec![0x30];
-    put_remaining_length(&mut packet, 2 + topic.len() + payload.len());
-    put_string(&mut packet, topic.as_bytes());
-    packet.extend_from_slice(payload);
-    packet
+    wire::publish(
+        wire::V311,
+        topic.as_bytes(),
+        0,
+        false,
+        false,
+        0,
+        &Props::new(),
+        payload,
+    )
 }
 
+/// DISCONNECT (MQTT 3.1.1).
 pub const DISCONNECT: [u8; 2] = [0xE0, 0x00];
 
 /// Opens a TCP connection (nodelay), sends CONNECT and waits for a successful CONNACK.
@@ -79,42 +63,62 @@ pub async fn connect(
     addr: SocketAddr,
     client_id: &str,
     credentials: Option<(&str, &str)>,
-) -> Result<TcpStream> {
+) -> Result<TcpStream, Error> {
+    let connect_error = |reason: String| Error::Connect {
+        id: client_id.to_owned(),
+        address: addr.to_string(),
+        reason,
+    };
     let mut stream = TcpStream::connect(addr)
         .await
-        .with_context(|| format!("TCP connect to {addr}"))?;
+        .map_err(|e| connect_error(e.to_string()))?;
     stream.set_nodelay(true)?;
     stream
         .write_all(&connect_packet(client_id, credentials))
         .await
-        .context("sending CONNECT")?;
+        .map_err(|e| connect_error(format!("sending CONNECT: {e}")))?;
     let mut ack = [0u8; 4];
     stream
         .read_exact(&mut ack)
         .await
-        .context("waiting for CONNACK")?;
+        .map_err(|e| connect_error(format!("waiting for CONNACK: {e}")))?;
     if ack[0] != 0x20 || ack[1] != 2 {
-        bail!("expected CONNACK, got {:02x} {:02x}", ack[0], ack[1]);
+        return Err(connect_error(format!(
+            "expected CONNACK, got {:02x} {:02x}",
+            ack[0], ack[1]
+        )));
     }
     if ack[3] != 0 {
-        bail!("CONNACK refused the connection: return code {}", ack[3]);
+        return Err(Error::Refused {
+            id: client_id.to_owned(),
+            address: addr.to_string(),
+            reason: format!("CONNACK return code {}", ack[3]),
+        });
     }
     Ok(stream)
 }
 
 /// Subscribes to `filter` at QoS 0 and waits for a SUBACK that grants it.
-pub async fn subscribe(stream: &mut TcpStream, filter: &str) -> Result<()> {
+pub async fn subscribe(stream: &mut TcpStream, filter: &str) -> Result<(), Error> {
     stream.write_all(&subscribe_packet(1, filter)).await?;
     let mut ack = [0u8; 5];
-    stream
-        .read_exact(&mut ack)
-        .await
-        .context("waiting for SUBACK")?;
+    stream.read_exact(&mut ack).await?;
+    let refused = |reason: String| Error::Refused {
+        id: "subscriber".into(),
+        address: stream
+            .peer_addr()
+            .map_or_else(|_| "?".into(), |a| a.to_string()),
+        reason,
+    };
     if ack[0] != 0x90 || ack[1] != 3 || ack[2..4] != [0, 1] {
-        bail!("expected SUBACK for packet 1, got {ack:02x?}");
+        return Err(refused(format!(
+            "expected SUBACK for packet 1, got {ack:02x?}"
+        )));
     }
     if ack[4] == 0x80 {
-        bail!("SUBACK refused the subscription to {filter}");
+        return Err(refused(format!(
+            "SUBACK refused the subscription to {filter} (check the broker's access rules)"
+        )));
     }
     Ok(())
 }
@@ -160,36 +164,20 @@ impl PacketReader {
     /// The next complete packet already read: (first byte of the fixed header, body).
     pub fn next_packet(&mut self) -> io::Result<Option<(u8, &[u8])>> {
         let avail = &self.buf[self.start..self.end];
-        if avail.len() < 2 {
-            return Ok(None);
-        }
-        let mut len = 0usize;
-        let mut multiplier = 1usize;
-        let mut i = 1;
-        loop {
-            let Some(&byte) = avail.get(i) else {
-                return Ok(None);
-            };
-            len += (byte & 0x7f) as usize * multiplier;
-            i += 1;
-            if byte & 0x80 == 0 {
-                break;
-            }
-            multiplier *= 128;
-            if i > 4 {
+        let total = match wire::frame_len(avail) {
+            None => return Ok(None),
+            Some(Err(())) => {
                 return Err(io::Error::new(
                     io::ErrorKind::InvalidData,
                     "malformed remaining length",
-                ));
+                ))
             }
-        }
-        if avail.len() < i + len {
-            return Ok(None);
-        }
+            Some(Ok(total)) => total,
+        };
         let header = avail[0];
-        let body_start = self.start + i;
-        self.start = body_start + len;
-        Ok(Some((header, &self.buf[body_start..body_start + len])))
+        let body_start = self.start + wire::header_len(avail);
+        self.start += total;
+        Ok(Some((header, &self.buf[body_start..self.start])))
     }
 }
 
@@ -217,8 +205,12 @@ mod tests {
         let c = connect_packet("id", Some(("u", "p")));
         assert_eq!(c[0], 0x10);
         assert_eq!(c[1] as usize, c.len() - 2);
-        let mut long = Vec::new();
-        put_remaining_length(&mut long, 321);
-        assert_eq!(long, vec![0xC1, 0x02]);
+        assert_eq!(c[9], 0xC2, "username, password, clean session");
+        assert_eq!(
+            u16::from_be_bytes([c[10], c[11]]),
+            KEEP_ALIVE_SECS,
+            "keep-alive"
+        );
+        assert_eq!(wire::varint(321), vec![0xC1, 0x02]);
     }
 }

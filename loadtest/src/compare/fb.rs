@@ -1,4 +1,4 @@
-//! `fbbus-bench fb`: what fbbus's typed FB topics and device registry cost, on fbbus alone.
+//! `fbbus-loadtest compare fb`: what fbbus's typed FB topics and device registry cost, on fbbus alone.
 //!
 //! 1. **Validation cost.** Ten devices declare a conveyor interface, then burst the same
 //!    event message into one subscriber, alternately on an untyped topic
@@ -16,6 +16,7 @@
 //! by a count and a deadline.
 
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -25,8 +26,9 @@ use hdrhistogram::Histogram;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use crate::brokers::{self, BrokerKind, Programs, Running};
-use crate::mqtt::{self, PacketReader};
+use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
+use loadtest::raw_client::{self as mqtt, PacketReader};
+use loadtest::scrape;
 
 pub struct FbParams {
     pub devices: usize,
@@ -68,12 +70,12 @@ const INTERFACE: &str = r#"{"fbs":{"CONV":{"type":"CONVEYOR",
 /// One STATE event, with sequence number and timestamp (so fbbus routes the bytes as sent).
 const EVENT: &str = r#"{"seq":1,"ts":1763800000000000,"data":{"ID":"conveyor-a","CONNECT":true,"SENSOR_IN":false,"SENSOR_OUT":true,"POSITION":2,"SWAP":false}}"#;
 
-pub async fn run(programs: &Programs, p: &FbParams) -> Result<()> {
-    let broker = brokers::start(BrokerKind::Fbbus, programs, None).await?;
+pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
+    let broker = start(fbbus, &[], "").await?;
     let admin = broker.admin.context("fbbus runs with an admin endpoint")?;
     println!(
         "fbbus {} at {} (admin {admin}); {} publishers x {} messages, {} rounds; {} devices\n",
-        brokers::fbbus_version(&programs.fbbus),
+        spawn::fbbus_version(fbbus),
         broker.addr,
         p.publishers,
         p.messages,
@@ -247,21 +249,21 @@ async fn registry_queries(admin: SocketAddr, p: &FbParams) -> Result<()> {
         rng ^= rng << 17;
         let id = device_id((rng % p.devices as u64) as usize);
         let t = Instant::now();
-        match brokers::http_get(admin, &format!("/api/v1/devices/{id}")).await {
-            Some((200, _)) => one.record(t.elapsed().as_micros() as u64)?,
-            other => bail!("GET /api/v1/devices/{id}: {:?}", other.map(|o| o.0)),
+        match get(admin, &format!("/api/v1/devices/{id}")).await {
+            Ok(_) => one.record(t.elapsed().as_micros() as u64)?,
+            Err(e) => bail!("GET /api/v1/devices/{id}: {e}"),
         }
     }
     let mut all = Histogram::<u64>::new(3)?;
     let mut size = 0;
     for _ in 0..20 {
         let t = Instant::now();
-        match brokers::http_get(admin, "/api/v1/devices").await {
-            Some((200, body)) => {
+        match get(admin, "/api/v1/devices").await {
+            Ok(body) => {
                 all.record(t.elapsed().as_micros() as u64)?;
                 size = body.len();
             }
-            other => bail!("GET /api/v1/devices: {:?}", other.map(|o| o.0)),
+            Err(e) => bail!("GET /api/v1/devices: {e}"),
         }
     }
     let ms = |h: &Histogram<u64>, q: f64| h.value_at_quantile(q) as f64 / 1000.0;
@@ -306,15 +308,7 @@ async fn subscribe_all(stream: &mut TcpStream, filters: &[&str]) -> Result<()> {
 async fn wait_online(admin: SocketAddr, n: usize) -> Result<()> {
     let deadline = Instant::now() + DEADLINE;
     loop {
-        let online = brokers::http_get(admin, "/metrics")
-            .await
-            .and_then(|(_, body)| {
-                String::from_utf8_lossy(&body).lines().find_map(|l| {
-                    l.strip_prefix("fbbus_registry_devices{status=\"online\"} ")
-                        .and_then(|v| v.trim().parse::<f64>().ok())
-                })
-            })
-            .unwrap_or(0.0);
+        let online = metric(admin, "fbbus_registry_devices{status=\"online\"}").await;
         if online as usize >= n {
             return Ok(());
         }
@@ -328,4 +322,32 @@ async fn wait_online(admin: SocketAddr, n: usize) -> Result<()> {
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
+}
+
+/// A fresh fbbus with `broker_keys` in its `[broker]` section and `tables` appended.
+async fn start(fbbus: &Path, broker_keys: &[String], tables: &str) -> Result<Running> {
+    Ok(spawn::start(&Spec {
+        kind: Kind::Fbbus,
+        program: fbbus,
+        broker_keys,
+        tables,
+        auth: None,
+    })
+    .await?)
+}
+
+/// The value of one Prometheus series on fbbus's admin endpoint (0 when absent or
+/// unreadable).
+async fn metric(admin: SocketAddr, series: &str) -> f64 {
+    let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
+        .await
+        .unwrap_or_default();
+    text.lines()
+        .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
+        .unwrap_or(0.0)
+}
+
+/// One GET on fbbus's admin endpoint: the body of a 200 answer, within 10 s.
+async fn get(admin: SocketAddr, path: &str) -> Result<String, String> {
+    scrape::get(&format!("http://{admin}{path}"), Duration::from_secs(10)).await
 }

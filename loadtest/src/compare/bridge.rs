@@ -1,4 +1,4 @@
-//! `fbbus-bench bridge`: what the zenoh hop between two lines costs, side by side in one run.
+//! `fbbus-loadtest compare bridge`: what the zenoh hop between two lines costs, side by side in one run.
 //!
 //! Three setups, each with one device publishing the conveyor's STATE event (canonical
 //! JSON, QoS 0) on `fb/bench-dev/CONV/STATE` and one subscriber:
@@ -15,14 +15,16 @@
 //! msg/s(A → B) / msg/s(one broker). Everything on 127.0.0.1; every loop is bounded.
 
 use std::net::SocketAddr;
+use std::path::Path;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context as _, Result};
 use hdrhistogram::Histogram;
 use tokio::io::AsyncWriteExt;
 
-use crate::brokers::{self, BrokerKind, Programs, Running};
-use crate::mqtt::{self, PacketReader};
+use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
+use loadtest::raw_client::{self as mqtt, PacketReader};
+use loadtest::scrape;
 
 pub struct BridgeParams {
     pub samples: usize,
@@ -61,29 +63,25 @@ struct Figures {
     delivered: usize,
 }
 
-pub async fn run(programs: &Programs, p: &BridgeParams) -> Result<()> {
-    let zenoh_port = brokers::free_port()?;
+pub async fn run(fbbus: &Path, p: &BridgeParams) -> Result<()> {
+    let zenoh_port = spawn::free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{zenoh_port}");
     println!(
         "fbbus {}: the zenoh hop between two lines vs one broker; {} latency samples, bursts of {} (QoS 0, {}-byte STATE events)\n",
-        brokers::fbbus_version(&programs.fbbus),
+        spawn::fbbus_version(fbbus),
         p.samples,
         p.burst,
         EVENT.len()
     );
-    let single = brokers::start(BrokerKind::Fbbus, programs, None).await?;
-    let a = brokers::start_with(
-        BrokerKind::Fbbus,
-        programs,
-        None,
+    let single = start(fbbus, &[], "").await?;
+    let a = start(
+        fbbus,
         &["line = \"line-a\"".into()],
         &format!("\n[bridge]\nlisten = [\"{endpoint}\"]\n"),
     )
     .await?;
-    let b = brokers::start_with(
-        BrokerKind::Fbbus,
-        programs,
-        None,
+    let b = start(
+        fbbus,
         &["line = \"line-b\"".into()],
         &format!("\n[bridge]\nconnect = [\"{endpoint}\"]\n"),
     )
@@ -230,16 +228,7 @@ async fn receive(reader: &mut PacketReader, want: usize, quiet: Duration) -> Res
 async fn wait_metric(admin: SocketAddr, series: &str, min: f64) -> Result<()> {
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
-        let value = brokers::http_get(admin, "/metrics")
-            .await
-            .and_then(|(_, body)| {
-                String::from_utf8_lossy(&body).lines().find_map(|l| {
-                    l.strip_prefix(series)
-                        .and_then(|v| v.trim().parse::<f64>().ok())
-                })
-            })
-            .unwrap_or(0.0);
-        if value >= min {
+        if metric(admin, series).await >= min {
             return Ok(());
         }
         if Instant::now() > deadline {
@@ -247,4 +236,27 @@ async fn wait_metric(admin: SocketAddr, series: &str, min: f64) -> Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
+}
+
+/// A fresh fbbus with `broker_keys` in its `[broker]` section and `tables` appended.
+async fn start(fbbus: &Path, broker_keys: &[String], tables: &str) -> Result<Running> {
+    Ok(spawn::start(&Spec {
+        kind: Kind::Fbbus,
+        program: fbbus,
+        broker_keys,
+        tables,
+        auth: None,
+    })
+    .await?)
+}
+
+/// The value of one Prometheus series on fbbus's admin endpoint (0 when absent or
+/// unreadable).
+async fn metric(admin: SocketAddr, series: &str) -> f64 {
+    let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
+        .await
+        .unwrap_or_default();
+    text.lines()
+        .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
+        .unwrap_or(0.0)
 }

@@ -1,0 +1,361 @@
+//! Brokers the harness starts itself (`fbbus-loadtest compare`): fbbus, Mosquitto and raw
+//! rumqttd, each a child process of its own on free 127.0.0.1 ports, so its resident
+//! memory is its own. [`Running`] kills the process when dropped, also when a scenario
+//! panics; raw rumqttd also exits when the harness dies (it watches its stdin).
+
+use std::fmt;
+use std::net::{SocketAddr, TcpListener};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use tokio::io::AsyncWriteExt;
+
+use crate::{raw_client, scrape, Error};
+
+/// How long a started broker may take to accept clients.
+const READY_WITHIN: Duration = Duration::from_secs(15);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Fbbus,
+    /// Mosquitto with `set_tcp_nodelay true` (the earlier study's fair configuration).
+    Mosquitto,
+    /// Mosquitto as shipped: `set_tcp_nodelay false`.
+    MosquittoDefault,
+    /// Upstream rumqttd 0.20 as a library, in `fbbus-loadtest serve-rumqttd`.
+    Rumqttd,
+}
+
+impl Kind {
+    pub fn label(self) -> &'static str {
+        match self {
+            Kind::Fbbus => "fbbus",
+            Kind::Mosquitto => "mosquitto",
+            Kind::MosquittoDefault => "mosquitto (nodelay off)",
+            Kind::Rumqttd => "rumqttd",
+        }
+    }
+}
+
+impl fmt::Display for Kind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.label())
+    }
+}
+
+/// Password files for the authenticated scenario, one per broker's format.
+pub struct AuthFiles {
+    /// `user:$argon2id$...` made with `security::hash_password`.
+    pub fbbus: Option<PathBuf>,
+    /// `user:$7$...` made with `mosquitto_passwd -U`.
+    pub mosquitto: Option<PathBuf>,
+    /// `user:password` lines, loaded into rumqttd's static auth map.
+    pub rumqttd: PathBuf,
+    /// A user outside the storm's devices, for the readiness probe.
+    pub probe: (String, String),
+}
+
+/// What to start.
+pub struct Spec<'a> {
+    pub kind: Kind,
+    /// fbbus or mosquitto; for raw rumqttd the harness binary (re-executed as
+    /// `serve-rumqttd`).
+    pub program: &'a Path,
+    /// fbbus: `key = value` lines added to its `[broker]` section.
+    pub broker_keys: &'a [String],
+    /// fbbus: TOML tables appended to its config (`[bridge]`).
+    pub tables: &'a str,
+    /// Only the users of these files may connect.
+    pub auth: Option<&'a AuthFiles>,
+}
+
+/// A broker child process; killed and reaped on drop.
+pub struct Running {
+    pub kind: Kind,
+    pub addr: SocketAddr,
+    /// fbbus's admin endpoint (HTTP).
+    pub admin: Option<SocketAddr>,
+    child: Child,
+    /// Held open so that `serve-rumqttd` exits by itself if the harness dies.
+    _stdin: Option<ChildStdin>,
+    log: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Running {
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Resident memory (VmRSS) in KiB.
+    pub fn rss_kib(&self) -> Option<u64> {
+        super::rss_kib(self.pid())
+    }
+
+    /// `mqtt://` URL of its listener.
+    pub fn url(&self) -> String {
+        format!("mqtt://{}", self.addr)
+    }
+
+    /// None while running, else how it ended.
+    pub fn exited(&mut self) -> Option<String> {
+        match self.child.try_wait() {
+            Ok(Some(status)) => Some(format!("broker exited ({status}); {}", self.log_tail())),
+            Ok(None) => None,
+            Err(e) => Some(format!("cannot check broker process: {e}")),
+        }
+    }
+
+    fn log_tail(&self) -> String {
+        let text = std::fs::read_to_string(&self.log).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        let tail = lines[lines.len().saturating_sub(5)..].join(" | ");
+        if tail.is_empty() {
+            "no log output".into()
+        } else {
+            format!("log: {tail}")
+        }
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A TCP port on 127.0.0.1 that was free a moment ago, below Linux's ephemeral range.
+///
+/// Why not `bind(0)`: the kernel hands out ports for outgoing connections (every client a
+/// test opens, thousands in the storm tests) from that same ephemeral range (32768-60999
+/// by default); a port picked there and released could be taken by a client's connect
+/// before the broker bound it, and the broker failed to start with `Address already in
+/// use` (seen in CI). Ports 20000-32767 are never handed out that way; they are tried in
+/// a pseudo-random order, so parallel tests rarely try the same one.
+pub fn free_port() -> Result<u16, Error> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    let seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+        ^ (u64::from(std::process::id()) << 20);
+    for _ in 0..1000 {
+        let n = NEXT.fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed) ^ seed;
+        let port = 20_000 + (n.wrapping_mul(0xBF58_476D_1CE4_E5B9) >> 33) % 12_768;
+        if TcpListener::bind(("127.0.0.1", port as u16)).is_ok() {
+            return Ok(port as u16);
+        }
+    }
+    Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+/// A temporary directory the privilege-dropped Mosquitto (user `mosquitto` when started as
+/// root) can read.
+pub fn readable_tempdir(prefix: &str) -> Result<tempfile::TempDir, Error> {
+    let dir = tempfile::Builder::new().prefix(prefix).tempdir()?;
+    set_mode(dir.path(), 0o755)?;
+    Ok(dir)
+}
+
+pub fn set_mode(path: &Path, mode: u32) -> Result<(), Error> {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode))
+        .map_err(|e| Error::Process(format!("chmod {}: {e}", path.display())))
+}
+
+/// Starts the broker on a fresh port and waits until it accepts MQTT clients.
+pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
+    let kind = spec.kind;
+    let dir = readable_tempdir("fbbus-loadtest-broker-")?;
+    let port = free_port()?;
+    let addr = SocketAddr::from(([127, 0, 0, 1], port));
+    let log = dir.path().join("broker.log");
+    let log_file = std::fs::File::create(&log)?;
+    let mut admin = None;
+    let mut command = match kind {
+        Kind::Fbbus => {
+            let admin_addr = SocketAddr::from(([127, 0, 0, 1], free_port()?));
+            admin = Some(admin_addr);
+            let path = dir.path().join("fbbus.toml");
+            std::fs::write(&path, fbbus_config(spec, addr, admin_addr)?)?;
+            let mut c = Command::new(spec.program);
+            c.arg("serve").arg("--config").arg(&path);
+            c
+        }
+        Kind::Mosquitto | Kind::MosquittoDefault => {
+            let nodelay = kind == Kind::Mosquitto;
+            let mut config = format!(
+                "listener {port} 127.0.0.1\n\
+                 set_tcp_nodelay {nodelay}\n\
+                 max_queued_messages 100000\n\
+                 persistence false\n\
+                 log_dest none\n"
+            );
+            match spec.auth {
+                Some(a) => {
+                    let file = a.mosquitto.as_ref().ok_or_else(|| {
+                        Error::Process(
+                            "no mosquitto password file was prepared (is mosquitto_passwd installed?)"
+                                .into(),
+                        )
+                    })?;
+                    config.push_str(&format!(
+                        "allow_anonymous false\npassword_file {}\n",
+                        file.display()
+                    ));
+                }
+                None => config.push_str("allow_anonymous true\n"),
+            }
+            let path = dir.path().join("mosquitto.conf");
+            std::fs::write(&path, config)?;
+            set_mode(&path, 0o644)?;
+            let mut c = Command::new(spec.program);
+            c.arg("-c").arg(&path);
+            c
+        }
+        Kind::Rumqttd => {
+            let mut c = Command::new(spec.program);
+            c.arg("serve-rumqttd")
+                .arg("--port")
+                .arg(port.to_string())
+                .arg("--exit-on-stdin-eof");
+            if let Some(a) = spec.auth {
+                c.arg("--auth-file").arg(&a.rumqttd);
+            }
+            c
+        }
+    };
+    command
+        .stdin(if kind == Kind::Rumqttd {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .stdout(log_file.try_clone()?)
+        .stderr(log_file);
+    let mut child = command.spawn().map_err(|e| {
+        Error::Process(format!(
+            "cannot start {kind} ({}): {e}",
+            spec.program.display()
+        ))
+    })?;
+    let stdin = child.stdin.take();
+    let mut running = Running {
+        kind,
+        addr,
+        admin,
+        child,
+        _stdin: stdin,
+        log,
+        _dir: dir,
+    };
+    let deadline = Instant::now() + READY_WITHIN;
+    loop {
+        if let Some(why) = running.exited() {
+            return Err(Error::Process(format!("{kind} did not start: {why}")));
+        }
+        let ready = match admin {
+            Some(admin) => scrape::get(&format!("http://{admin}/readyz"), Duration::from_secs(2))
+                .await
+                .is_ok(),
+            None => {
+                let probe = spec.auth.map(|a| (a.probe.0.as_str(), a.probe.1.as_str()));
+                accepts_clients(addr, probe).await
+            }
+        };
+        if ready {
+            return Ok(running);
+        }
+        if Instant::now() > deadline {
+            return Err(Error::Process(format!(
+                "{kind} not ready after {READY_WITHIN:?}; {}",
+                running.log_tail()
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// fbbus's generated config: its defaults, one loopback listener, `max_connections`
+/// above every scenario's count, warnings only in the log.
+fn fbbus_config(spec: &Spec<'_>, addr: SocketAddr, admin: SocketAddr) -> Result<String, Error> {
+    let mut config = String::from("[broker]\nmax_connections = 10100\n");
+    for option in spec.broker_keys {
+        config.push_str(option);
+        config.push('\n');
+    }
+    config.push_str(&format!(
+        "\n[[listener]]\nname = \"bench\"\nbind = \"{addr}\"\n"
+    ));
+    match spec.auth {
+        Some(a) => {
+            let file = a
+                .fbbus
+                .as_ref()
+                .ok_or_else(|| Error::Process("no fbbus password file was prepared".into()))?;
+            config.push_str(&format!(
+                "\n[auth]\npassword_file = \"{}\"\n",
+                file.display()
+            ));
+        }
+        None => config.push_str("allow_anonymous = true\n"),
+    }
+    config.push_str(&format!(
+        "\n[admin]\nbind = \"{admin}\"\n\n[log]\nlevel = \"warn\"\n"
+    ));
+    config.push_str(spec.tables);
+    Ok(config)
+}
+
+/// An MQTT CONNECT gets a successful CONNACK; the probe then disconnects cleanly.
+async fn accepts_clients(addr: SocketAddr, credentials: Option<(&str, &str)>) -> bool {
+    let attempt = async {
+        let mut s = raw_client::connect(addr, "bench-probe", credentials)
+            .await
+            .ok()?;
+        s.write_all(&raw_client::DISCONNECT).await.ok()?;
+        Some(())
+    };
+    tokio::time::timeout(Duration::from_secs(2), attempt)
+        .await
+        .ok()
+        .flatten()
+        .is_some()
+}
+
+/// `fbbus --version`, or why not.
+pub fn fbbus_version(fbbus: &Path) -> String {
+    match Command::new(fbbus).arg("--version").output() {
+        Ok(out) => String::from_utf8_lossy(&out.stdout).trim().to_string(),
+        Err(e) => format!("unknown ({}: {e})", fbbus.display()),
+    }
+}
+
+/// The first line of `mosquitto -h`.
+pub fn mosquitto_version(mosquitto: &Path) -> String {
+    match Command::new(mosquitto).arg("-h").output() {
+        Ok(out) => {
+            let mut text = String::from_utf8_lossy(&out.stdout).to_string();
+            text.push_str(&String::from_utf8_lossy(&out.stderr));
+            text.lines().next().unwrap_or("unknown").trim().to_string()
+        }
+        Err(e) => format!("unknown ({e})"),
+    }
+}
+
+/// A program in one of `candidates`, or on PATH.
+pub fn find_program(name: &str, candidates: &[&str]) -> Option<PathBuf> {
+    for c in candidates {
+        let p = PathBuf::from(c);
+        if p.is_file() {
+            return Some(p);
+        }
+    }
+    std::env::var_os("PATH").and_then(|path| {
+        std::env::split_paths(&path)
+            .map(|d| d.join(name))
+            .find(|p| p.is_file())
+    })
+}

@@ -1,0 +1,425 @@
+//! `fbbus-loadtest compare`: the earlier broker study's scenarios against fbbus,
+//! Mosquitto and raw rumqttd, or against two fbbus builds (before/after a change), in one
+//! run, with every figure as a ratio. See loadtest/README.md, "compare".
+//!
+//! Unlike the other scenarios, `compare` starts the brokers itself: every broker is a
+//! child process of its own on free 127.0.0.1 ports, freshly started for each scenario
+//! ([`loadtest::broker_process::spawn`]; raw rumqttd is this binary re-executed as the
+//! hidden `serve-rumqttd` subcommand), so its resident memory is its own and no scenario
+//! inherits another's state. With `--rounds N` each scenario runs N times per broker,
+//! alternating (A B A B ...), so machine noise hits every broker alike; the ratios use
+//! each broker's median.
+
+mod auth;
+mod bridge;
+mod fb;
+mod scenarios;
+mod table;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _, Result};
+use clap::{Args, Subcommand};
+
+use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
+use loadtest::raw_client;
+
+use auth::Storm;
+use scenarios::{Outcome, Params, Scenario};
+
+/// `fbbus-loadtest compare [fb|bridge] ...`
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct CompareArgs {
+    #[command(subcommand)]
+    fbbus_only: Option<FbbusOnly>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Subcommand)]
+enum FbbusOnly {
+    /// fbbus only: typed-topic validation cost (typed vs untyped burst, A B A B), device
+    /// births per second, and registry HTTP query latency with 10,000 devices.
+    Fb {
+        /// Small sizes (a smoke test, not a measurement).
+        #[arg(long)]
+        quick: bool,
+        /// Devices registered for the births and query measurements (default 10000).
+        #[arg(long, value_name = "N")]
+        devices: Option<usize>,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+    },
+    /// fbbus only: the zenoh bridge between two lines: latency p50/p99 and burst
+    /// throughput line A -> line B, next to the same on one broker.
+    Bridge {
+        /// Small sizes (a smoke test, not a measurement).
+        #[arg(long)]
+        quick: bool,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+    },
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// Scenarios to run, comma-separated: fanin, latency, idlemem, msgmem, connrate, authstorm.
+    /// Default: all.
+    #[arg(long, value_delimiter = ',', value_name = "LIST")]
+    scenarios: Vec<String>,
+    /// Brokers to run, comma-separated: fbbus (every --fbbus binary), mosquitto, rumqttd.
+    /// Default: all.
+    #[arg(long, value_delimiter = ',', value_name = "LIST")]
+    brokers: Vec<String>,
+    /// Small sizes (a smoke test, not a measurement).
+    #[arg(long)]
+    quick: bool,
+    /// An fbbus binary, optionally named: `--fbbus new=target/release/fbbus`. Repeat it to
+    /// compare builds (`--fbbus old=/tmp/fbbus-old --fbbus new=target/release/fbbus`):
+    /// the later ones are also reported as ratios to the first. Default: `fbbus` next to
+    /// this binary.
+    #[arg(long = "fbbus", value_name = "[NAME=]PATH")]
+    fbbus: Vec<String>,
+    /// The mosquitto binary. Default: /usr/sbin/mosquitto, else PATH.
+    #[arg(long, value_name = "PATH")]
+    mosquitto: Option<PathBuf>,
+    /// Skip the extra Mosquitto run with its shipped `set_tcp_nodelay false` (fanin, latency).
+    #[arg(long)]
+    no_mosquitto_default: bool,
+    /// Extra `[broker]` key for every fbbus's generated config, e.g.
+    /// `router_segment_bytes=1048576` (repeatable; default: fbbus's own defaults).
+    #[arg(long = "fbbus-broker-option", value_name = "KEY=VALUE")]
+    fbbus_broker_options: Vec<String>,
+    /// Runs of each scenario per broker, alternating brokers round by round (A B A B);
+    /// the ratios use each broker's median.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    rounds: u32,
+    /// Messages per publisher in the fan-in burst (default 20000; --quick 2000).
+    #[arg(long, value_name = "N")]
+    fanin_messages: Option<usize>,
+    /// Duration of the steady-rate latency scenario in seconds (default 10; --quick 2).
+    #[arg(long, value_name = "SECONDS")]
+    latency_secs: Option<u64>,
+}
+
+/// One broker of the comparison: a label in the tables and what to start.
+pub struct Contender {
+    pub label: String,
+    pub kind: Kind,
+    pub program: PathBuf,
+}
+
+/// Runs `compare`; the main comparison's output also goes to `<out>/compare.txt`.
+pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
+    let harness = std::env::current_exe().context("locating this binary")?;
+    let default_fbbus = harness.with_file_name("fbbus");
+    match args.fbbus_only {
+        Some(FbbusOnly::Fb {
+            quick,
+            devices,
+            fbbus,
+        }) => {
+            let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
+            let mut params = if quick {
+                fb::FbParams::quick()
+            } else {
+                fb::FbParams::full()
+            };
+            if let Some(n) = devices {
+                params.devices = n.max(1);
+            }
+            fb::run(&fbbus, &params).await
+        }
+        Some(FbbusOnly::Bridge { quick, fbbus }) => {
+            let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
+            let params = if quick {
+                bridge::BridgeParams::quick()
+            } else {
+                bridge::BridgeParams::full()
+            };
+            bridge::run(&fbbus, &params).await
+        }
+        None => compare(args.run, &harness, &default_fbbus, out).await,
+    }
+}
+
+fn existing_fbbus(path: PathBuf) -> Result<PathBuf> {
+    if !path.is_file() {
+        bail!(
+            "the fbbus binary is not at {}: build it with `cargo build --release -p broker -p fbbus-loadtest` \
+             or pass --fbbus PATH",
+            path.display()
+        );
+    }
+    Ok(path)
+}
+
+/// Everything printed on stdout, kept for `<out>/compare.txt`.
+#[derive(Default)]
+struct Transcript(String);
+
+impl Transcript {
+    fn line(&mut self, text: impl AsRef<str>) {
+        println!("{}", text.as_ref());
+        self.0.push_str(text.as_ref());
+        self.0.push('\n');
+    }
+}
+
+/// The scenarios asked for, in the canonical order.
+fn chosen_scenarios(names: &[String]) -> Result<Vec<Scenario>> {
+    if names.is_empty() {
+        return Ok(Scenario::ALL.to_vec());
+    }
+    let mut chosen = Vec::new();
+    for name in names {
+        let s = Scenario::parse(name.trim()).with_context(|| {
+            format!(
+                "unknown scenario `{name}` (known: {})",
+                Scenario::ALL.map(|s| s.name()).join(", ")
+            )
+        })?;
+        chosen.push(s);
+    }
+    Ok(Scenario::ALL
+        .into_iter()
+        .filter(|s| chosen.contains(s))
+        .collect())
+}
+
+/// `--fbbus [NAME=]PATH` entries as labelled fbbus contenders.
+fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>> {
+    if entries.is_empty() {
+        return Ok(vec![Contender {
+            label: "fbbus".into(),
+            kind: Kind::Fbbus,
+            program: existing_fbbus(default.to_path_buf())?,
+        }]);
+    }
+    let mut out: Vec<Contender> = Vec::new();
+    for (i, entry) in entries.iter().enumerate() {
+        let (name, path) = match entry.split_once('=') {
+            Some((name, path)) if !name.is_empty() && !name.contains('/') => {
+                (name.to_owned(), path)
+            }
+            _ if entries.len() == 1 => ("fbbus".to_owned(), entry.as_str()),
+            _ => (format!("fbbus-{}", i + 1), entry.as_str()),
+        };
+        if ["mosquitto", "rumqttd"].contains(&name.as_str()) || out.iter().any(|c| c.label == name)
+        {
+            bail!("--fbbus {entry}: the name `{name}` is taken; give each binary its own name (--fbbus old=PATH --fbbus new=PATH)");
+        }
+        out.push(Contender {
+            label: name,
+            kind: Kind::Fbbus,
+            program: existing_fbbus(PathBuf::from(path))?,
+        });
+    }
+    Ok(out)
+}
+
+async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path) -> Result<()> {
+    let scenarios = chosen_scenarios(&args.scenarios)?;
+    let names: Vec<&str> = if args.brokers.is_empty() {
+        vec!["fbbus", "mosquitto", "rumqttd"]
+    } else {
+        args.brokers.iter().map(|b| b.trim()).collect()
+    };
+    let mut kinds = Vec::new();
+    for name in names {
+        let kind = match name {
+            "fbbus" => Kind::Fbbus,
+            "mosquitto" => Kind::Mosquitto,
+            "rumqttd" => Kind::Rumqttd,
+            other => bail!("unknown broker `{other}` (known: fbbus, mosquitto, rumqttd)"),
+        };
+        if !kinds.contains(&kind) {
+            kinds.push(kind);
+        }
+    }
+    for option in &args.fbbus_broker_options {
+        let valid = matches!(option.split_once('='), Some((k, v)) if !k.trim().is_empty() && !v.trim().is_empty());
+        if !valid {
+            bail!("--fbbus-broker-option wants KEY=VALUE, got `{option}`");
+        }
+    }
+    let mut params = if args.quick {
+        Params::quick()
+    } else {
+        Params::full()
+    };
+    if let Some(n) = args.fanin_messages {
+        params.fanin_messages = n.max(1);
+    }
+    if let Some(s) = args.latency_secs {
+        params.latency_secs = s.max(1);
+    }
+    let rounds = args.rounds.max(1);
+
+    let mosquitto = args
+        .mosquitto
+        .clone()
+        .or_else(|| spawn::find_program("mosquitto", &["/usr/sbin/mosquitto"]));
+    let mut contenders = Vec::new();
+    for kind in &kinds {
+        match kind {
+            Kind::Fbbus => contenders.extend(fbbus_contenders(&args.fbbus, default_fbbus)?),
+            Kind::Mosquitto => contenders.push(Contender {
+                label: "mosquitto".into(),
+                kind: Kind::Mosquitto,
+                // Missing: every scenario's row says how to install it.
+                program: mosquitto
+                    .clone()
+                    .unwrap_or_else(|| PathBuf::from("mosquitto")),
+            }),
+            Kind::Rumqttd => contenders.push(Contender {
+                label: "rumqttd".into(),
+                kind: Kind::Rumqttd,
+                program: harness.to_path_buf(),
+            }),
+            Kind::MosquittoDefault => {}
+        }
+    }
+
+    let mut t = Transcript::default();
+    table::header(
+        &mut t,
+        &contenders,
+        mosquitto.as_deref(),
+        &scenarios,
+        &params,
+        args.quick,
+        !args.no_mosquitto_default,
+        rounds,
+    );
+
+    // The storm's password files are made before any broker starts (not measured).
+    let mut storm: Option<Storm> = None;
+    if scenarios.contains(&Scenario::AuthStorm) {
+        let started = Instant::now();
+        eprintln!(
+            "preparing {} device passwords for the auth storm...",
+            params.storm_devices
+        );
+        storm = Some(auth::prepare(params.storm_devices, &kinds)?);
+        eprintln!("  done in {:.1} s", started.elapsed().as_secs_f64());
+    }
+
+    let started = Instant::now();
+    let mut summary = Vec::new();
+    for &scenario in &scenarios {
+        let mut runs: Vec<&Contender> = Vec::new();
+        let nodelay_off = Contender {
+            label: Kind::MosquittoDefault.label().into(),
+            kind: Kind::MosquittoDefault,
+            program: mosquitto
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("mosquitto")),
+        };
+        for c in &contenders {
+            runs.push(c);
+            if c.kind == Kind::Mosquitto
+                && !args.no_mosquitto_default
+                && matches!(scenario, Scenario::Fanin | Scenario::Latency)
+            {
+                runs.push(&nodelay_off);
+            }
+        }
+        t.line("");
+        t.line(format!("== {} ==", scenario.title(&params)));
+        t.line(format!("   {}", scenario.description(&params)));
+        let mut rows: Vec<(&Contender, u32, Outcome)> = Vec::new();
+        for round in 1..=rounds {
+            for &c in &runs {
+                eprintln!(
+                    "running {} on {} (round {round}/{rounds})...",
+                    scenario.name(),
+                    c.label
+                );
+                let outcome = run_one(
+                    scenario,
+                    c,
+                    &args.fbbus_broker_options,
+                    &params,
+                    storm.as_ref(),
+                )
+                .await;
+                rows.push((c, round, outcome));
+            }
+        }
+        table::rows(&mut t, scenario, &rows, rounds);
+        let line = table::ratio_line(scenario, &params, &rows, rounds);
+        t.line(&line);
+        summary.push(line);
+    }
+    t.line("");
+    t.line(format!(
+        "== summary ({:.0} s) ==",
+        started.elapsed().as_secs_f64()
+    ));
+    for line in summary {
+        t.line(line);
+    }
+    drop(storm);
+    std::fs::create_dir_all(out).with_context(|| format!("creating --out {}", out.display()))?;
+    let file = out.join("compare.txt");
+    std::fs::write(&file, &t.0).with_context(|| format!("writing {}", file.display()))?;
+    eprintln!("wrote {}", file.display());
+    Ok(())
+}
+
+/// A fresh broker for one scenario, stopped afterwards.
+async fn run_one(
+    scenario: Scenario,
+    contender: &Contender,
+    fbbus_broker_options: &[String],
+    params: &Params,
+    storm: Option<&Storm>,
+) -> Outcome {
+    let auth = match (scenario, storm) {
+        (Scenario::AuthStorm, Some(storm)) => Some(storm),
+        _ => None,
+    };
+    if matches!(contender.kind, Kind::Mosquitto | Kind::MosquittoDefault)
+        && !contender.program.is_file()
+    {
+        return Outcome::failed(
+            scenario,
+            "mosquitto is not installed (apt-get install -y mosquitto, or --mosquitto PATH)".into(),
+        );
+    }
+    let spec = Spec {
+        kind: contender.kind,
+        program: &contender.program,
+        broker_keys: fbbus_broker_options,
+        tables: "",
+        auth: auth.map(|s| &s.files),
+    };
+    let mut broker: Running = match spawn::start(&spec).await {
+        Ok(b) => b,
+        Err(e) => return Outcome::failed(scenario, format!("failed to start: {e}")),
+    };
+    // A safety net above the scenario's own deadline.
+    let limit = params.deadline * 2 + Duration::from_secs(params.latency_secs + 30);
+    let login = auth.map(|s| &s.login);
+    let mut outcome = match tokio::time::timeout(limit, scenario.run(&broker, params, login)).await
+    {
+        Ok(o) => o,
+        Err(_) => Outcome::failed(scenario, format!("timeout (no result after {limit:?})")),
+    };
+    if let Some(exit) = broker.exited() {
+        outcome.note = Some(match outcome.note.take() {
+            Some(n) => format!("{n}; {exit}"),
+            None => exit,
+        });
+    }
+    drop(broker);
+    outcome
+}
+
+/// The keep-alive every `compare` client announces, for the header.
+pub const KEEP_ALIVE_SECS: u16 = raw_client::KEEP_ALIVE_SECS;

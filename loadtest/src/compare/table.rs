@@ -1,0 +1,276 @@
+//! What `compare` prints: the header (machine, versions, parameters), one table per
+//! scenario (a row per broker and round) and the ratio line, whose figures are each
+//! broker's median over the rounds.
+
+use std::path::Path;
+
+use loadtest::broker_process::spawn::{self, Kind};
+
+use super::scenarios::{Outcome, Params, Scenario};
+use super::{Contender, Transcript, KEEP_ALIVE_SECS};
+
+#[allow(clippy::too_many_arguments)]
+pub fn header(
+    t: &mut Transcript,
+    contenders: &[Contender],
+    mosquitto: Option<&Path>,
+    scenarios: &[Scenario],
+    p: &Params,
+    quick: bool,
+    nodelay_off_too: bool,
+    rounds: u32,
+) {
+    t.line(format!(
+        "fbbus-loadtest compare {}",
+        env!("CARGO_PKG_VERSION")
+    ));
+    t.line(format!(
+        "machine:   {} cores, {}, {} RAM",
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(0),
+        read_first("/proc/cpuinfo", Some("model name")),
+        read_first("/proc/meminfo", Some("MemTotal")),
+    ));
+    t.line(format!("kernel:    {}", read_first("/proc/version", None)));
+    for c in contenders {
+        match c.kind {
+            Kind::Fbbus => t.line(format!(
+                "{:<10} {} ({}; config defaults, [log] level = \"warn\", max_connections 10100)",
+                format!("{}:", c.label),
+                spawn::fbbus_version(&c.program),
+                c.program.display(),
+            )),
+            Kind::Mosquitto => match mosquitto {
+                Some(m) => t.line(format!(
+                    "mosquitto: {} ({}; set_tcp_nodelay true, max_queued_messages 100000, persistence false{})",
+                    spawn::mosquitto_version(m),
+                    m.display(),
+                    if nodelay_off_too {
+                        "; fanin and latency also with the shipped set_tcp_nodelay false"
+                    } else {
+                        ""
+                    }
+                )),
+                None => t.line("mosquitto: not installed (apt-get install -y mosquitto)"),
+            },
+            Kind::Rumqttd => t.line(format!(
+                "rumqttd:   {} raw (crates.io library in a child process; rumqttd.toml example values: router max_connections 10010, \
+                 max_outgoing_packet_count 200, segments 100 MiB x 10; max_inflight_count 100, next_connection_delay_ms 1)",
+                rumqttd_version()
+            )),
+            Kind::MosquittoDefault => {}
+        }
+    }
+    t.line(format!(
+        "clients:   bursts on raw MQTT 3.1.1 sockets, connections through rumqttc; one tokio multi-thread runtime \
+         in this process, nodelay, keep-alive {KEEP_ALIVE_SECS} s, 127.0.0.1 only"
+    ));
+    t.line(format!(
+        "params:    {}{}; scenarios {}; {rounds} round(s) per broker, alternating; deadline {} s per scenario and broker",
+        if quick { "--quick" } else { "full" },
+        if quick {
+            " (smoke-test sizes, not a measurement)"
+        } else {
+            ""
+        },
+        scenarios
+            .iter()
+            .map(|s| s.name())
+            .collect::<Vec<_>>()
+            .join(","),
+        p.deadline.as_secs()
+    ));
+}
+
+/// The scenario's table: one row per broker and round, in the order they ran.
+pub fn rows(
+    t: &mut Transcript,
+    scenario: Scenario,
+    rows: &[(&Contender, u32, Outcome)],
+    rounds: u32,
+) {
+    let mut headers = vec!["broker"];
+    headers.extend_from_slice(scenario.columns());
+    let mut table: Vec<Vec<String>> = rows
+        .iter()
+        .map(|(c, round, o)| {
+            let name = if rounds > 1 {
+                format!("{} #{round}", c.label)
+            } else {
+                c.label.clone()
+            };
+            let mut r = vec![name];
+            r.extend(o.cells.iter().cloned());
+            r
+        })
+        .collect();
+    let mut widths: Vec<usize> = headers.iter().map(|h| h.len()).collect();
+    for r in &table {
+        for (w, c) in widths.iter_mut().zip(r) {
+            *w = (*w).max(c.chars().count());
+        }
+    }
+    let line = |cells: &[String]| {
+        cells
+            .iter()
+            .zip(&widths)
+            .map(|(c, w)| format!("{c:<w$}"))
+            .collect::<Vec<_>>()
+            .join("  ")
+            .trim_end()
+            .to_string()
+    };
+    let header: Vec<String> = headers.iter().map(|h| h.to_string()).collect();
+    t.line(format!("   {}", line(&header)));
+    for (r, (_, _, o)) in table.iter_mut().zip(rows) {
+        let mut text = line(r);
+        if let Some(note) = &o.note {
+            text.push_str(&format!("  [{note}]"));
+        }
+        t.line(format!("   {text}"));
+    }
+}
+
+/// One broker's key figures over its rounds: the median of each, from the rounds that
+/// did not time out.
+struct Median {
+    keys: Vec<Option<f64>>,
+    /// Every round timed out.
+    timed_out: bool,
+}
+
+fn median_of(rows: &[(&Contender, u32, Outcome)], label: &str) -> Option<Median> {
+    let own: Vec<&Outcome> = rows
+        .iter()
+        .filter(|(c, _, _)| c.label == label)
+        .map(|(_, _, o)| o)
+        .collect();
+    if own.is_empty() {
+        return None;
+    }
+    let width = own.iter().map(|o| o.keys.len()).max().unwrap_or(0);
+    let keys = (0..width)
+        .map(|i| {
+            let mut v: Vec<f64> = own
+                .iter()
+                .filter(|o| !o.timed_out)
+                .filter_map(|o| o.keys.get(i).copied().flatten())
+                .collect();
+            v.sort_by(f64::total_cmp);
+            match v.len() {
+                0 => None,
+                n if n % 2 == 1 => Some(v[n / 2]),
+                n => Some((v[n / 2 - 1] + v[n / 2]) / 2.0),
+            }
+        })
+        .collect();
+    Some(Median {
+        keys,
+        timed_out: own.iter().all(|o| o.timed_out),
+    })
+}
+
+/// The scenario's key figures per broker and the ratios: each fbbus to Mosquitto and to
+/// rumqttd, and each later fbbus to the first (`new/old`).
+pub fn ratio_line(
+    scenario: Scenario,
+    p: &Params,
+    rows: &[(&Contender, u32, Outcome)],
+    rounds: u32,
+) -> String {
+    let mut line = scenario.title(p);
+    if rounds > 1 {
+        line.push_str(&format!(" [median of {rounds}]"));
+    }
+    let mut labels: Vec<(&str, Kind)> = Vec::new();
+    for (c, _, _) in rows {
+        if !labels.iter().any(|(l, _)| *l == c.label) {
+            labels.push((&c.label, c.kind));
+        }
+    }
+    for (label, _) in &labels {
+        let Some(m) = median_of(rows, label) else {
+            continue;
+        };
+        let value = if m.timed_out {
+            "timeout".to_string()
+        } else if m.keys.iter().all(|k| k.is_none()) {
+            "failed".to_string()
+        } else {
+            scenario.format_keys(&m.keys)
+        };
+        line.push_str(&format!("   {label} {value}"));
+    }
+    let fbbus: Vec<&str> = labels
+        .iter()
+        .filter(|(_, k)| *k == Kind::Fbbus)
+        .map(|(l, _)| *l)
+        .collect();
+    let mut pairs: Vec<(&str, &str)> = Vec::new();
+    for f in &fbbus {
+        for (other, kind) in &labels {
+            if matches!(kind, Kind::Mosquitto | Kind::Rumqttd) {
+                pairs.push((f, other));
+            }
+        }
+    }
+    if let Some((first, later)) = fbbus.split_first() {
+        for f in later {
+            pairs.push((f, first));
+        }
+    }
+    for (a, b) in &pairs {
+        let (Some(ma), Some(mb)) = (median_of(rows, a), median_of(rows, b)) else {
+            continue;
+        };
+        let ratios: Vec<String> = ma
+            .keys
+            .iter()
+            .enumerate()
+            .map(|(i, ka)| match (ka, mb.keys.get(i).copied().flatten()) {
+                (Some(x), Some(y)) if !ma.timed_out && !mb.timed_out && y > 0.0 => {
+                    format!("{:.2}x", x / y)
+                }
+                _ => "n/a".into(),
+            })
+            .collect();
+        let ratios = if ratios.is_empty() {
+            "n/a".to_string()
+        } else {
+            ratios.join("/")
+        };
+        line.push_str(&format!("   {a}/{b} {ratios}"));
+    }
+    if !pairs.is_empty() {
+        line.push_str(if scenario.higher_is_better() {
+            "   (higher is better)"
+        } else {
+            "   (lower is better)"
+        });
+    }
+    line
+}
+
+/// Upstream rumqttd's version as resolved in the workspace's Cargo.lock.
+fn rumqttd_version() -> &'static str {
+    const LOCK: &str = include_str!("../../../Cargo.lock");
+    LOCK.split("[[package]]")
+        .find(|p| p.contains("\nname = \"rumqttd\"\n") && p.contains("source = \"registry+"))
+        .and_then(|p| p.lines().find_map(|l| l.strip_prefix("version = ")))
+        .map(|v| v.trim_matches('"'))
+        .unwrap_or("0.20")
+}
+
+fn read_first(path: &str, key: Option<&str>) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let line = match key {
+        Some(key) => text
+            .lines()
+            .find(|l| l.starts_with(key))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim().to_string()),
+        None => text.lines().next().map(|l| l.trim().to_string()),
+    };
+    line.unwrap_or_else(|| "unknown".into())
+}

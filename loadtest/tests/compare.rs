@@ -1,0 +1,220 @@
+//! `fbbus-loadtest compare` (the broker comparison that was `fbbus-bench`) at smoke-test
+//! sizes against the real `fbbus` binary of this target directory (built once if
+//! missing), Mosquitto where installed (CI installs it) and raw rumqttd: a numeric figure
+//! per broker and the ratios, two fbbus binaries alternating round by round, and the
+//! fbbus-only `compare bridge`.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::{fbbus_bin, loadtest, require, Run};
+
+/// "312.4k" -> 312400.0
+fn parse_si(token: &str) -> Option<f64> {
+    let (number, factor) = match token.strip_suffix('k') {
+        Some(n) => (n, 1e3),
+        None => match token.strip_suffix('M') {
+            Some(n) => (n, 1e6),
+            None => (token, 1.0),
+        },
+    };
+    number.parse::<f64>().ok().map(|v| v * factor)
+}
+
+/// The ratio line of the scenario whose title starts with `title`.
+fn ratio_line<'a>(run: &'a Run, title: &str) -> &'a str {
+    run.stdout
+        .lines()
+        .rev()
+        .find(|l| l.starts_with(title))
+        .unwrap_or_else(|| panic!("no `{title}` result line\n{}", run.context()))
+}
+
+/// The msg/s figure that follows `label` in a fan-in ratio line.
+fn rate_of(line: &str, label: &str) -> Option<f64> {
+    let tokens: Vec<&str> = line.split_whitespace().collect();
+    let at = tokens.iter().position(|t| *t == label)?;
+    (tokens.get(at + 2) == Some(&"msg/s"))
+        .then(|| tokens.get(at + 1).and_then(|t| parse_si(t)))
+        .flatten()
+}
+
+/// The ratio `a/b 1.23x` in a ratio line.
+fn ratio(line: &str, pair: &str) -> Option<f64> {
+    let tokens: Vec<&str> = line.split_whitespace().collect();
+    let at = tokens.iter().position(|t| *t == pair)?;
+    tokens
+        .get(at + 1)?
+        .split('/')
+        .next()?
+        .strip_suffix('x')?
+        .parse()
+        .ok()
+}
+
+#[test]
+fn quick_fanin_and_connrate_against_fbbus() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let started = Instant::now();
+    let run = loadtest(
+        &[
+            "compare",
+            "--quick",
+            "--brokers",
+            "fbbus",
+            "--scenarios",
+            "fanin,connrate",
+            "--fbbus",
+            fbbus,
+        ],
+        &[],
+    );
+    let elapsed = started.elapsed();
+    assert!(run.success, "compare failed\n{}", run.context());
+    // The ratio line: `burst fan-in (...)   fbbus 312.4k msg/s ...`
+    let line = ratio_line(&run, "burst fan-in");
+    assert!(
+        matches!(rate_of(line, "fbbus"), Some(r) if r > 0.0),
+        "fbbus msg/s is not a number in {line:?}\n{}",
+        run.context()
+    );
+    assert!(
+        run.stdout
+            .lines()
+            .any(|l| l.starts_with("connections per second") && l.contains("conn/s")),
+        "no connection-rate figure\n{}",
+        run.context()
+    );
+    // The transcript is written outside the source tree, where --out says.
+    assert_eq!(run.file("compare.txt"), run.stdout);
+    assert!(
+        elapsed < Duration::from_secs(30),
+        "the quick smoke run took {elapsed:?}"
+    );
+}
+
+#[test]
+fn two_fbbus_binaries_alternate_and_report_new_over_old() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let old = format!("old={fbbus}");
+    let new = format!("new={fbbus}");
+    let run = loadtest(
+        &[
+            "compare",
+            "--quick",
+            "--brokers",
+            "fbbus",
+            "--fbbus",
+            &old,
+            "--fbbus",
+            &new,
+            "--rounds",
+            "2",
+            "--scenarios",
+            "fanin,idlemem",
+        ],
+        &[],
+    );
+    assert!(run.success, "compare failed\n{}", run.context());
+    // A B A B: every round runs both binaries before the next round starts.
+    let rows: Vec<&str> = run
+        .stdout
+        .lines()
+        .filter_map(|l| l.trim_start().split("  ").next())
+        .filter(|first| first.starts_with("old #") || first.starts_with("new #"))
+        .collect();
+    assert_eq!(
+        rows,
+        ["old #1", "new #1", "old #2", "new #2", "old #1", "new #1", "old #2", "new #2"],
+        "{}",
+        run.context()
+    );
+    let fanin = ratio_line(&run, "burst fan-in");
+    assert!(fanin.contains("[median of 2]"), "{fanin}");
+    assert!(
+        matches!(rate_of(fanin, "old"), Some(r) if r > 0.0)
+            && matches!(rate_of(fanin, "new"), Some(r) if r > 0.0),
+        "{fanin}"
+    );
+    let r = ratio(fanin, "new/old").unwrap_or_else(|| panic!("no new/old ratio: {fanin}"));
+    assert!(r > 0.0, "{fanin}");
+    let idle = ratio_line(&run, "memory per idle connection");
+    assert!(
+        idle.contains("KB/conn") && idle.contains("new/old"),
+        "{idle}"
+    );
+}
+
+#[test]
+fn fbbus_mosquitto_and_raw_rumqttd_side_by_side() {
+    if !std::path::Path::new("/usr/sbin/mosquitto").is_file() && !require("mosquitto") {
+        return;
+    }
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let run = loadtest(
+        &[
+            "compare",
+            "--quick",
+            "--scenarios",
+            "fanin,authstorm",
+            "--fbbus",
+            fbbus,
+        ],
+        &[],
+    );
+    assert!(run.success, "compare failed\n{}", run.context());
+    let fanin = ratio_line(&run, "burst fan-in");
+    for label in ["fbbus", "mosquitto", "rumqttd"] {
+        assert!(
+            matches!(rate_of(fanin, label), Some(r) if r > 0.0),
+            "no {label} msg/s in {fanin}\n{}",
+            run.context()
+        );
+    }
+    assert!(fanin.contains("mosquitto (nodelay off)"), "{fanin}");
+    for pair in ["fbbus/mosquitto", "fbbus/rumqttd"] {
+        assert!(
+            matches!(ratio(fanin, pair), Some(r) if r > 0.0),
+            "no {pair} ratio in {fanin}"
+        );
+    }
+    // Every device of every broker logged in with its password.
+    let storm_rows: Vec<&str> = run
+        .stdout
+        .lines()
+        .filter(|l| {
+            ["   fbbus ", "   mosquitto ", "   rumqttd "]
+                .iter()
+                .any(|p| l.starts_with(p))
+                && l.contains("/100 ")
+        })
+        .collect();
+    assert_eq!(storm_rows.len(), 3, "{}", run.context());
+    for row in storm_rows {
+        assert!(row.contains("100/100"), "not every device connected: {row}");
+    }
+    let storm = ratio_line(&run, "authenticated reconnect storm");
+    assert!(
+        matches!(ratio(storm, "fbbus/mosquitto"), Some(r) if r > 0.0),
+        "{storm}"
+    );
+}
+
+/// `compare bridge --quick` links two fbbus lines over zenoh and reports the hop.
+#[test]
+fn quick_bridge_scenario_reports_the_hop() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let run = loadtest(&["compare", "bridge", "--quick", "--fbbus", fbbus], &[]);
+    assert!(run.success, "compare bridge failed\n{}", run.context());
+    let across = run
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("A -> B"))
+        .unwrap_or_else(|| panic!("no A -> B row\n{}", run.context()));
+    assert!(
+        across.ends_with("2000/2000"),
+        "every burst message crossed: {across}"
+    );
+    assert!(run.stdout.contains("hop adds"), "{}", run.context());
+}
