@@ -16,7 +16,7 @@ use crate::policy::PublishPolicy;
 use crate::router::RouterHandle;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
-use crate::session::SubscriptionObserver;
+use crate::session::Observers;
 use crate::wills::Wills;
 
 /// Everything connections share, built once by `server`.
@@ -41,7 +41,6 @@ pub struct Context {
     pub shutdown: watch::Receiver<bool>,
     /// Tests only: a publication on this topic makes its session panic (`supervisor`).
     pub test_panic_topic: Option<String>,
-    /// Who else wants to know what clients subscribe to: the zenoh bridge to the other
-    /// lines, once started (`[bridge]` configured), imports what local clients read.
-    pub bridge: std::sync::OnceLock<Arc<dyn SubscriptionObserver>>,
+    /// Told of what clients subscribe to: typed-topic re-encoding, the bus bridge.
+    pub observers: Observers,
 }

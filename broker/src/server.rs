@@ -16,17 +16,18 @@ use crate::authenticator::Authenticator;
 use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
 use crate::context::Context;
-use crate::policy::access::Access;
-use crate::policy::typed::FbTopics;
-use crate::policy::PublishPolicy;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::listener::Listener;
 use crate::listener::ListenerPolicy;
 use crate::metrics::Metrics;
+use crate::policy::access::Access;
+use crate::policy::typed::FbTopics;
+use crate::policy::PublishPolicy;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
+use crate::session::Observers;
 use crate::supervisor::spawn_core;
 use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
@@ -130,6 +131,19 @@ impl Broker {
             publisher,
             Arc::clone(&metrics),
         ));
+        // Who is told of subscriptions: typed-topic re-encoding, and the bus bridge, whose
+        // handle exists before any client connects (it links the bus once started, below).
+        let mut observers = Observers::default();
+        observers.register(Arc::clone(&fb) as _);
+        #[cfg(feature = "bridge")]
+        let bridge = match &config.bridge {
+            Some(bus) => {
+                let bridge = crate::bridge::Bridge::new(bus)?;
+                observers.register(Arc::clone(&bridge) as _);
+                Some(bridge)
+            }
+            None => None,
+        };
         let ctx = Arc::new(Context {
             router,
             authenticator,
@@ -149,19 +163,14 @@ impl Broker {
             connect_timeout: config.connect_timeout(),
             shutdown: shutdown_rx.clone(),
             test_panic_topic: crate::supervisor::test_panic_topic("FBBUS_TEST_SESSION_PANIC_TOPIC"),
-            bridge: Default::default(),
+            observers,
         });
 
         let mut tasks = Vec::new();
         #[cfg(feature = "bridge")]
-        let bridge = match &config.bridge {
-            Some(bus) => {
-                let bridge = crate::bridge::start(bus, Arc::clone(&ctx)).await?;
-                let _ = ctx.bridge.set(Arc::clone(&bridge) as _);
-                Some(bridge)
-            }
-            None => None,
-        };
+        if let (Some(bridge), Some(bus)) = (&bridge, &config.bridge) {
+            bridge.start(bus, Arc::clone(&ctx)).await?;
+        }
 
         let mut listeners = Vec::new();
         for (section, tls) in config.listeners.iter().zip(tls.drain(..)) {

@@ -31,6 +31,7 @@ use serde_json::json;
 use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
 use crate::registry::Registry;
+use crate::session::SubscriptionObserver;
 
 /// What to do with typed-namespace topics no device declared.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
@@ -132,10 +133,7 @@ impl FbTopics {
 
     /// A subscription was granted: start re-encoding into the namespaces it can match.
     pub fn subscribed(&self, filter: &str) {
-        let filter = match filter.strip_prefix("$share/") {
-            Some(rest) => rest.split_once('/').map_or("", |(_, f)| f),
-            None => filter,
-        };
+        let filter = fb_bridge::topic::filter::unshared(filter);
         let first = filter.split('/').next().unwrap_or("");
         for (i, encoding) in Encoding::ALL.into_iter().enumerate() {
             let matches = first == encoding.namespace() || matches!(first, "#" | "+");
@@ -159,6 +157,16 @@ impl FbTopics {
                 .unwrap_or(0)]
             .load(Ordering::Relaxed)
     }
+}
+
+/// Typed messages are re-encoded into a namespace once someone reads it.
+impl SubscriptionObserver for FbTopics {
+    fn subscribed(&self, filter: &str) {
+        FbTopics::subscribed(self, filter)
+    }
+
+    /// Re-encoding, once started, goes on: a namespace someone read is likely read again.
+    fn unsubscribed(&self, _filter: &str) {}
 }
 
 /// Diagnostics one connection may publish per second, beyond a burst of [`DIAG_BURST`]:

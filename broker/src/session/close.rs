@@ -145,10 +145,8 @@ impl Session {
         // A clean session's subscriptions end with it; a persistent session's stay (the
         // router keeps queueing for it), and so does the bridge's import of them.
         if self.lifetime.clean_link {
-            if let Some(bridge) = self.ctx.bridge.get() {
-                for f in self.subscriptions.keys() {
-                    bridge.unsubscribed(f);
-                }
+            for f in self.subscriptions.keys() {
+                self.ctx.observers.unsubscribed(f);
             }
         }
         self.ctx.fb.registry.disconnected(

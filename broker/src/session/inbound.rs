@@ -20,17 +20,13 @@ const TOPIC_ALIAS_MAX: u16 = 4096;
 
 impl Session {
     /// The packet path for one packet from the client (see the module doc).
-    pub(super) fn inbound(
-        &mut self,
-        packet: Packet,
-        qos_pkid: Option<(u8, u16)>,
-    ) -> Result<(), End> {
+    pub(super) fn inbound(&mut self, packet: Packet) -> Result<(), End> {
         // Acknowledgements of deliveries carry the client's packet ids; from here on the
         // packet path works with the router's (`packet_ids`).
         let packet = self.ids.from_client(packet);
         match packet {
             Packet::Publish(publish, properties) => {
-                let (qos, pkid) = qos_pkid.unwrap_or((0, 0));
+                let (qos, pkid) = publish.qos_and_pkid();
                 self.on_publish(publish, properties, qos, pkid)
             }
             Packet::Subscribe(subscribe, properties) => {
@@ -94,11 +90,9 @@ impl Session {
                 Ok(())
             }
             Packet::Unsubscribe(unsubscribe, properties) => {
-                if let Some(bridge) = self.ctx.bridge.get() {
-                    for f in &unsubscribe.filters {
-                        if self.subscriptions.contains_key(f) {
-                            bridge.unsubscribed(f);
-                        }
+                for f in &unsubscribe.filters {
+                    if self.subscriptions.contains_key(f) {
+                        self.ctx.observers.unsubscribed(f);
                     }
                 }
                 self.remember_subscriptions(std::iter::empty(), &unsubscribe.filters);
@@ -350,11 +344,8 @@ impl Session {
             .map(|(f, _)| f);
         let granted: Vec<&Filter> = granted.collect();
         for filter in &granted {
-            self.ctx.fb.subscribed(&filter.path);
-            if let Some(bridge) = self.ctx.bridge.get() {
-                if !self.subscriptions.contains_key(&filter.path) {
-                    bridge.subscribed(&filter.path);
-                }
+            if !self.subscriptions.contains_key(&filter.path) {
+                self.ctx.observers.subscribed(&filter.path);
             }
         }
         self.remember_subscriptions(granted.into_iter(), &[]);

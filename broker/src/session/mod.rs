@@ -32,9 +32,12 @@ mod connect;
 mod deliver;
 mod inbound;
 pub mod lifetime;
+mod observer;
 pub mod packet_ids;
 pub mod redelivery;
 pub mod table;
+
+pub use observer::{Observers, SubscriptionObserver};
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::net::SocketAddr;
@@ -57,18 +60,8 @@ use crate::policy::typed::FbSession;
 use crate::supervisor::CatchPanic;
 use crate::wills::Will;
 use crate::wire::codec::{connack, ReadError, Version};
-use crate::wire::frame;
 use crate::wire::framed::{Io, Stream};
 use close::End;
-
-/// Told of every filter local clients start or stop reading (the bus bridge imports what
-/// they read from the other lines). Called on the connection's task: must not block.
-pub trait SubscriptionObserver: Send + Sync {
-    /// A first local subscription to `filter` (per session).
-    fn subscribed(&self, filter: &str);
-    /// A session no longer reads `filter`.
-    fn unsubscribed(&self, filter: &str);
-}
 
 /// Serves one accepted connection: reads its CONNECT and logs it in on this task, then
 /// runs the session on a task of its own until it ends. `slot` is its place under
@@ -324,10 +317,9 @@ impl Session {
                     return Err(End::Malformed);
                 }
             };
-            let qos_pkid = frame::publish_qos_and_pkid(&self.io.read, &header);
             let decoded = self.io.decode(&header);
             let end = match decoded {
-                Ok(packet) => self.inbound(packet, qos_pkid).err(),
+                Ok(packet) => self.inbound(packet).err(),
                 Err(ReadError::ServerOnlyType(t)) => {
                     tracing::warn!(
                         client_id = &*self.client_id,

@@ -6,8 +6,7 @@
 //! - the protocol level in CONNECT, so MQTT 3.1.1 and 5 share one port.
 //!
 //! A PUBLISH's QoS and packet id come from the decoded packet
-//! (`rumqttd::protocol::Publish::qos_and_pkid`); [`publish_qos_and_pkid`] is left only
-//! until its last caller (`connection.rs`) reads them there.
+//! (`rumqttd::protocol::Publish::qos_and_pkid`).
 
 use bytes::BytesMut;
 
@@ -92,28 +91,6 @@ pub fn connect_protocol_level(buf: &BytesMut, header: &FixedHeader) -> Option<u8
     body.get(2 + name_len).copied()
 }
 
-/// QoS and packet id of a buffered PUBLISH frame (packet id 0 for QoS 0).
-///
-/// Superseded by `Publish::qos_and_pkid` on the decoded packet, which gives the same for
-/// every PUBLISH that decodes (`codec::tests::decoded_publish_carries_its_qos_and_packet_id`);
-/// to be deleted, with its test, once `connection.rs` no longer calls it.
-pub fn publish_qos_and_pkid(buf: &[u8], header: &FixedHeader) -> Option<(u8, u16)> {
-    if header.packet_type() != 3 {
-        return None;
-    }
-    let qos = (header.byte1 >> 1) & 0b11;
-    if qos == 0 {
-        return Some((0, 0));
-    }
-    let body = &buf[header.header_len..header.frame_len()];
-    let topic_len = u16::from_be_bytes([*body.first()?, *body.get(1)?]) as usize;
-    let at = 2 + topic_len;
-    Some((
-        qos,
-        u16::from_be_bytes([*body.get(at)?, *body.get(at + 1)?]),
-    ))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -156,14 +133,10 @@ mod tests {
     }
 
     #[test]
-    fn connect_level_and_publish_pkid() {
+    fn connect_level() {
         let connect = [0x10, 10, 0, 4, b'M', b'Q', b'T', b'T', 5, 2, 0, 60];
         let buf = BytesMut::from(&connect[..]);
         let h = check(&buf, 100).unwrap();
         assert_eq!(connect_protocol_level(&buf, &h), Some(5));
-
-        let publish = [0x32, 7, 0, 1, b'a', 0x12, 0x34, b'x', b'y'];
-        let h = check(&publish, 100).unwrap();
-        assert_eq!(publish_qos_and_pkid(&publish, &h), Some((1, 0x1234)));
     }
 }

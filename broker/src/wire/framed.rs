@@ -11,9 +11,9 @@ use bytes::BytesMut;
 use rumqttd::protocol::{ConnectReturnCode, Packet};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 
+use crate::metrics::Metrics;
 use crate::wire::codec::{decode_frame, Codec, ReadError, Version};
 use crate::wire::frame::{self, FrameError};
-use crate::metrics::Metrics;
 
 /// A byte stream a client connected over: TCP or TLS over TCP.
 pub trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}

@@ -1,0 +1,221 @@
+//! Export: what other lines are interested in leaves this line through the router's
+//! export link, stamped, one hop only.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use fb_bridge::bus::{keys, BusConfig};
+use fb_bridge::interface::OutputPort;
+use fb_bridge::topic::{filter, TypedTopic};
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{
+    Filter, Packet, PubAck, PubAckReason, QoS, RetainForwardRule, Subscribe, Unsubscribe,
+};
+use rumqttd::Notification;
+use tokio::sync::mpsc;
+
+use super::{EXPORT_FILTER, IMPORT_CLIENT_ID};
+use crate::broker_publisher;
+use crate::context::Context;
+use crate::policy::origin;
+
+/// Subscribes to what other lines want, and puts what this line's clients publish there.
+pub(super) async fn export_loop(
+    exporter: fb_bridge::bus::link::Exporter,
+    (mut tx, mut rx): (LinkTx, LinkRx),
+    mut remote: mpsc::UnboundedReceiver<(bool, String, String)>,
+    ctx: Arc<Context>,
+    export: Vec<String>,
+) {
+    let mut exports = Exports {
+        exporter,
+        interest: HashMap::new(),
+        is_event: HashMap::new(),
+        export,
+        ctx,
+    };
+    loop {
+        tokio::select! {
+            change = remote.recv() => {
+                let Some((added, line, filter)) = change else { return };
+                if let Some(packet) = exports.interest_changed(added, line, filter) {
+                    if tx.send(packet).await.is_err() {
+                        return;
+                    }
+                }
+            }
+            notification = rx.next() => {
+                let Ok(mut next) = notification else { return };
+                // Everything the router delivered at once is exported, then acknowledged
+                // in one go: one router wake-up per batch, not one per message.
+                let mut acks = Vec::new();
+                let mut unscheduled = false;
+                loop {
+                    match next {
+                        Some(Notification::Forward(forward)) => {
+                            acks.extend(exports.forward(forward).await);
+                        }
+                        Some(Notification::Unschedule) => unscheduled = true,
+                        _ => {}
+                    }
+                    next = match rx.recv_deadline(std::time::Instant::now()) {
+                        Ok(n) => n,
+                        Err(rumqttd::local::LinkError::RecvTimeout(_)) => break,
+                        Err(_) => return,
+                    };
+                }
+                if let Some(last) = acks.pop() {
+                    tx.buffer().extend(acks);
+                    if tx.send(last).await.is_err() {
+                        return;
+                    }
+                }
+                if unscheduled && rx.wake().await.is_err() {
+                    return;
+                }
+            }
+        }
+    }
+}
+
+/// The exporting side's state: what the other lines want, and which topics are events.
+struct Exports {
+    exporter: fb_bridge::bus::link::Exporter,
+    /// filter -> lines interested in it
+    interest: HashMap<String, std::collections::HashSet<String>>,
+    is_event: HashMap<String, bool>,
+    export: Vec<String>,
+    ctx: Arc<Context>,
+}
+
+impl Exports {
+    /// Another line's interest in `filter` came or went; returns the router subscription
+    /// change, if any.
+    fn interest_changed(&mut self, added: bool, line: String, filter: String) -> Option<Packet> {
+        if !keys::bridgeable_filter(&filter) {
+            return None;
+        }
+        let was_empty = self.interest.is_empty();
+        let lines = self.interest.entry(filter.clone()).or_default();
+        let changed = if added {
+            lines.insert(line)
+        } else {
+            lines.remove(&line)
+        };
+        if lines.is_empty() {
+            self.interest.remove(&filter);
+        }
+        if changed {
+            self.ctx
+                .metrics
+                .bridge_remote_subscriptions
+                .add(if added { 1 } else { -1 });
+        }
+        // One router subscription to the whole typed namespace while anyone is
+        // interested: one filter cannot deliver a message twice, which overlapping
+        // per-interest filters would. What leaves is decided per message against the
+        // interest set ([`Exports::forward`]), and zenoh sends each put only to the lines
+        // whose subscribers match.
+        if was_empty && !self.interest.is_empty() {
+            Some(Packet::Subscribe(
+                Subscribe {
+                    pkid: 0,
+                    filters: vec![Filter {
+                        path: EXPORT_FILTER.to_owned(),
+                        qos: QoS::AtLeastOnce,
+                        nolocal: false,
+                        preserve_retain: true,
+                        retain_forward_rule: RetainForwardRule::Never,
+                    }],
+                },
+                None,
+            ))
+        } else if !was_empty && self.interest.is_empty() {
+            Some(Packet::Unsubscribe(
+                Unsubscribe {
+                    pkid: 0,
+                    filters: vec![EXPORT_FILTER.to_owned()],
+                },
+                None,
+            ))
+        } else {
+            None
+        }
+    }
+
+    /// Puts one delivery of the router on the bus if another line wants it; returns the
+    /// acknowledgement the router expects (a QoS 1 delivery), sent once zenoh took it.
+    async fn forward(&mut self, forward: rumqttd::Forward) -> Option<Packet> {
+        let mut publish = forward.publish;
+        let origin = origin::take(&mut publish);
+        let (routed_qos, pkid) = broker_publisher::qos_and_pkid(&publish);
+        let from_bus = origin
+            .as_ref()
+            .is_some_and(|o| &*o.publisher == IMPORT_CLIENT_ID);
+        let topic = String::from_utf8_lossy(&publish.topic).into_owned();
+        // rumqttd replays retained messages on every subscribe (it ignores Retain
+        // Handling): those reach other lines by query, not here.
+        let replay = publish.retain;
+        let wanted = !from_bus
+            && !replay
+            && BusConfig::allows(&self.export, &topic)
+            && self.interest.keys().any(|f| filter::matches(f, &topic));
+        if wanted {
+            let ctx = &self.ctx;
+            let event = *self
+                .is_event
+                .entry(topic.clone())
+                .or_insert_with(|| event_port(ctx, &topic));
+            let qos = origin
+                .as_ref()
+                .map_or(routed_qos, |o| o.qos.min(routed_qos));
+            let retain = origin.as_ref().is_some_and(|o| o.retain);
+            let payload = std::mem::take(&mut publish.payload);
+            let metrics = &self.ctx.metrics;
+            match self
+                .exporter
+                .export(&topic, payload, qos, retain, event)
+                .await
+            {
+                Ok(true) => metrics.bridge_messages.with_label_values(&["export"]).inc(),
+                Ok(false) => metrics
+                    .bridge_dropped
+                    .with_label_values(&["unbridgeable"])
+                    .inc(),
+                Err(e) => {
+                    metrics
+                        .bridge_dropped
+                        .with_label_values(&["zenoh_error"])
+                        .inc();
+                    tracing::warn!(topic, error = %e, "not exported");
+                }
+            }
+        }
+        if self.is_event.len() > 100_000 {
+            self.is_event.clear();
+        }
+        (routed_qos > 0).then(|| {
+            Packet::PubAck(
+                PubAck {
+                    pkid,
+                    reason: PubAckReason::Success,
+                },
+                None,
+            )
+        })
+    }
+}
+
+/// Whether `topic` is an event output of a local device (events travel at a higher
+/// priority than data).
+pub(super) fn event_port(ctx: &Context, topic: &str) -> bool {
+    let Some(typed) = TypedTopic::parse(topic) else {
+        return false;
+    };
+    ctx.fb.registry.get(typed.device).is_some_and(|r| {
+        matches!(
+            r.interface.output(typed.fb, typed.port),
+            Some(OutputPort::Event(_))
+        )
+    })
+}

@@ -1,0 +1,226 @@
+//! Import: what local clients subscribe to is imported from the other lines, and what
+//! arrives passes the publish policy (`Door::Bus`) before it enters the router.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use bytes::Bytes;
+use fb_bridge::bus::link::{Import, Inbound, Inbox, Link, RouteKeys};
+use fb_bridge::bus::{BusConfig, Dedup};
+use fb_bridge::topic::TypedTopic;
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::Packet;
+use rumqttd::Notification;
+use tokio::sync::mpsc;
+
+use super::{Interest, IMPORT_CLIENT_ID};
+use crate::broker_publisher;
+use crate::context::Context;
+use crate::policy::origin;
+use crate::policy::typed::FbSession;
+use crate::policy::{Admission, Door, Publication, Stage};
+
+/// Keeps one zenoh import per filter local clients subscribed to, counted.
+pub(super) async fn imports(
+    link: Arc<Link>,
+    mut interest: mpsc::UnboundedReceiver<Interest>,
+    ctx: Arc<Context>,
+) {
+    let mut active: HashMap<String, (usize, Import)> = HashMap::new();
+    while let Some(change) = interest.recv().await {
+        match change {
+            Interest::Add(filter) => {
+                if let Some((count, _)) = active.get_mut(&filter) {
+                    *count += 1;
+                    continue;
+                }
+                match link.import(&filter).await {
+                    Ok(import) => {
+                        tracing::debug!(filter, "importing from the other lines");
+                        active.insert(filter.clone(), (1, import));
+                        ctx.metrics.bridge_imports.set(active.len() as i64);
+                        // Retained messages of the other lines, published before this
+                        // line was listening.
+                        match link.query_retained(&filter).await {
+                            Ok(retained) => {
+                                for message in retained {
+                                    ctx.metrics.bridge_retained_replayed.inc();
+                                    link.requeue(message).await;
+                                }
+                            }
+                            Err(e) => {
+                                tracing::warn!(filter, error = %e, "retained messages of other lines not fetched")
+                            }
+                        }
+                    }
+                    Err(e) => {
+                        tracing::error!(filter, error = %e, "cannot import from the other lines")
+                    }
+                }
+            }
+            Interest::Remove(filter) => {
+                if let Some((count, _)) = active.get_mut(&filter) {
+                    *count -= 1;
+                    if *count == 0 {
+                        active.remove(&filter);
+                        ctx.metrics.bridge_imports.set(active.len() as i64);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Messages from the bus into the router, checked like local publications, through the
+/// import link. Whatever the inbox holds is taken at once (up to [`INJECT_BATCH`]) and
+/// handed to the router in one go: one router wake-up per batch, not per message.
+pub(super) async fn inject_loop(
+    inbox: Inbox<Inbound>,
+    route_keys: RouteKeys,
+    ctx: Arc<Context>,
+    (mut tx, mut rx): (LinkTx, LinkRx),
+    import: Vec<String>,
+) {
+    // The router acknowledges QoS 1 messages to this link; nothing waits for them.
+    tokio::spawn(async move {
+        while let Ok(notification) = rx.next().await {
+            if matches!(notification, Some(Notification::Unschedule)) {
+                let _ = rx.wake().await;
+            }
+        }
+    });
+    let mut injector = Injector {
+        dedup: Dedup::default(),
+        route_keys,
+        publisher: IMPORT_CLIENT_ID.into(),
+        devices: HashMap::new(),
+        import,
+        pkid: 0,
+        packets: Vec::new(),
+    };
+    while let Some(first) = inbox.recv().await {
+        injector.take(&ctx, first);
+        for message in inbox.try_iter().take(INJECT_BATCH) {
+            injector.take(&ctx, message);
+        }
+        if let Some(last) = injector.packets.pop() {
+            tx.buffer().extend(injector.packets.drain(..));
+            if tx.send(last).await.is_err() {
+                tracing::error!("router gone: the bridge stops importing");
+                return;
+            }
+        }
+    }
+}
+
+/// Messages taken from the inbox at once before the router is woken.
+const INJECT_BATCH: usize = 256;
+
+/// The importing side's state: what it has seen, and each remote device's typed check.
+struct Injector {
+    dedup: Dedup,
+    route_keys: RouteKeys,
+    /// The origin's publisher of every message from the bus: the import link.
+    publisher: Arc<str>,
+    /// Per remote device: the interface its session checks against.
+    devices: HashMap<String, (Arc<fb_bridge::Interface>, FbSession)>,
+    import: Vec<String>,
+    pkid: u16,
+    packets: Vec<Packet>,
+}
+
+impl Injector {
+    fn take(&mut self, ctx: &Context, message: Inbound) {
+        let dropped = |reason: &str| {
+            ctx.metrics
+                .bridge_dropped
+                .with_label_values(&[reason])
+                .inc()
+        };
+        if !self.dedup.first_time(&message.stamp) {
+            return dropped("duplicate");
+        }
+        self.route_keys.note(&message.stamp.line, &message.topic);
+        if !BusConfig::allows(&self.import, &message.topic) {
+            return dropped("filter");
+        }
+        let Some(typed) = TypedTopic::parse(&message.topic) else {
+            return dropped("unbridgeable");
+        };
+        let device = typed.device;
+        // The device's typed-topic state: its declared interface once the registry has its
+        // record from the other line, none until then (see `PublishPolicy::admit`).
+        let interface = ctx
+            .fb
+            .registry
+            .remote_interface(device, &message.stamp.line);
+        let mut unknown;
+        let publisher = match interface {
+            Some(interface) => {
+                let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
+                    (
+                        Arc::clone(&interface),
+                        FbSession::new(&ctx.fb, device, Some(device), 0),
+                    )
+                });
+                if !Arc::ptr_eq(&entry.0, &interface) || entry.1.interface().is_none() {
+                    entry.0 = Arc::clone(&interface);
+                    entry.1.set_interface(Some(interface));
+                }
+                &mut entry.1
+            }
+            None => {
+                unknown = FbSession::new(&ctx.fb, device, Some(device), 0);
+                &mut unknown
+            }
+        };
+        let payload = Bytes::from(message.payload);
+        let publication = Publication {
+            topic: &message.topic,
+            payload: &payload,
+            qos: message.stamp.qos.min(1),
+            retain: message.stamp.retain,
+        };
+        let admission = ctx
+            .policy
+            .admit(Door::Bus, publisher, &self.publisher, publication);
+        // The device's diagnostics are its own line's to publish.
+        drop(publisher.take_outbox());
+        let (origin, routes) = match admission {
+            Admission::Route { origin, routes } => (origin, routes),
+            Admission::Refused {
+                stage: Stage::Access,
+                ..
+            } => {
+                tracing::debug!(
+                    topic = message.topic,
+                    line = message.stamp.line,
+                    "message from another line refused by this line's ACL"
+                );
+                return;
+            }
+            // Counted by the policy (`bridge_dropped{reason="type"}`); a declaration is
+            // never a bridged topic, but would not be routed either.
+            Admission::Refused { .. } => return,
+            Admission::Consumed => return dropped("type"),
+        };
+        let routes = routes.unwrap_or_else(|| vec![(message.topic, payload)]);
+        ctx.metrics
+            .bridge_messages
+            .with_label_values(&["import"])
+            .inc();
+        let qos = message.stamp.qos.min(1);
+        for (topic, payload) in routes {
+            let pkid = if qos > 0 {
+                self.pkid = self.pkid % u16::MAX + 1;
+                self.pkid
+            } else {
+                0
+            };
+            let mut publish =
+                broker_publisher::publish_packet(topic, payload, qos, message.stamp.retain, pkid);
+            origin::mark(&mut publish, origin.clone());
+            self.packets.push(Packet::Publish(publish, None));
+        }
+    }
+}
