@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod clients;
+pub mod fb;
 pub mod raw;
 
 use std::io::{Read, Write};
