@@ -185,9 +185,4 @@ impl Authenticator {
             Err(e) => tracing::warn!(user, error = %e, "could not rewrite legacy password hash"),
         }
     }
-
-    /// Drops every cached verification (used when the password file is reloaded).
-    pub fn forget_cached(&self) {
-        self.cache.clear();
-    }
 }

@@ -85,6 +85,7 @@ impl Health {
     }
 
     /// Why the broker cannot go on, once something fatal happened.
+    #[cfg(test)]
     pub fn fatal_reason(&self) -> Option<String> {
         self.fatal.borrow().clone()
     }

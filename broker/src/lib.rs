@@ -41,29 +41,37 @@
 //!
 //! Password files, access rules and throttling are the `security` crate's.
 
-pub mod admin;
-pub mod authenticator;
+mod admin;
+mod authenticator;
 #[cfg(feature = "bridge")]
-pub mod bridge;
-pub mod broker_publisher;
+mod bridge;
+mod broker_publisher;
 pub mod config;
-pub mod context;
-pub mod health;
-pub mod listener;
-pub mod logging;
-pub mod memory;
-pub mod metrics;
-pub mod policy;
-pub mod registry;
-pub mod router;
-pub mod server;
-pub mod session;
-pub mod supervisor;
-pub mod tls;
+mod context;
+mod health;
+mod listener;
+mod logging;
+mod memory;
+mod metrics;
+mod policy;
+mod registry;
+mod router;
+mod server;
+mod session;
+mod supervisor;
+mod tls;
+mod watched_file;
+mod wills;
+
+// For the fuzz targets (`broker/fuzz`) and the tests of the password verifier's memory:
+// not part of the broker's API.
+#[doc(hidden)]
 pub mod verifier;
-pub mod watched_file;
-pub mod wills;
+#[doc(hidden)]
 pub mod wire;
 
-pub use config::Config;
-pub use server::Broker;
+pub use config::{Config, ConfigError, DEFAULT_CONFIG};
+pub use logging::init as init_logging;
+pub use memory::{configure as configure_memory, JEMALLOC_CONF};
+pub use server::{check as check_config, Broker, StartError};
+pub use supervisor::install_panic_hook;

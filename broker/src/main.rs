@@ -11,7 +11,7 @@ use security::{Argon2Params, PasswordFile, StoredHash};
 
 mod devices_command;
 
-/// The allocator and its options: see `broker::memory` for why these.
+/// The allocator and its options: see the broker library's `memory` module for why these.
 #[cfg(feature = "jemalloc")]
 #[global_allocator]
 static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
@@ -21,7 +21,7 @@ static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
 /// overrides it.
 #[cfg(feature = "jemalloc")]
 #[unsafe(export_name = "_rjem_malloc_conf")]
-pub static JEMALLOC_CONF: &[u8; 83] = broker::memory::JEMALLOC_CONF;
+pub static JEMALLOC_CONF: &[u8; 83] = broker::JEMALLOC_CONF;
 
 #[derive(Parser)]
 #[command(
@@ -149,7 +149,7 @@ fn devices(
 /// Validates the file and loads everything it names (password file, ACL, TLS files).
 fn check_config(path: &std::path::Path) -> Result<()> {
     let config = Config::load(path)?;
-    broker::server::check(&config)?;
+    broker::check_config(&config)?;
     println!("{}: ok", path.display());
     Ok(())
 }
@@ -163,9 +163,9 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
         Some(path) => Config::load(path)?,
         None => Config::embedded_default(),
     };
-    broker::logging::init(&config.log).map_err(anyhow::Error::msg)?;
-    broker::supervisor::install_panic_hook();
-    broker::memory::configure();
+    broker::init_logging(&config.log).map_err(anyhow::Error::msg)?;
+    broker::install_panic_hook();
+    broker::configure_memory();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("fbbus")

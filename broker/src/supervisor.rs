@@ -1,16 +1,17 @@
 //! What happens when code panics anyway.
 //!
 //! No panic should be reachable from the network or from stored state: input is checked
-//! where it enters (`codec`, `frame`, the router's protocol helpers, the typed codecs), and
+//! where it enters (`wire`, the router's protocol codecs, the typed codecs), and
 //! the fuzz targets in `broker/fuzz` keep it so. This module is the last line, and it
 //! does not pretend a panic did not happen:
 //!
-//! - a task or thread the whole line depends on ([`spawn_core`], [`core_thread`]) that
-//!   panics is **fatal**: [`Health::fatal`] makes `/readyz` fail at once and `fbbus serve`
-//!   exits non-zero, so the service manager restarts a broker that is whole again;
+//! - a task the whole line depends on ([`spawn_core`]; the router thread reports its own
+//!   end, see `router`) that panics is **fatal**: [`Health::fatal`] makes `/readyz` fail at
+//!   once and `fbbus serve` exits non-zero, so the service manager restarts a broker that
+//!   is whole again;
 //! - a panic in one connection's task ends that connection only: the session is closed as
 //!   for any other abnormal end (router unlinked, will published, gauges and registry
-//!   updated), see `connection::serve`, which wraps the session in [`CatchPanic`].
+//!   updated), see `session::serve`, which wraps the session in [`CatchPanic`].
 //!
 //! A panic is logged where it happens by the panic hook [`install_panic_hook`] installs
 //! (thread, location, message), whatever caught it.
@@ -74,32 +75,6 @@ where
             health.fatal(format!("task `{name}` panicked: {message}"));
         }
     })
-}
-
-/// Held by a thread the line depends on for as long as it runs: if the thread unwinds,
-/// dropping it reports the panic as fatal.
-pub struct CoreThread {
-    name: String,
-    health: Arc<Health>,
-}
-
-/// The guard a core thread holds (see [`CoreThread`]).
-pub fn core_thread(health: &Arc<Health>, name: impl Into<String>) -> CoreThread {
-    CoreThread {
-        name: name.into(),
-        health: Arc::clone(health),
-    }
-}
-
-impl Drop for CoreThread {
-    fn drop(&mut self) {
-        if std::thread::panicking() {
-            self.health.fatal(format!(
-                "thread `{}` panicked (see the log line before)",
-                self.name
-            ));
-        }
-    }
 }
 
 /// The message of a panic payload (`panic!` makes a `&str` or a `String`).
@@ -171,31 +146,5 @@ mod tests {
             "{reason}"
         );
         assert!(health.ready().await.is_err());
-    }
-
-    #[tokio::test]
-    async fn a_core_thread_that_panics_is_fatal() {
-        let health = Health::new();
-        let h = Arc::clone(&health);
-        let joined = std::thread::spawn(move || {
-            let _guard = core_thread(&h, "worker");
-            panic!("thread broke");
-        })
-        .join();
-        assert!(joined.is_err());
-        let reason = health.fatal_reason().expect("fatal");
-        assert!(reason.contains("worker"), "{reason}");
-    }
-
-    #[tokio::test]
-    async fn a_core_thread_that_ends_normally_is_not_fatal() {
-        let health = Health::new();
-        let h = Arc::clone(&health);
-        std::thread::spawn(move || {
-            let _guard = core_thread(&h, "worker");
-        })
-        .join()
-        .unwrap();
-        assert!(health.fatal_reason().is_none());
     }
 }

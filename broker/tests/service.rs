@@ -500,7 +500,7 @@ async fn server_only_packet_types_end_the_connection_cleanly() {
     assert_eq!(broker.metric("fbbus_connections"), 1.0);
 }
 
-/// The `fbbus` binary runs on jemalloc with the options `broker::memory::JEMALLOC_CONF`
+/// The `fbbus` binary runs on jemalloc with the options `broker::JEMALLOC_CONF`
 /// names (the idle-memory figures depend on them). jemalloc reads them from an exported
 /// symbol before `main`; if the symbol were lost (renamed, stripped by a build change),
 /// jemalloc would silently run on its defaults. `background_thread:true` is the option
@@ -509,7 +509,7 @@ async fn server_only_packet_types_end_the_connection_cleanly() {
 #[cfg(all(target_os = "linux", feature = "jemalloc"))]
 fn the_broker_runs_on_jemalloc_with_its_options() {
     assert!(
-        std::str::from_utf8(broker::memory::JEMALLOC_CONF)
+        std::str::from_utf8(broker::JEMALLOC_CONF)
             .unwrap()
             .contains("background_thread:true"),
         "this test looks for the background thread"

@@ -45,12 +45,12 @@ const DEEP_LEVELS: usize = 40;
 /// How long to wait for the last deliveries once everything is published.
 const DELIVERY_WAIT: Duration = Duration::from_secs(10);
 
-/// The broker on `broker::config::DEFAULT_CONFIG`, the configuration `fbbus serve` runs
+/// The broker on `broker::DEFAULT_CONFIG`, the configuration `fbbus serve` runs
 /// without `--config`, with its MQTT and admin ports moved to free loopback ports (so
 /// tests can run side by side). Its registry file then lands next to the config, in the
 /// test's own directory.
 fn start_default_broker() -> Broker {
-    let default = broker::config::DEFAULT_CONFIG;
+    let default = broker::DEFAULT_CONFIG;
     let mqtt: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
     let admin: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
     let text = default

@@ -23,7 +23,7 @@ impl Session {
     pub(super) fn inbound(&mut self, packet: Packet) -> Result<(), End> {
         // Acknowledgements of deliveries carry the client's packet ids; from here on the
         // packet path works with the router's (`packet_ids`).
-        let packet = self.ids.from_client(packet);
+        let packet = self.ids.in_router_ids(packet);
         match packet {
             Packet::Publish(publish, properties) => {
                 let (qos, pkid) = publish.qos_and_pkid();

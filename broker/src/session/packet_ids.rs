@@ -12,7 +12,7 @@
 //!
 //! So the connection numbers deliveries for the client itself and translates at the
 //! edges: [`PacketIds::deliver`] gives a delivery its id as it leaves,
-//! [`PacketIds::from_client`] maps the client's PUBACK/PUBREC/PUBCOMP back to the router's
+//! [`PacketIds::in_router_ids`] maps the client's PUBACK/PUBREC/PUBCOMP back to the router's
 //! id as they arrive, [`PacketIds::release`] maps the router's PUBREL as it leaves. Between
 //! the edges the packet path (ack order, QoS 2 answered on the client's behalf) works with
 //! the router's ids. An id the table does not know passes through unchanged, as it did
@@ -136,7 +136,7 @@ impl PacketIds {
 
     /// The client's PUBACK, PUBREC or PUBCOMP, with the router's id in place of the
     /// client's. Other packets are returned as they are.
-    pub fn from_client(&mut self, mut packet: Packet) -> Packet {
+    pub fn in_router_ids(&mut self, mut packet: Packet) -> Packet {
         match &mut packet {
             Packet::PubAck(ack, _) => {
                 if let Some(i) = self.position(ack.pkid, &[Stage::Sent]) {
@@ -281,7 +281,7 @@ mod tests {
         for (router, print) in [(1, 10), (2, 20), (3, 30)] {
             assert_eq!(ids.deliver(router, print).id, router);
         }
-        assert_eq!(id_of(&ids.from_client(puback(1))), 1);
+        assert_eq!(id_of(&ids.in_router_ids(puback(1))), 1);
         let resume = ids.into_resume();
 
         // The router numbers its re-sends from 1 again; the client sees 2 and 3, with DUP.
@@ -293,7 +293,7 @@ mod tests {
         assert_eq!(ids.deliver(4, 50), Delivery { id: 4, dup: false });
         // The client's acknowledgements reach the router with the router's ids.
         for (client, router) in [(2, 1), (3, 2), (1, 3), (4, 4)] {
-            assert_eq!(id_of(&ids.from_client(puback(client))), router);
+            assert_eq!(id_of(&ids.in_router_ids(puback(client))), router);
         }
         assert!(ids.into_resume().is_empty());
     }
@@ -304,7 +304,7 @@ mod tests {
         assert_eq!(ids.deliver(1, 10).id, 1);
         assert_eq!(ids.deliver(2, 20).id, 2);
         // QoS 2: the first is received, released, never completed; the second not received.
-        assert_eq!(id_of(&ids.from_client(pubrec(1))), 1);
+        assert_eq!(id_of(&ids.in_router_ids(pubrec(1))), 1);
         assert_eq!(ids.release(1), 1);
         let mut ids = PacketIds::resumed(ids.into_resume());
 
@@ -314,11 +314,11 @@ mod tests {
         assert_eq!(ids.release(1), 1);
         // Id 1 is still held by the exchange that waits for PUBCOMP.
         assert_eq!(ids.deliver(2, 30).id, 3);
-        assert_eq!(id_of(&ids.from_client(pubcomp(1))), 1);
-        assert_eq!(id_of(&ids.from_client(pubrec(2))), 1);
+        assert_eq!(id_of(&ids.in_router_ids(pubcomp(1))), 1);
+        assert_eq!(id_of(&ids.in_router_ids(pubrec(2))), 1);
         assert_eq!(ids.release(1), 2);
-        assert_eq!(id_of(&ids.from_client(pubcomp(2))), 1);
-        assert_eq!(id_of(&ids.from_client(puback(3))), 2);
+        assert_eq!(id_of(&ids.in_router_ids(pubcomp(2))), 1);
+        assert_eq!(id_of(&ids.in_router_ids(puback(3))), 2);
         assert!(ids.into_resume().is_empty());
     }
 
@@ -351,7 +351,7 @@ mod tests {
     #[test]
     fn unknown_ids_and_withdrawn_deliveries_pass_through() {
         let mut ids = PacketIds::default();
-        assert_eq!(id_of(&ids.from_client(puback(9))), 9);
+        assert_eq!(id_of(&ids.in_router_ids(puback(9))), 9);
         assert_eq!(ids.release(7), 7);
         let d = ids.deliver(5, 1);
         ids.withdraw(d.id);

@@ -130,6 +130,7 @@ impl SessionTable {
     }
 
     /// The connection of `session` ended, leaving what `remains`.
+    #[cfg(test)]
     pub fn close(&self, client_id: &str, session: u64, remains: Remains) {
         self.close_with(client_id, session, remains, |_| ());
     }
@@ -178,6 +179,7 @@ impl SessionTable {
     }
 
     /// (connected, offline) sessions in the table.
+    #[cfg(test)]
     pub fn len(&self) -> (usize, usize) {
         let inner = self.inner();
         let offline = inner.offline.len();
