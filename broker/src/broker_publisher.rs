@@ -12,9 +12,8 @@ use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Packet, Publish, PublishProperties};
 use tokio::sync::mpsc;
 
-use crate::health::Health;
 use crate::policy::origin;
-use crate::supervisor::spawn_core;
+use crate::supervisor::Tasks;
 
 /// The client id of the broker's own router link; clients may not use it.
 pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
@@ -64,10 +63,10 @@ pub struct BrokerPublisher {
 impl BrokerPublisher {
     /// Starts the tasks that own the internal link `(tx, rx)`: core tasks (`supervisor`),
     /// since wills and registry records stop without them.
-    pub fn start(link: (LinkTx, LinkRx), health: &Arc<Health>) -> Arc<BrokerPublisher> {
+    pub fn start(link: (LinkTx, LinkRx), tasks: &Tasks) -> Arc<BrokerPublisher> {
         let (mut tx, mut rx) = link;
         let (queue, mut messages) = mpsc::unbounded_channel::<Message>();
-        spawn_core(health, "broker publisher (acknowledgements)", async move {
+        tasks.core("broker publisher (acknowledgements)", async move {
             // The router acknowledges QoS 1 messages to this link; nothing waits for them.
             while let Ok(notification) = rx.next().await {
                 if matches!(notification, Some(rumqttd::Notification::Unschedule)) {
@@ -75,7 +74,7 @@ impl BrokerPublisher {
                 }
             }
         });
-        spawn_core(health, "broker publisher", async move {
+        tasks.core("broker publisher", async move {
             let mut pkid: u16 = 0;
             while let Some(message) = messages.recv().await {
                 pkid = pkid % u16::MAX + 1;

@@ -23,6 +23,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
+use crate::supervisor::Tasks;
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::Notification;
 use tokio::sync::{watch, Notify};
@@ -134,13 +135,13 @@ pub struct Probe {
 
 impl Probe {
     /// Starts the probe's task on `link`. The link is subscribed to [`PROBE_TOPIC`] here.
-    pub fn start(link: (LinkTx, LinkRx)) -> Probe {
+    pub fn start(link: (LinkTx, LinkRx), tasks: &Tasks) -> Probe {
         let (mut tx, mut rx) = link;
         let wanted = Arc::new(Notify::new());
         let (done_tx, done) = watch::channel(None);
         let subscribed = tx.try_subscribe(PROBE_TOPIC).is_ok();
         let task_wanted = Arc::clone(&wanted);
-        tokio::spawn(async move {
+        tasks.spawn(async move {
             let mut seq: u64 = 0;
             loop {
                 task_wanted.notified().await;

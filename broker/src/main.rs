@@ -191,7 +191,7 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
             // The router or another core part is gone: nothing can be routed or closed
             // cleanly any more. Keep what the registry knows and exit at once, non-zero,
             // so the service manager starts a whole broker (`Restart=on-failure`).
-            broker.abort();
+            broker.abort().await;
             tracing::error!(reason, status = EXIT_FATAL, "fbbus stops");
             eprintln!("fbbus: stopped: {reason}");
             std::process::exit(EXIT_FATAL);

@@ -173,6 +173,10 @@ pub struct Registry {
     metrics: Arc<Metrics>,
     file: Option<PathBuf>,
     dirty: Notify,
+    /// Held while the file is written: the writer task's write (on a blocking thread,
+    /// which aborting the task does not stop) and the last write at shutdown never overlap
+    /// on the temporary file.
+    writing: Mutex<()>,
     /// Receives every change of a local device's record (the bridge announces them).
     observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<Record>>,
 }
@@ -192,7 +196,7 @@ impl Registry {
         file: Option<&Path>,
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
-        health: &Arc<crate::health::Health>,
+        tasks: &crate::supervisor::Tasks,
     ) -> Result<Arc<Registry>, LoadError> {
         let mut devices = HashMap::new();
         if let Some(path) = file {
@@ -212,6 +216,7 @@ impl Registry {
             metrics,
             file: file.map(Path::to_owned),
             dirty: Notify::new(),
+            writing: Mutex::new(()),
             observer: std::sync::OnceLock::new(),
         });
         {
@@ -229,11 +234,7 @@ impl Registry {
             }
         }
         if registry.file.is_some() {
-            crate::supervisor::spawn_core(
-                health,
-                "registry writer",
-                Arc::clone(&registry).persist_loop(),
-            );
+            tasks.core("registry writer", Arc::clone(&registry).persist_loop());
         }
         Ok(registry)
     }
@@ -515,6 +516,7 @@ impl Registry {
 
     /// Writes a snapshot atomically: temporary file, fsync, rename, fsync of the directory.
     fn write(&self, path: &Path) -> std::io::Result<()> {
+        let _one_writer = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
         let snapshot = File {
             version: 1,
             devices: self.local(),
@@ -588,7 +590,14 @@ mod tests {
         let (publisher, mut published) = BrokerPublisher::detached();
         let metrics = Arc::new(Metrics::new());
         let health = crate::health::Health::new();
-        let registry = Registry::open("a", None, publisher, Arc::clone(&metrics), &health).unwrap();
+        let registry = Registry::open(
+            "a",
+            None,
+            publisher,
+            Arc::clone(&metrics),
+            &crate::supervisor::Tasks::new(&health),
+        )
+        .unwrap();
         let mut line_online = None;
         let mut check = |step: &str| {
             let records = registry.list();

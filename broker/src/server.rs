@@ -8,7 +8,6 @@ use std::time::Duration;
 use security::{AclRules, PasswordFile};
 use tokio::net::{TcpListener, TcpSocket};
 use tokio::sync::{watch, Semaphore};
-use tokio::task::JoinHandle;
 use tokio_rustls::TlsAcceptor;
 
 use crate::admin::{self, AdminState};
@@ -28,12 +27,13 @@ use crate::router::RouterHandle;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
 use crate::session::Observers;
-use crate::supervisor::spawn_core;
+use crate::supervisor::Tasks;
 use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
+    /// `message` names the file (the loaders' errors do).
     #[error("{kind}: {message}")]
     File {
         kind: &'static str,
@@ -68,7 +68,8 @@ pub struct Broker {
     pub metrics: Arc<Metrics>,
     shutdown: watch::Sender<bool>,
     health: Arc<Health>,
-    tasks: Vec<JoinHandle<()>>,
+    /// Every task the broker spawned, finished on shutdown.
+    tasks: Tasks,
     registry: Arc<Registry>,
     #[cfg(feature = "bridge")]
     bridge: Option<Arc<crate::bridge::Bridge>>,
@@ -80,6 +81,7 @@ impl Broker {
     pub async fn start(config: Config) -> Result<Broker, StartError> {
         let metrics = Arc::new(Metrics::new());
         let health = Health::new();
+        let tasks = Tasks::new(&health);
 
         let Files {
             passwords,
@@ -96,25 +98,25 @@ impl Broker {
             .link(INTERNAL_CLIENT_ID, true, 0)
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
-        let publisher = BrokerPublisher::start((internal.0, internal.1), &health);
+        let publisher = BrokerPublisher::start((internal.0, internal.1), &tasks);
         let probe = router
             .link(PROBE_CLIENT_ID, true, 0)
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
-        health.set_probe(Probe::start((probe.0, probe.1)));
-        let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics));
+        health.set_probe(Probe::start((probe.0, probe.1), &tasks));
+        let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics), tasks.clone());
         let registry_file = &config.fb.registry_file;
         let registry = Registry::open(
             &config.broker.line,
             (!registry_file.as_os_str().is_empty()).then_some(registry_file.as_path()),
             Arc::clone(&publisher),
             Arc::clone(&metrics),
-            &health,
+            &tasks,
         )
         .map_err(|e| StartError::File {
             kind: "device registry",
             path: e.path.clone(),
-            message: e.message,
+            message: e.to_string(),
         })?;
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
@@ -166,7 +168,6 @@ impl Broker {
             observers,
         });
 
-        let mut tasks = Vec::new();
         #[cfg(feature = "bridge")]
         if let (Some(bridge), Some(bus)) = (&bridge, &config.bridge) {
             bridge.start(bus, Arc::clone(&ctx)).await?;
@@ -201,22 +202,19 @@ impl Broker {
         for listener in listeners {
             tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
                 tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
-            tasks.push(spawn_core(
-                &health,
+            tasks.core(
                 "listener",
                 listener.run(Arc::clone(&ctx), Arc::clone(&slots)),
-            ));
+            );
         }
 
-        tasks.push(spawn_core(
-            &health,
+        tasks.core(
             "session expiry",
             crate::session::lifetime::expire_sessions(Arc::clone(&ctx), shutdown_rx.clone()),
-        ));
+        );
 
         let mut admin_shutdown = shutdown_rx.clone();
-        tasks.push(spawn_core(
-            &health,
+        tasks.core(
             "admin endpoint",
             admin::serve(
                 admin_socket,
@@ -229,11 +227,10 @@ impl Broker {
                     let _ = admin_shutdown.changed().await;
                 },
             ),
-        ));
+        );
         tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
 
-        tasks.push(spawn_core(
-            &health,
+        tasks.core(
             "file watcher",
             watch_files(
                 passwords,
@@ -242,7 +239,7 @@ impl Broker {
                 Arc::clone(&metrics),
                 shutdown_rx,
             ),
-        ));
+        );
 
         health.set_started(true);
         Ok(Broker {
@@ -265,18 +262,20 @@ impl Broker {
         self.health.died().await
     }
 
-    /// Stops everything at once, without closing connections or waiting (a core part
-    /// died, see [`Broker::died`]); the registry is written first.
-    pub fn abort(self) {
+    /// Stops everything at once, without closing connections (a core part died, see
+    /// [`Broker::died`]): every task is finished, then the registry is written.
+    pub async fn abort(self) {
         self.health.set_started(false);
-        for task in self.tasks {
-            task.abort();
-        }
+        // Bounded: a task that does not yield cannot hold the exit up.
+        let _ = tokio::time::timeout(Duration::from_secs(1), self.tasks.finish()).await;
         self.registry.flush();
     }
 
     /// Stops accepting, disconnects every client (MQTT 5: reason 0x8B, server shutting
-    /// down) and waits up to `grace` for the connections to close.
+    /// down) and waits up to `grace` for the connections to close; then closes the bus,
+    /// finishes every task of the broker and writes the registry a last time. No task
+    /// runs after this returns, so nothing writes the registry file concurrently with
+    /// the last write.
     pub async fn shutdown(self, grace: Duration) {
         self.health.set_started(false);
         let _ = self.shutdown.send(true);
@@ -288,9 +287,7 @@ impl Broker {
         if let Some(bridge) = &self.bridge {
             bridge.close().await;
         }
-        for task in self.tasks {
-            task.abort();
-        }
+        self.tasks.finish().await;
         self.registry.flush();
         tracing::info!("broker stopped");
     }

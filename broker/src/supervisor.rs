@@ -5,7 +5,7 @@
 //! the fuzz targets in `broker/fuzz` keep it so. This module is the last line, and it
 //! does not pretend a panic did not happen:
 //!
-//! - a task the whole line depends on ([`spawn_core`]; the router thread reports its own
+//! - a task the whole line depends on ([`Tasks::core`]; the router thread reports its own
 //!   end, see `router`) that panics is **fatal**: [`Health::fatal`] makes `/readyz` fail at
 //!   once and `fbbus serve` exits non-zero, so the service manager restarts a broker that
 //!   is whole again;
@@ -21,9 +21,10 @@ use std::future::Future;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::pin::Pin;
 use std::sync::Arc;
+use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::task::{Context, Poll};
 
-use tokio::task::JoinHandle;
+use tokio::task::{AbortHandle, JoinSet};
 
 use crate::health::Health;
 
@@ -64,17 +65,65 @@ impl<F: Future> Future for CatchPanic<F> {
     }
 }
 
-/// Spawns a task the line depends on: if it panics, the broker is not whole any more.
-pub fn spawn_core<F>(health: &Arc<Health>, name: &'static str, task: F) -> JoinHandle<()>
-where
-    F: Future<Output = ()> + Send + 'static,
-{
-    let health = Arc::clone(health);
-    tokio::spawn(async move {
-        if let Err(message) = CatchPanic::new(task).await {
-            health.fatal(format!("task `{name}` panicked: {message}"));
+/// The broker's own tasks: everything it spawns besides connections (which end with their
+/// clients, see `session::serve`) goes through one `Tasks`, so shutdown can finish them
+/// all ([`Tasks::finish`]) before the last registry write, and none outlives the broker.
+///
+/// Finished tasks are reaped as new ones start, so short-lived ones (delayed wills) do not
+/// accumulate: the set holds the tasks still running. Dropping the last clone aborts them
+/// (the `Broker` holds one while it runs).
+#[derive(Clone)]
+pub struct Tasks {
+    set: Arc<Mutex<JoinSet<()>>>,
+    health: Arc<Health>,
+}
+
+impl Tasks {
+    pub fn new(health: &Arc<Health>) -> Tasks {
+        Tasks {
+            set: Arc::default(),
+            health: Arc::clone(health),
         }
-    })
+    }
+
+    /// Spawns a task the line depends on: if it panics, the broker is not whole any more.
+    pub fn core<F>(&self, name: &'static str, task: F) -> AbortHandle
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        let health = Arc::clone(&self.health);
+        self.spawn(async move {
+            if let Err(message) = CatchPanic::new(task).await {
+                health.fatal(format!("task `{name}` panicked: {message}"));
+            }
+        })
+    }
+
+    /// Spawns a task the broker owns; a panic in it is logged (the panic hook) and ends
+    /// that task only.
+    pub fn spawn<F>(&self, task: F) -> AbortHandle
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        let mut set = self.lock();
+        while set.try_join_next().is_some() {}
+        set.spawn(task)
+    }
+
+    /// Stops every task and waits until each has finished: after this, no task of the
+    /// broker runs, writes a file or publishes.
+    pub async fn finish(&self) {
+        let mut set = std::mem::take(&mut *self.lock());
+        set.abort_all();
+        while set.join_next().await.is_some() {}
+    }
+
+    /// The one rule for poisoned locks, here as everywhere in fbbus: a panic while the lock
+    /// was held left the data consistent (every critical section is a short update), so
+    /// the lock is taken anyway.
+    fn lock(&self) -> MutexGuard<'_, JoinSet<()>> {
+        self.set.lock().unwrap_or_else(PoisonError::into_inner)
+    }
 }
 
 /// The message of a panic payload (`panic!` makes a `&str` or a `String`).
@@ -136,8 +185,9 @@ mod tests {
     async fn a_panicking_core_task_is_fatal() {
         let health = Health::new();
         assert!(health.fatal_reason().is_none());
-        let task = spawn_core(&health, "test", async { panic!("core broke") });
-        task.await.expect("the panic is caught inside the task");
+        // Dropping the last `Tasks` aborts its tasks: keep it for the test.
+        let tasks = Tasks::new(&health);
+        tasks.core("test", async { panic!("core broke") });
         let reason = tokio::time::timeout(std::time::Duration::from_secs(1), health.died())
             .await
             .expect("died() resolves");

@@ -18,7 +18,9 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use rumqttd::protocol::{LastWill, LastWillProperties, PublishProperties};
-use tokio::task::JoinHandle;
+use tokio::task::AbortHandle;
+
+use crate::supervisor::Tasks;
 
 use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::metrics::Metrics;
@@ -64,16 +66,19 @@ impl Will {
 /// Publishes wills and keeps the delayed ones until they are due.
 pub struct Wills {
     publisher: Arc<BrokerPublisher>,
-    delayed: Mutex<HashMap<String, Vec<JoinHandle<()>>>>,
+    delayed: Mutex<HashMap<String, Vec<AbortHandle>>>,
     metrics: Arc<Metrics>,
+    /// Where delayed wills wait: finished (not fired) when the broker shuts down.
+    tasks: Tasks,
 }
 
 impl Wills {
-    pub fn new(publisher: Arc<BrokerPublisher>, metrics: Arc<Metrics>) -> Arc<Wills> {
+    pub fn new(publisher: Arc<BrokerPublisher>, metrics: Arc<Metrics>, tasks: Tasks) -> Arc<Wills> {
         Arc::new(Wills {
             publisher,
             delayed: Mutex::new(HashMap::new()),
             metrics,
+            tasks,
         })
     }
 
@@ -85,7 +90,7 @@ impl Wills {
             .unwrap_or_else(PoisonError::into_inner)
             .remove(client_id)
         {
-            tasks.iter().for_each(JoinHandle::abort);
+            tasks.iter().for_each(AbortHandle::abort);
             tracing::debug!(client_id, "delayed will cancelled by reconnect");
         }
     }
@@ -99,7 +104,7 @@ impl Wills {
         }
         let this = Arc::clone(self);
         let id = client_id.to_owned();
-        let task = tokio::spawn(async move {
+        let task = self.tasks.spawn(async move {
             tokio::time::sleep(will.delay).await;
             this.delayed
                 .lock()

@@ -281,6 +281,32 @@ fn unsafe_config_is_refused_with_file_key_and_reason() {
     assert!(err.contains("max_conections"), "{err}");
 }
 
+/// Issue 15: an error about a file names the file. A corrupt registry stops the start with
+/// its path and what to do, instead of a bare parse error.
+#[test]
+fn a_corrupt_registry_file_is_named_when_the_broker_refuses_to_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let registry = dir.path().join("line-registry.json");
+    std::fs::write(&registry, "{\"version\":1,\"devices\":[{\"id\":").unwrap();
+    let config = dir.path().join("line.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[fb]\nregistry_file = {:?}\n[[listener]]\nname = \"l\"\nbind = \"127.0.0.1:0\"\n\
+             [admin]\nbind = \"127.0.0.1:0\"\n",
+            registry.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let (ok, _, err) = common::run(
+        Command::new(common::fbbus_bin()).args(["serve", "--config", config.to_str().unwrap()]),
+        Duration::from_secs(10),
+    );
+    assert!(!ok, "a corrupt registry must stop the start");
+    assert!(err.contains(registry.to_str().unwrap()), "{err}");
+    assert!(err.contains("move it away"), "{err}");
+}
+
 #[test]
 fn health_and_readiness() {
     let broker = Broker::start();

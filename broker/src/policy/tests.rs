@@ -13,6 +13,7 @@ use crate::broker_publisher::BrokerPublisher;
 use crate::health::Health;
 use crate::policy::typed::Undeclared;
 use crate::registry::Registry;
+use crate::supervisor::Tasks;
 use crate::watched_file::WatchedFile;
 
 const DOORS: [Door; 3] = [Door::Client, Door::Will, Door::Bus];
@@ -42,7 +43,7 @@ fn line(acl: Option<&str>) -> Line {
         None,
         Arc::clone(&publisher),
         Arc::clone(&metrics),
-        &Health::new(),
+        &Tasks::new(&Health::new()),
     )
     .expect("a registry without a file always opens");
     let fb = Arc::new(FbTopics::new(
