@@ -522,7 +522,10 @@ async fn burst(
         streams.push(t.await.context("publisher task")?);
     }
     let drained = drained.await.context("subscriber task")?;
-    let mut note = first_error.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take();
+    let mut note = first_error
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .take();
     let timed_out =
         drained.end == DrainEnd::Deadline || note.as_deref() == Some("publishers hit the deadline");
     match &drained.end {
@@ -635,7 +638,10 @@ async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
         streams.push(t.await.context("publisher task")?);
     }
     let sent = sent.load(Ordering::Relaxed);
-    let mut note = first_error.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take();
+    let mut note = first_error
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .take();
     let timed_out = drained.end == DrainEnd::Deadline;
     match &drained.end {
         DrainEnd::Closed => add_note(&mut note, "broker closed the subscriber"),
