@@ -34,7 +34,7 @@ pub struct Context {
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,
-    /// `broker.max_keep_alive_s` (see [`keep_alive`]).
+    /// `broker.max_keep_alive_s` (see `session::connect::keep_alive`).
     pub max_keep_alive: u16,
     pub connect_timeout: Duration,
     /// Becomes true when the broker shuts down.

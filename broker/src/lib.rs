@@ -1,45 +1,35 @@
 //! # fbbus broker
 //!
 //! The MQTT 3.1.1 + 5 broker a production line runs. It keeps rumqttd's router (topic
-//! matching, retained messages, per-filter commit logs, QoS state) and puts fbbus's own
-//! listeners and connection loop in front of it, because that is where line policy lives:
+//! matching, retained messages, per-filter commit logs, QoS state; the fork in
+//! `vendor/rumqttd`) and puts fbbus's own listeners, sessions and policy in front of it,
+//! because that is where the line's rules live:
 //!
 //! ```text
-//!   TCP/TLS ─► listener ─► connection (the packet path) ──LinkTx──► rumqttd router
-//!                          1 authenticate (CONNECT)                      │
-//!                          2 authorize (ACL)                             │
-//!                          3 check (typed FB topics, declarations)       │
-//!                          4 route ───────────────────────────────────────┘
-//!                          5 meter (Prometheus)     ◄──LinkRx── deliveries, acks
+//!   TCP/TLS ─► listener ─► wire ─► session ──────────────────LinkTx──► rumqttd router
+//!                                  1 authenticate (connect)               │
+//!                                  2 authorize ┐ policy::PublishPolicy    │
+//!                                  3 check     ┘ (also wills, bus import) │
+//!                                  4 route ───────────────────────────────┘
+//!                                  5 meter (metrics) ◄──LinkRx── deliveries, acks
 //! ```
 //!
-//! - [`connection`]: one client's session; its module doc is the packet path, in order.
-//!   Around it: [`wire`] (the socket, framing, and rumqttd's MQTT codecs
-//!   with the guards in front of them),
-//!   [`ack_order`], [`origin`], [`packet_ids`] and [`redelivery`] (delivery rules the
-//!   router leaves out),
-//!   [`session_table`] and [`session_lifetime`] (session numbers, MQTT 5 session expiry).
-//! - [`authenticator`]: throttle → anonymous → verified-credential cache → argon2id, the
-//!   last on the [`verifier`]'s threads.
-//! - [`wills`]: last wills, published by fbbus (abrupt close, keep-alive expiry, takeover,
-//!   MQTT 5 will delay), never after a clean DISCONNECT.
-//! - [`fb_topics`] and [`registry`]: typed FB topics checked against each device's
-//!   declared interface (`fb-bridge` crate), and the device registry (online/offline by
-//!   session number, persisted, published retained, served on `/api/v1/devices`).
-//! - [`broker_publisher`]: the one queue through which the broker publishes its own
-//!   messages (wills, registry records, diagnostics).
-//! - [`config`]: the TOML file, its embedded default and the secure-by-default rules.
-//! - [`server`]: assembly, reload of password and ACL files, graceful shutdown.
-//! - [`bridge`]: one bus across lines: the zenoh bridge to the other lines' brokers
-//!   (`[bridge]` section), its imports, exports and registry federation.
-//! - [`admin`] and [`metrics`]: `/metrics`, `/healthz`, `/readyz`; [`health`]: what
-//!   `/readyz` answers (a probe publication through the router) and what is fatal;
-//!   [`supervisor`]: a panic in a core task or thread is fatal, one in a connection's
-//!   task closes that connection only.
-//! - [`router`] and [`memory`]: the vendored rumqttd router's thread, its reports
-//!   (skipped messages, idle), and giving freed memory back to the OS.
+//! **What it owns:** the listeners and the connection loop (`session`, over `wire`),
+//! the publish policy every publication passes whatever its door (`policy`: access
+//! rules, typed FB topics, origin mark), last wills (`wills`), the device registry
+//! (`registry`), the broker's own publications (`broker_publisher`), the bus bridge
+//! to other lines (`bridge`, feature `bridge`), health, metrics and the admin endpoint
+//! (`health`, `metrics`, `admin`), the tasks it runs and what a panic does
+//! (`supervisor`), and assembly from a [`Config`] (`server`).
 //!
-//! Password files, access rules and throttling are the `security` crate's.
+//! **What it must not know:** how passwords are hashed or access rules parsed (the
+//! `security` crate), how FB values are encoded or what a declaration may contain
+//! (`fb-bridge`), or how zenoh carries the bus (`fb_bridge::bus`). The router is reached
+//! only through its link API (`router`).
+//!
+//! **Its API** is what the `fbbus` binary and the tests need: [`Broker`] (start, wait
+//! for death, shut down), [`Config`] and [`check_config`], and the process set-up
+//! helpers. `docs/architecture.md` walks through the packet path and the module map.
 
 mod admin;
 mod authenticator;

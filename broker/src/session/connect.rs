@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use rumqttd::local::{LinkRx, LinkTx};
-use rumqttd::protocol::{ConnectReturnCode, Packet};
+use rumqttd::protocol::{Connect, ConnectReturnCode, Login, Packet};
 use rumqttd::Notification;
 use security::Identity;
 
@@ -28,9 +28,21 @@ use crate::wills::Will;
 use crate::wire::codec::{connack, Version};
 use crate::wire::framed::Io;
 
+/// Why a CONNECT was refused: the CONNACK code and the metric's reason label.
+struct Refused {
+    code: ConnectReturnCode,
+    reason: &'static str,
+}
+
+fn refused(code: ConnectReturnCode, reason: &'static str) -> Refused {
+    Refused { code, reason }
+}
+
 impl Session {
-    /// Authenticates the CONNECT, registers the client with the router and answers CONNACK.
-    /// Returns None when the client was refused (the CONNACK said why).
+    /// Opens a session for a CONNECT, in order: the client id, authentication (step 1 of
+    /// the packet path), the will's topic, the router link, CONNACK, then the registry and
+    /// whatever an earlier connection of the session left unacknowledged. Returns None
+    /// when the client was refused (its CONNACK said why) or went away.
     pub(super) async fn open(
         mut io: Io,
         connect: Packet,
@@ -42,152 +54,36 @@ impl Session {
             unreachable!("read_connect only returns CONNECT")
         };
         let version = io.codec.0;
-        let refuse = |code: ConnectReturnCode, reason: &'static str| {
-            ctx.metrics.refused(reason);
-            (code, reason)
-        };
+        let session_expiry = properties
+            .as_ref()
+            .and_then(|p| p.session_expiry_interval)
+            .unwrap_or(0);
 
-        let result = async {
-            // Client identifier.
-            let mut client_id = connect.client_id.clone();
-            let mut assigned = None;
-            if client_id.is_empty() {
-                if !connect.clean_session {
-                    return Err(refuse(
-                        ConnectReturnCode::ClientIdentifierNotValid,
-                        "invalid_client_id",
-                    ));
-                }
-                client_id = format!("fbbus-{:016x}", rand_id());
-                assigned = Some(client_id.clone());
-            }
-            // Control characters too (MQTT 1.5.4: a server may refuse them): a client id
-            // goes into logs, metrics' neighbours and the registry as given.
-            if is_reserved_client_id(&client_id)
-                || client_id.contains(['+', '#', '/', '$'])
-                || client_id.chars().any(char::is_control)
-            {
-                return Err(refuse(
-                    ConnectReturnCode::ClientIdentifierNotValid,
-                    "invalid_client_id",
-                ));
-            }
-
-            // 1. Authenticate.
-            let username = login
-                .as_ref()
-                .map(|l| l.username.clone())
-                .filter(|u| !u.is_empty());
-            let credentials = login
-                .map(|l| (l.username, l.password))
-                .filter(|(u, _)| !u.is_empty());
-            match ctx
-                .authenticator
-                .authenticate(peer.ip(), credentials, listener.anonymous)
-                .await
-            {
-                Outcome::Accepted => {}
-                Outcome::BadCredentials => {
-                    return Err(refuse(
-                        ConnectReturnCode::BadUserNamePassword,
-                        "bad_credentials",
-                    ))
-                }
-                Outcome::MissingCredentials => {
-                    return Err(refuse(
-                        ConnectReturnCode::NotAuthorized,
-                        "missing_credentials",
-                    ))
-                }
-                Outcome::Throttled(_) => {
-                    return Err(refuse(
-                        ConnectReturnCode::ConnectionRateExceeded,
-                        "throttled",
-                    ))
-                }
-            }
-
-            // 2. Authorize the will topic: a will may only go where the client may publish.
-            let session_expiry = properties
-                .as_ref()
-                .and_then(|p| p.session_expiry_interval)
-                .unwrap_or(0);
+        let accepted = async {
+            let (client_id, assigned) = client_id(&connect)?;
+            let username = authenticate(ctx, peer, login, listener.anonymous).await?;
             let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
-            if let Some(w) = &will {
-                let topic = String::from_utf8_lossy(&w.topic);
-                let identity = Identity {
-                    username: username.as_deref(),
-                    client_id: &client_id,
-                };
-                let allowed = ctx.policy.will_allowed(identity, &topic);
-                if !allowed {
-                    tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
-                    return Err(refuse(
-                        ConnectReturnCode::NotAuthorized,
-                        "will_not_authorized",
-                    ));
-                }
-            }
-
-            // Register with the router (this takes over an older session with the same id).
-            ctx.wills.cancel_delayed(&client_id);
-            // The session number is taken before the router link, because linking is what
-            // ends an older connection with this id, and that one must see it is stale.
-            let (session, predecessor_running) = ctx.sessions.open(&client_id);
-            if match username.as_deref() {
-                Some(user) => user == client_id,
-                None => ctx.fb.anonymous_devices,
-            } {
-                ctx.fb.registry.session_started(&client_id, session);
-            }
-            // Session lifetime. rumqttd keeps a link's session after it ends unless the link
-            // is clean (the MQTT 3.1.1 rule). MQTT 5 separates the two: Clean Start discards
-            // an existing session now, Session Expiry decides whether this one outlives the
-            // connection. So a v5 link is clean only for Clean Start with expiry 0; Clean
-            // Start with expiry > 0 first ends the old session with a purge link.
+            authorize_will(ctx, &client_id, username.as_deref(), will.as_ref())?;
             let lifetime = match version {
                 Version::V311 => SessionLifetime::v311(connect.clean_session),
                 Version::V5 => SessionLifetime::v5(connect.clean_session, session_expiry),
             };
-            if lifetime.purge_before_link {
-                purge_router_session(&ctx.router, &client_id).await;
-            }
-            // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it
-            // sends by subscription filter, so two topics matching one wildcard would share
-            // an alias. fbbus sends full topic names.
-            let linked = ctx.router.link(&client_id, lifetime.clean_link, 0).await;
-            let (link_tx, link_rx, ack) = match linked {
-                Ok(link) => link,
-                Err(e) => {
-                    ctx.sessions
-                        .close_with(&client_id, session, Remains::Nothing, |superseded| {
-                            ctx.redeliveries.abandoned(&client_id, session, superseded)
-                        });
-                    tracing::error!(client_id, error = %e, "router refused the connection");
-                    return Err(refuse(
-                        ConnectReturnCode::ServerUnavailable,
-                        "router_refused",
-                    ));
-                }
-            };
+            let (linked, ack) = link(ctx, &client_id, username.as_deref(), lifetime).await?;
             Ok(Accepted {
                 client_id,
                 assigned,
                 username,
                 will,
-                session,
-                predecessor_running,
                 lifetime,
-                link_tx,
-                link_rx,
+                linked,
                 ack,
             })
         }
         .await;
-
-        let accepted = match result {
+        let accepted = match accepted {
             Ok(accepted) => accepted,
-            Err((code, reason)) => {
+            Err(Refused { code, reason }) => {
+                ctx.metrics.refused(reason);
                 tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
                 let _ = io.send(connack(code, None)).await;
                 return None;
@@ -196,82 +92,35 @@ impl Session {
 
         let (keep_alive_s, server_keep_alive) =
             keep_alive(version, connect.keep_alive, ctx.max_keep_alive);
-        let mut connack_packet: Option<Packet> = accepted.ack.into();
-        if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
-            let mut p = props.take().unwrap_or_default();
-            p.assigned_client_identifier = accepted.assigned;
-            p.receive_max = Some(ctx.max_inflight);
-            p.max_packet_size = Some(ctx.max_packet as u32);
-            p.server_keep_alive = server_keep_alive;
-            *props = Some(p);
-        }
-        if let Some(packet) = connack_packet {
-            io.queue(packet);
-        }
-        if io.flush().await.is_err() {
-            let _ = unlink(accepted.link_tx).await;
-            let remains = accepted.lifetime.remains();
-            ctx.sessions.close_with(
-                &accepted.client_id,
-                accepted.session,
-                remains,
-                |superseded| {
-                    ctx.redeliveries
-                        .abandoned(&accepted.client_id, accepted.session, superseded)
-                },
-            );
-            // It may have taken an online device's session over: that device is gone now.
-            ctx.fb.registry.disconnected(
-                &accepted.client_id,
-                accepted.session,
-                DisconnectReason::Abrupt.description(),
-            );
-            return None;
-        }
+        let Opened {
+            client_id,
+            username,
+            will,
+            lifetime,
+            linked,
+        } = answer(&mut io, ctx, accepted, server_keep_alive).await?;
 
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
-        let mut fb = FbSession::new(
-            &ctx.fb,
-            &accepted.client_id,
-            accepted.username.as_deref(),
-            accepted.session,
-        );
+        let mut fb = FbSession::new(&ctx.fb, &client_id, username.as_deref(), linked.session);
         if fb.identity_verified() {
-            fb.set_interface(
-                ctx.fb
-                    .registry
-                    .connected(&accepted.client_id, accepted.session),
-            );
+            fb.set_interface(ctx.fb.registry.connected(&client_id, linked.session));
         }
         tracing::info!(
             %peer,
             listener = listener.name,
-            client_id = accepted.client_id,
-            username = accepted.username.as_deref().unwrap_or(""),
+            client_id,
+            username = username.as_deref().unwrap_or(""),
             version = ?version,
             keep_alive = keep_alive_s,
             "client connected"
         );
-        let ids = if accepted.lifetime.clean_link || accepted.lifetime.purge_before_link {
-            ctx.redeliveries.forget(&accepted.client_id);
-            PacketIds::default()
-        } else {
-            let handed_over = ctx
-                .redeliveries
-                .take(
-                    &accepted.client_id,
-                    accepted.session,
-                    accepted.predecessor_running,
-                )
-                .await;
-            PacketIds::resumed(handed_over)
-        };
+        let ids = resume(ctx, &client_id, &linked, lifetime).await;
         Some(Session {
             io,
             peer,
-            client_id: accepted.client_id.into(),
-            username: accepted.username,
+            client_id: client_id.into(),
+            username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
             keep_alive: (keep_alive_s > 0)
@@ -280,11 +129,11 @@ impl Session {
                 .as_ref()
                 .and_then(|p| p.max_packet_size)
                 .map(|m| m as usize),
-            will: accepted.will.map(Box::new),
-            link_tx: accepted.link_tx,
-            link_rx: accepted.link_rx,
-            session: accepted.session,
-            lifetime: accepted.lifetime,
+            will: will.map(Box::new),
+            link_tx: linked.link_tx,
+            link_rx: linked.link_rx,
+            session: linked.session,
+            lifetime,
             ctx: Arc::clone(ctx),
             to_router: Vec::new(),
             inflight_in: 0,
@@ -304,6 +153,232 @@ impl Session {
             fb,
         })
     }
+}
+
+/// The client id the session runs under, and whether fbbus chose it (a client may send an
+/// empty one with a clean session).
+fn client_id(connect: &Connect) -> Result<(String, Option<String>), Refused> {
+    let invalid = || {
+        refused(
+            ConnectReturnCode::ClientIdentifierNotValid,
+            "invalid_client_id",
+        )
+    };
+    let (client_id, assigned) = if connect.client_id.is_empty() {
+        if !connect.clean_session {
+            return Err(invalid());
+        }
+        let id = format!("fbbus-{:016x}", rand_id());
+        (id.clone(), Some(id))
+    } else {
+        (connect.client_id.clone(), None)
+    };
+    // Control characters too (MQTT 1.5.4: a server may refuse them): a client id goes
+    // into logs, metrics' neighbours and the registry as given.
+    if is_reserved_client_id(&client_id)
+        || client_id.contains(['+', '#', '/', '$'])
+        || client_id.chars().any(char::is_control)
+    {
+        return Err(invalid());
+    }
+    Ok((client_id, assigned))
+}
+
+/// Step 1 of the packet path: who is this? The verified username, if one was given.
+async fn authenticate(
+    ctx: &Context,
+    peer: SocketAddr,
+    login: Option<Login>,
+    anonymous: bool,
+) -> Result<Option<String>, Refused> {
+    let username = login
+        .as_ref()
+        .map(|l| l.username.clone())
+        .filter(|u| !u.is_empty());
+    let credentials = login
+        .map(|l| (l.username, l.password))
+        .filter(|(u, _)| !u.is_empty());
+    match ctx
+        .authenticator
+        .authenticate(peer.ip(), credentials, anonymous)
+        .await
+    {
+        Outcome::Accepted => Ok(username),
+        Outcome::BadCredentials => Err(refused(
+            ConnectReturnCode::BadUserNamePassword,
+            "bad_credentials",
+        )),
+        Outcome::MissingCredentials => Err(refused(
+            ConnectReturnCode::NotAuthorized,
+            "missing_credentials",
+        )),
+        Outcome::Throttled(_) => Err(refused(
+            ConnectReturnCode::ConnectionRateExceeded,
+            "throttled",
+        )),
+    }
+}
+
+/// A will may only go where the client may publish (the publish policy decides).
+fn authorize_will(
+    ctx: &Context,
+    client_id: &str,
+    username: Option<&str>,
+    will: Option<&Will>,
+) -> Result<(), Refused> {
+    let Some(will) = will else {
+        return Ok(());
+    };
+    let topic = String::from_utf8_lossy(&will.topic);
+    let who = Identity {
+        username,
+        client_id,
+    };
+    if ctx.policy.will_allowed(who, &topic) {
+        return Ok(());
+    }
+    tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
+    Err(refused(
+        ConnectReturnCode::NotAuthorized,
+        "will_not_authorized",
+    ))
+}
+
+/// The session's place in the router: its session number and its link.
+struct Linked {
+    session: u64,
+    /// The client id's previous connection had not closed yet when this one started.
+    predecessor_running: bool,
+    link_tx: LinkTx,
+    link_rx: LinkRx,
+}
+
+/// Takes a session number and links the session to the router, which takes over an older
+/// session with the same id. Also returns the router's CONNACK.
+async fn link(
+    ctx: &Context,
+    client_id: &str,
+    username: Option<&str>,
+    lifetime: SessionLifetime,
+) -> Result<(Linked, Notification), Refused> {
+    ctx.wills.cancel_delayed(client_id);
+    // The session number is taken before the router link, because linking is what ends
+    // an older connection with this id, and that one must see it is stale.
+    let (session, predecessor_running) = ctx.sessions.open(client_id);
+    let speaks_for_device = match username {
+        Some(user) => user == client_id,
+        None => ctx.fb.anonymous_devices,
+    };
+    if speaks_for_device {
+        ctx.fb.registry.session_started(client_id, session);
+    }
+    // Session lifetime. rumqttd keeps a link's session after it ends unless the link is
+    // clean (the MQTT 3.1.1 rule). MQTT 5 separates the two: Clean Start discards an
+    // existing session now, Session Expiry decides whether this one outlives the
+    // connection. So a v5 link is clean only for Clean Start with expiry 0; Clean Start
+    // with expiry > 0 first ends the old session with a purge link.
+    if lifetime.purge_before_link {
+        purge_router_session(&ctx.router, client_id).await;
+    }
+    // Topic Alias Maximum 0 towards the router: rumqttd 0.20 keys the aliases it sends by
+    // subscription filter, so two topics matching one wildcard would share an alias.
+    // fbbus sends full topic names.
+    match ctx.router.link(client_id, lifetime.clean_link, 0).await {
+        Ok((link_tx, link_rx, ack)) => {
+            let linked = Linked {
+                session,
+                predecessor_running,
+                link_tx,
+                link_rx,
+            };
+            Ok((linked, ack))
+        }
+        Err(e) => {
+            ctx.sessions
+                .close_with(client_id, session, Remains::Nothing, |superseded| {
+                    ctx.redeliveries.abandoned(client_id, session, superseded)
+                });
+            tracing::error!(client_id, error = %e, "router refused the connection");
+            Err(refused(
+                ConnectReturnCode::ServerUnavailable,
+                "router_refused",
+            ))
+        }
+    }
+}
+
+/// Answers CONNACK: the router's, with what fbbus announces. None when the client is gone
+/// before it could be told, and the session was closed again.
+async fn answer(
+    io: &mut Io,
+    ctx: &Context,
+    accepted: Accepted,
+    server_keep_alive: Option<u16>,
+) -> Option<Opened> {
+    let mut connack_packet: Option<Packet> = accepted.ack.into();
+    if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
+        let mut p = props.take().unwrap_or_default();
+        p.assigned_client_identifier = accepted.assigned;
+        p.receive_max = Some(ctx.max_inflight);
+        p.max_packet_size = Some(ctx.max_packet as u32);
+        p.server_keep_alive = server_keep_alive;
+        *props = Some(p);
+    }
+    if let Some(packet) = connack_packet {
+        io.queue(packet);
+    }
+    let opened = Opened {
+        client_id: accepted.client_id,
+        username: accepted.username,
+        will: accepted.will,
+        lifetime: accepted.lifetime,
+        linked: accepted.linked,
+    };
+    if io.flush().await.is_ok() {
+        return Some(opened);
+    }
+    let Opened {
+        client_id,
+        lifetime,
+        linked,
+        ..
+    } = opened;
+    let _ = unlink(linked.link_tx).await;
+    ctx.sessions.close_with(
+        &client_id,
+        linked.session,
+        lifetime.remains(),
+        |superseded| {
+            ctx.redeliveries
+                .abandoned(&client_id, linked.session, superseded)
+        },
+    );
+    // It may have taken an online device's session over: that device is gone now.
+    ctx.fb.registry.disconnected(
+        &client_id,
+        linked.session,
+        DisconnectReason::Abrupt.description(),
+    );
+    None
+}
+
+/// The packet ids the session starts with: fresh for a clean session, otherwise what the
+/// session's previous connection left unacknowledged, to be sent again (`redelivery`).
+async fn resume(
+    ctx: &Context,
+    client_id: &str,
+    linked: &Linked,
+    lifetime: SessionLifetime,
+) -> PacketIds {
+    if lifetime.clean_link || lifetime.purge_before_link {
+        ctx.redeliveries.forget(client_id);
+        return PacketIds::default();
+    }
+    let handed_over = ctx
+        .redeliveries
+        .take(client_id, linked.session, linked.predecessor_running)
+        .await;
+    PacketIds::resumed(handed_over)
 }
 
 /// The keep-alive a connection runs with, in seconds (0: off), and the Server Keep Alive
@@ -327,13 +402,19 @@ struct Accepted {
     assigned: Option<String>,
     username: Option<String>,
     will: Option<Will>,
-    session: u64,
-    /// The client id's previous connection had not closed yet when this one started.
-    predecessor_running: bool,
     lifetime: SessionLifetime,
-    link_tx: LinkTx,
-    link_rx: LinkRx,
+    linked: Linked,
+    /// The router's CONNACK.
     ack: Notification,
+}
+
+/// A session the client was told about (CONNACK sent).
+struct Opened {
+    client_id: String,
+    username: Option<String>,
+    will: Option<Will>,
+    lifetime: SessionLifetime,
+    linked: Linked,
 }
 
 /// A random 64-bit id for clients that connect without one.
@@ -355,7 +436,7 @@ mod tests {
     use super::*;
 
     #[test]
-    pub(super) fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
+    fn mqtt5_clients_are_held_to_the_maximum_keep_alive() {
         // Off, or beyond the maximum: told to use the maximum.
         assert_eq!(keep_alive(Version::V5, 0, 300), (300, Some(300)));
         assert_eq!(keep_alive(Version::V5, 301, 300), (300, Some(300)));

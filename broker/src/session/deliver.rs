@@ -1,6 +1,7 @@
 //! Packets from the router to the client: deliveries with the MQTT rules rumqttd's router
 //! leaves out, SUBACKs completed for refused filters, acknowledgements kept in order.
 
+use fb_bridge::topic::filter;
 use rumqttd::local::LinkError;
 use rumqttd::protocol::{
     Filter, Packet, PubAck, PubAckReason, PubComp, PubCompReason, PubRec, PubRecReason, Publish,
@@ -133,7 +134,7 @@ impl Session {
     ///   the message's `origin`;
     /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
     ///
-    /// A QoS 1/2 delivery goes out under the packet id the client sees ([`PacketIds`]):
+    /// A QoS 1/2 delivery goes out under the packet id the client sees (`PacketIds`):
     /// the original id and DUP=1 when it re-sends what an earlier connection of the session
     /// left unacknowledged [MQTT-4.4.0-1] [MQTT-3.3.1-1]. Whatever the client is not sent at
     /// the router's QoS is acknowledged to the router for it ([`Session::ack_for_client`]).
@@ -253,7 +254,7 @@ impl Session {
         let matching: Vec<&Filter> = self
             .subscriptions
             .iter()
-            .filter(|(path, _)| security::acl::filter_matches(path, topic))
+            .filter(|(path, _)| filter::filter_matches(path, topic))
             .map(|(_, f)| f)
             .collect();
         if matching.is_empty() {

@@ -1,6 +1,7 @@
 //! Packets from the client: one dispatch per packet type (`Session::inbound`), then the
 //! PUBLISH and SUBSCRIBE handlers.
 
+use fb_bridge::topic::filter;
 use rumqttd::protocol::{
     DisconnectReasonCode, Filter, Packet, PingResp, PubAck, PubAckReason, PubComp, PubCompReason,
     PubRec, PubRecReason, Publish, PublishProperties, RetainForwardRule, SubAck, Subscribe,
@@ -251,7 +252,7 @@ impl Session {
             }
             (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
         };
-        if !security::acl::valid_topic(&topic) {
+        if !filter::valid_topic(&topic) {
             tracing::warn!(
                 client_id = &*self.client_id,
                 ?topic,
@@ -304,7 +305,7 @@ impl Session {
         let v5 = self.version == Version::V5;
         let mut refused = Vec::with_capacity(subscribe.filters.len());
         for filter in &subscribe.filters {
-            let verdict = if !security::acl::valid_filter(&filter.path) {
+            let verdict = if !filter::valid_filter(&filter.path) {
                 Some(if v5 {
                     SubscribeReasonCode::TopicFilterInvalid
                 } else {
@@ -322,7 +323,7 @@ impl Session {
                 } else {
                     SubscribeReasonCode::Failure
                 })
-            } else if filter.path.starts_with('$') && !filter.path.starts_with("$share/") {
+            } else if filter::is_dollar(&filter.path) && !filter::is_shared(&filter.path) {
                 // fbbus publishes nothing under `$` topics yet, and rumqttd's router drops a
                 // connection that subscribes to one: refuse the filter, keep the client.
                 Some(if v5 {

@@ -1,25 +1,26 @@
-//! One MQTT connection, from CONNECT to close: the session layer, where the packet path runs.
+//! The session layer: one MQTT connection, from CONNECT to close. The packet path runs
+//! here, in this order:
 //!
-//! Every packet a client sends goes through `Session::inbound`, in this order:
-//!
-//! 1. **authenticated** — once, at CONNECT (`Session::open` via the `Authenticator`);
-//!    a session only exists for a client that passed, so every later step knows who it is;
-//! 2. **authorized** — PUBLISH topics and SUBSCRIBE filters against the ACL
-//!    (`Session::on_publish`, `Session::on_subscribe`); the will topic at CONNECT;
-//! 3. **checked** — typed FB topics against the device's declared interface
-//!    (`fb_topics`), between the ACL and the router, so an ill-typed message is never
-//!    routed; declarations are consumed here;
+//! 1. **authenticated** — once, at CONNECT ([`connect`]: client id, the `Authenticator`,
+//!    the will's topic, the router link, CONNACK); a session only exists for a client that
+//!    passed, so every later step knows who it is;
+//! 2. **authorized**, 3. **type-checked** — every PUBLISH by the publish policy
+//!    (`policy::PublishPolicy::admit`: access rules, typed FB topics against the device's
+//!    declared interface, origin mark), called from [`inbound`]; SUBSCRIBE filters against
+//!    the access rules there too;
 //! 4. **routed** — handed to rumqttd's router through the connection's `LinkTx`, one
-//!    batch per network read;
+//!    batch per network read ([`Session::route`]);
 //! 5. **metered** — counted in `Metrics` as it is accepted or refused.
 //!
-//! Packets the router sends back go through `Session::outbound`: deliveries get the MQTT
-//! rules rumqttd's router leaves out (delivery QoS, the client's Maximum Packet Size and
-//! Receive Maximum: `Session::deliver_publish`), SUBACKs are completed for filters the
-//! ACL refused, and acknowledgements towards the router keep its order (`ack_order`).
-//! The end of a connection is one `End` value: it decides the MQTT 5 DISCONNECT reason,
-//! whether the will fires, and the disconnect metric label. Bytes and packets are the
-//! `framed` and `codec` modules' business; session lifetimes are `session_lifetime`'s.
+//! The files: [`connect`] (opening), [`inbound`] (one dispatch per packet type from the
+//! client, then the PUBLISH and SUBSCRIBE handlers), [`deliver`] (what the router sends
+//! back: the MQTT rules its router leaves out — delivery QoS, No Local, Retain As
+//! Published, the client's Maximum Packet Size and Receive Maximum — SUBACKs completed for
+//! refused filters), [`close`] (why a session ended, the DISCONNECT reason, the will);
+//! around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
+//! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
+//! session expiry), [`observer`] (who else is told of subscriptions). Bytes and packets
+//! are `wire`'s business.
 //!
 //! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
 //! needs what that loop hides: the peer address (login throttling), keep-alive 0

@@ -135,7 +135,7 @@ impl SessionTable {
         self.close_with(client_id, session, remains, |_| ());
     }
 
-    /// [`SessionTable::close`], running `f(superseded)` with the table held: `superseded`
+    /// `SessionTable::close`, running `f(superseded)` with the table held: `superseded`
     /// says a newer connection of `client_id` has started. No connection of the client id
     /// starts while `f` runs, so what `f` hands over is either there before the newer
     /// connection's [`SessionTable::open`] (which then reports no running predecessor), or
