@@ -6,7 +6,7 @@
 //! for (abrupt close, keep-alive expiry, takeover) or `clean disconnect`.
 //!
 //! **Session numbers decide, not arrival order.** Every connection has a session number
-//! (see `session_table`), the Sparkplug `bdSeq` idea: an end is applied only if it belongs
+//! (see `session::table`), the Sparkplug `bdSeq` idea: an end is applied only if it belongs
 //! to the device's current session, so the late death of an old connection — a takeover,
 //! a delayed will — never marks a newer session offline. Numbers keep growing across
 //! broker restarts because the table is seeded from the persisted registry.

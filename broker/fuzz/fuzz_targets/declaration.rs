@@ -1,5 +1,5 @@
 //! Interface declarations: what a device publishes on `fbbus/declare/<device>` at birth
-//! (`Declaration::from_json` + `validate`, as `broker/src/fb_topics.rs` does), the type
+//! (`Declaration::from_json` + `validate`, as `broker/src/policy/typed.rs` does), the type
 //! names in them (`DataType::from_str`), and typed interfaces read back from JSON (how the
 //! device registry file and other lines' records hold them).
 //!

@@ -5,7 +5,7 @@
 //! 1. **The session path**: `broker::wire::framed::Io` over an in-memory stream: `read_connect`
 //!    (first-byte check, framing, the CONNECT's protocol level choosing the 3.1.1 or 5
 //!    codec, decoding), then `next_frame` / `decode` for every following packet, as
-//!    `connection.rs` reads them, until the stream ends or a packet is refused (which
+//!    the session (`broker/src/session/mod.rs`) reads them, until the stream ends or a packet is refused (which
 //!    closes a real connection). A decoded PUBLISH's QoS (`Publish::qos_and_pkid`, which
 //!    the packet path acknowledges with) must be the one its fixed header announces.
 //! 2. **Every frame with both codecs**, without a CONNECT first: `frame::check` and

@@ -1,6 +1,6 @@
 //! The typed-topic payload codecs (canonical JSON, DINASORE, 4diac `fbdk`) decoding
 //! arbitrary bytes against arbitrary port declarations, as the broker does for every
-//! publication on `fb/`, `dinasore/` and `fbdk/` (`broker/src/fb_topics.rs`).
+//! publication on `fb/`, `dinasore/` and `fbdk/` (`broker/src/policy/typed.rs`).
 //!
 //! Input: one header line naming the encoding, the port and its type(s), then the payload
 //! (any bytes), so seeds are readable and libFuzzer mutates types as well as payloads:

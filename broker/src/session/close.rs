@@ -89,7 +89,7 @@ impl Session {
         };
         let (redeliveries, client_id, session) =
             (&self.ctx.redeliveries, &*self.client_id, self.session);
-        // A kept session with an expiry is ended by the expiry task (`session_lifetime`).
+        // A kept session with an expiry is ended by the expiry task (`session::lifetime`).
         let remains = self.lifetime.remains();
         self.ctx
             .sessions
@@ -155,7 +155,7 @@ impl Session {
             end.reason().description(),
         );
         // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0); later
-        // ones are the expiry task's (`session_lifetime::expire_sessions`).
+        // ones are the expiry task's (`lifetime::expire_sessions`).
         if self.lifetime.expires_after == Some(Duration::ZERO) {
             end_idle_session(&self.ctx, &self.client_id, self.session).await;
         }

@@ -161,7 +161,7 @@ struct Session {
     will: Option<Box<Will>>,
     link_tx: LinkTx,
     link_rx: LinkRx,
-    /// This connection's session number for its client id (see `session_table`).
+    /// This connection's session number for its client id (see `table`).
     session: u64,
     /// What happens to the session in the router when this connection ends.
     lifetime: SessionLifetime,

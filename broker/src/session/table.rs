@@ -164,7 +164,7 @@ impl SessionTable {
     }
 
     /// Sessions whose expiry is due at `now`: (client id, session) to end with
-    /// `session_lifetime::end_idle_session`. They stay in the table until then.
+    /// `lifetime::end_idle_session`. They stay in the table until then.
     pub fn due(&self, now: Instant) -> Vec<(String, u64)> {
         let mut inner = self.inner();
         let mut due = Vec::new();

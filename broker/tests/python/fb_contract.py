@@ -23,7 +23,7 @@ The device:
 Prints one JSON line with what it observed; exits 0 when every check holds, 1 otherwise
 with the failed check on stderr. Every wait is bounded (10 s).
 
-Driven by broker/tests/fb.rs (`python_device_follows_the_readme_contract`).
+Driven by broker/tests/fb_contract.rs (`python_device_follows_the_readme_contract`).
 """
 
 import argparse

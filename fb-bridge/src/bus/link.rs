@@ -1,6 +1,6 @@
 //! The zenoh session of one line's bridge: everything that touches the network.
 //!
-//! The broker drives it (`broker/src/bridge.rs`); this module knows zenoh, not MQTT
+//! The broker drives it (`broker/src/bridge/`); this module knows zenoh, not MQTT
 //! routers. What it offers:
 //!
 //! - [`Exporter::export`]: put one local message on its data key, stamped, reliable and

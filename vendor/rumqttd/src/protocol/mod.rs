@@ -177,7 +177,7 @@ pub struct Publish {
 
 // fbbus: where and how a message was published, set by the embedding broker as the
 // message enters the router and carried with it (commit log, retained store) to every
-// delivery; never encoded on the wire (broker/src/origin.rs, FBBUS-CHANGES.md). Cloning
+// delivery; never encoded on the wire (broker/src/policy/origin.rs, FBBUS-CHANGES.md). Cloning
 // it is a reference count, not an allocation.
 /// How a message entered the broker.
 #[derive(Clone, Debug, PartialEq, Eq)]
