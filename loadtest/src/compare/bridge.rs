@@ -22,9 +22,9 @@ use anyhow::{bail, Context as _, Result};
 use hdrhistogram::Histogram;
 use tokio::io::AsyncWriteExt;
 
-use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
+use super::{metric, start_fbbus as start};
+use loadtest::broker_process::spawn::{self, Running};
 use loadtest::raw_client::{self as mqtt, PacketReader};
-use loadtest::scrape;
 
 pub struct BridgeParams {
     pub samples: usize,
@@ -236,27 +236,4 @@ async fn wait_metric(admin: SocketAddr, series: &str, min: f64) -> Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-}
-
-/// A fresh fbbus with `broker_keys` in its `[broker]` section and `tables` appended.
-async fn start(fbbus: &Path, broker_keys: &[String], tables: &str) -> Result<Running> {
-    Ok(spawn::start(&Spec {
-        kind: Kind::Fbbus,
-        program: fbbus,
-        broker_keys,
-        tables,
-        auth: None,
-    })
-    .await?)
-}
-
-/// The value of one Prometheus series on fbbus's admin endpoint (0 when absent or
-/// unreadable).
-async fn metric(admin: SocketAddr, series: &str) -> f64 {
-    let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
-        .await
-        .unwrap_or_default();
-    text.lines()
-        .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
-        .unwrap_or(0.0)
 }

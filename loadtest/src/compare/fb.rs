@@ -26,9 +26,11 @@ use hdrhistogram::Histogram;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
+use loadtest::broker_process::spawn::{self, Running};
 use loadtest::raw_client::{self as mqtt, PacketReader};
 use loadtest::scrape;
+
+use super::{metric, start_fbbus as start};
 
 pub struct FbParams {
     pub devices: usize,
@@ -322,29 +324,6 @@ async fn wait_online(admin: SocketAddr, n: usize) -> Result<()> {
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
-}
-
-/// A fresh fbbus with `broker_keys` in its `[broker]` section and `tables` appended.
-async fn start(fbbus: &Path, broker_keys: &[String], tables: &str) -> Result<Running> {
-    Ok(spawn::start(&Spec {
-        kind: Kind::Fbbus,
-        program: fbbus,
-        broker_keys,
-        tables,
-        auth: None,
-    })
-    .await?)
-}
-
-/// The value of one Prometheus series on fbbus's admin endpoint (0 when absent or
-/// unreadable).
-async fn metric(admin: SocketAddr, series: &str) -> f64 {
-    let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
-        .await
-        .unwrap_or_default();
-    text.lines()
-        .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
-        .unwrap_or(0.0)
 }
 
 /// One GET on fbbus's admin endpoint: the body of a 200 answer, within 10 s.

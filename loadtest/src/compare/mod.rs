@@ -16,6 +16,7 @@ mod fb;
 mod scenarios;
 mod table;
 
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -24,6 +25,7 @@ use clap::{Args, Subcommand};
 
 use loadtest::broker_process::spawn::{self, Kind, Running, Spec};
 use loadtest::raw_client;
+use loadtest::scrape;
 
 use auth::Storm;
 use scenarios::{Outcome, Params, Scenario};
@@ -423,3 +425,27 @@ async fn run_one(
 
 /// The keep-alive every `compare` client announces, for the header.
 pub const KEEP_ALIVE_SECS: u16 = raw_client::KEEP_ALIVE_SECS;
+
+/// A fresh fbbus with `broker_keys` in its `[broker]` section and `tables` appended, for
+/// the fbbus-only measurements (`compare fb`, `compare bridge`).
+async fn start_fbbus(fbbus: &Path, broker_keys: &[String], tables: &str) -> Result<Running> {
+    Ok(spawn::start(&Spec {
+        kind: Kind::Fbbus,
+        program: fbbus,
+        broker_keys,
+        tables,
+        auth: None,
+    })
+    .await?)
+}
+
+/// The value of one Prometheus series on fbbus's admin endpoint (0 when absent or
+/// unreadable).
+async fn metric(admin: SocketAddr, series: &str) -> f64 {
+    let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
+        .await
+        .unwrap_or_default();
+    text.lines()
+        .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
+        .unwrap_or(0.0)
+}
