@@ -6,6 +6,10 @@
 //! two brokers interleaved (compare mode). See `loadtest/README.md` for every scenario,
 //! parameter and output.
 //!
+//! **It owns** the load scenarios, the broker processes it starts and the reports. **It
+//! must not know** a broker's internals: it drives every broker, fbbus included, as a
+//! process over MQTT and HTTP, so its figures compare like with like.
+//!
 //! How a number is made, in one pass:
 //! - [`rig`]: publishers and subscribers connected once per broker; a *batch* sends `n`
 //!   messages per publisher (a burst, or at a rate) and waits until every copy arrived,

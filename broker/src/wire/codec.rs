@@ -2,8 +2,9 @@
 //! guards fbbus puts in front of them.
 //!
 //! - MQTT 3.1.1 and 5 share a port; the version is chosen from CONNECT ([`Version`]).
-//! - rumqttd's 3.1.1 writer panics on packets carrying MQTT 5 properties and on CONNACK
-//!   codes 3.1.1 does not have: [`Codec::write`] strips and maps them.
+//! - rumqttd's writers refuse (with an error) what a version cannot carry: MQTT 5
+//!   properties and CONNACK codes on 3.1.1, 3.1.1-only CONNACK codes on 5.
+//!   [`Codec::write`] strips and maps them, so a client is always answered.
 //! - [`decode_frame`] refuses packet types only servers send before decoding. rumqttd's
 //!   decoders themselves do not panic on any input: the panics they had were fixed at the
 //!   source (`vendor/rumqttd/FBBUS-CHANGES.md`), and the `mqtt_decode` fuzz target

@@ -1,3 +1,11 @@
+//! # rumqttd (fbbus's fork of rumqttd 0.20)
+//!
+//! **It owns** the router (topic matching, retained messages, per-filter commit logs,
+//! QoS 1/2 state, shared subscriptions), its local links, and the MQTT 3.1.1 and 5
+//! codecs. **It must not know** fbbus's policy: who may publish where, typed topics,
+//! wills, the registry or the bus; the broker puts those in front of it. Every change
+//! from upstream is listed in `FBBUS-CHANGES.md`, so a rebase stays possible.
+
 // fbbus: the router, its local links and the MQTT codecs of rumqttd 0.20, as the fbbus
 // broker embeds them. Upstream's server (listeners, TLS, websockets), console, cluster
 // replicator, bridge, metrics exporter and `rumqttd` binary are removed

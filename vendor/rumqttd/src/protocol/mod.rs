@@ -733,6 +733,9 @@ pub fn matches(topic: &str, filter: &str) -> bool {
 pub enum Error {
     #[error("Invalid return code received as response for connect = {0}")]
     InvalidConnectReturnCode(u8),
+    // fbbus: the writers refused what one MQTT version cannot carry with a panic.
+    #[error("{0} cannot be written in this MQTT version")]
+    NotInThisVersion(&'static str),
     #[error("Invalid reason = {0}")]
     InvalidReason(u8),
     #[error("Invalid reason = {0}")]

@@ -24,12 +24,13 @@ pub fn read(fixed_header: FixedHeader, mut bytes: Bytes) -> Result<ConnAck, Erro
 }
 
 pub fn write(connack: &ConnAck, buffer: &mut BytesMut) -> Result<usize, Error> {
+    let code = connect_code(connack.code)?;
     let len = len();
     buffer.put_u8(0x20);
 
     let count = write_remaining_length(buffer, len)?;
     buffer.put_u8(connack.session_present as u8);
-    buffer.put_u8(connect_code(connack.code));
+    buffer.put_u8(code);
 
     Ok(1 + count + len)
 }
@@ -47,14 +48,15 @@ fn connect_return(num: u8) -> Result<ConnectReturnCode, Error> {
     }
 }
 
-fn connect_code(return_code: ConnectReturnCode) -> u8 {
-    match return_code {
+// fbbus: an MQTT 5 code is an error here, not a panic.
+fn connect_code(return_code: ConnectReturnCode) -> Result<u8, Error> {
+    Ok(match return_code {
         ConnectReturnCode::Success => 0,
         ConnectReturnCode::RefusedProtocolVersion => 1,
         ConnectReturnCode::ClientIdentifierNotValid => 2,
         ConnectReturnCode::ServiceUnavailable => 3,
         ConnectReturnCode::BadUserNamePassword => 4,
         ConnectReturnCode::NotAuthorized => 5,
-        _ => unreachable!(),
-    }
+        _ => return Err(Error::NotInThisVersion("an MQTT 5 CONNACK code")),
+    })
 }

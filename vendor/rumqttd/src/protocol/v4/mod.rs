@@ -341,9 +341,8 @@ impl Protocol for V4 {
             Packet::Disconnect(disconnect, None) => disconnect::write(&disconnect, buffer)?,
             Packet::PingReq(_pingreq) => ping::pingreq::write(buffer)?,
             Packet::PingResp(_pingresp) => ping::pingresp::write(buffer)?,
-            _ => unreachable!(
-                "This branch only matches for packets with Properties, which is not possible in v4",
-            ),
+            // fbbus: a packet with MQTT 5 properties is an error here, not a panic.
+            _ => return Err(Error::NotInThisVersion("a packet with MQTT 5 properties")),
         };
         Ok(size)
     }

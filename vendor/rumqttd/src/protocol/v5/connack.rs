@@ -42,12 +42,13 @@ pub fn write(
     properties: &Option<ConnAckProperties>,
     buffer: &mut BytesMut,
 ) -> Result<usize, Error> {
+    let code = connect_code(connack.code)?;
     let len = len(connack, properties);
     buffer.put_u8(0x20);
 
     let count = write_remaining_length(buffer, len)?;
     buffer.put_u8(connack.session_present as u8);
-    buffer.put_u8(connect_code(connack.code));
+    buffer.put_u8(code);
 
     if let Some(p) = properties {
         properties::write(p, buffer)?;
@@ -393,8 +394,9 @@ fn connect_return(num: u8) -> Result<ConnectReturnCode, Error> {
     Ok(code)
 }
 
-fn connect_code(return_code: ConnectReturnCode) -> u8 {
-    match return_code {
+// fbbus: an MQTT 3.1.1-only code is an error here, not a panic.
+fn connect_code(return_code: ConnectReturnCode) -> Result<u8, Error> {
+    Ok(match return_code {
         ConnectReturnCode::Success => 0,
         ConnectReturnCode::UnspecifiedError => 128,
         ConnectReturnCode::MalformedPacket => 129,
@@ -417,6 +419,6 @@ fn connect_code(return_code: ConnectReturnCode) -> u8 {
         ConnectReturnCode::UseAnotherServer => 156,
         ConnectReturnCode::ServerMoved => 157,
         ConnectReturnCode::ConnectionRateExceeded => 159,
-        _ => unreachable!(),
-    }
+        _ => return Err(Error::NotInThisVersion("an MQTT 3.1.1 CONNACK code")),
+    })
 }

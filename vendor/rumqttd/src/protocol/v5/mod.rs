@@ -494,6 +494,36 @@ mod fbbus_tests {
     }
 
     #[test]
+    fn what_a_version_cannot_carry_is_an_error_when_written() {
+        let connack = |code| {
+            Packet::ConnAck(
+                ConnAck {
+                    session_present: false,
+                    code,
+                },
+                None,
+            )
+        };
+        let mut buffer = BytesMut::new();
+        // A 3.1.1-only code in an MQTT 5 CONNACK, an MQTT 5 code in a 3.1.1 one.
+        let v5 = V5.write(
+            connack(ConnectReturnCode::RefusedProtocolVersion),
+            &mut buffer,
+        );
+        assert!(matches!(v5, Err(Error::NotInThisVersion(_))), "{v5:?}");
+        let v4 = crate::protocol::v4::V4.write(connack(ConnectReturnCode::Banned), &mut buffer);
+        assert!(matches!(v4, Err(Error::NotInThisVersion(_))), "{v4:?}");
+        // MQTT 5 properties in a 3.1.1 packet.
+        let publish = Packet::Publish(
+            Publish::new("t", "p", false),
+            Some(PublishProperties::default()),
+        );
+        let v4 = crate::protocol::v4::V4.write(publish, &mut buffer);
+        assert!(matches!(v4, Err(Error::NotInThisVersion(_))), "{v4:?}");
+        assert!(buffer.is_empty(), "nothing half-written");
+    }
+
+    #[test]
     fn connack_and_unsuback_decode_instead_of_panicking() {
         assert!(matches!(read(&[0x20, 3, 0, 0, 0]), Ok(Packet::ConnAck(..))));
         assert!(matches!(
