@@ -1,6 +1,6 @@
-//! A device written from the README alone: a paho-mqtt script that knows only the
-//! device contract declares, publishes, is refused, reads both encodings and the registry,
-//! against the real `fbbus` binary.
+//! A device written from the device contract (docs/device-contract.md) alone: a paho-mqtt
+//! script that knows only the contract declares, publishes, is refused, reads both
+//! encodings and the registry, against the real `fbbus` binary.
 //!
 //! Helpers are in `common/fb.rs`.
 
@@ -12,7 +12,7 @@ use std::time::Duration;
 use common::fb::*;
 use common::Broker;
 
-// ---------------------------------------------------------------- a device from the README
+// ------------------------------------------------------ a device from the device contract
 
 const CONTRACT_SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/fb_contract.py");
 

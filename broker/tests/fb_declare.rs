@@ -1,5 +1,5 @@
 //! Declarations end to end against the real `fbbus` binary (the device contract of
-//! `fb-bridge/README.md`): an accepted declaration is answered on `fbbus/diag/<id>` and
+//! `docs/device-contract.md`): an accepted declaration is answered on `fbbus/diag/<id>` and
 //! recorded; a refused one lists every error and is not routed.
 //!
 //! Each test starts its own broker on free loopback ports; helpers are in

@@ -75,7 +75,7 @@ async fn every_encoding_in_is_delivered_in_every_encoding_out() {
     let mut dev = Dev::connect(broker.port(), 5, "forte");
     declare_ok(&mut dev, FORTE, &mut diag_sub, &broker).await;
 
-    // fbdk in (INT 5, the README's example).
+    // fbdk in (INT 5: tag 0x43, two big-endian bytes; the device contract's fbdk table).
     assert_eq!(
         dev.publish("fbdk/forte/CONV/POSITION", &[0x43, 0x00, 0x05]),
         0
@@ -167,7 +167,7 @@ async fn every_encoding_in_is_delivered_in_every_encoding_out() {
         .expect("forte/CONV/TICK", json!({}), json!({}), &[0x05], &broker)
         .await;
 
-    // The README's layouts, one per kind of value.
+    // The device contract's layouts (docs/device-contract.md section 3), one per kind of value.
     let layouts: Vec<(&str, Value, Vec<u8>)> = vec![
         ("ID", json!("abc"), vec![0x50, 0x00, 0x03, b'a', b'b', b'c']),
         ("SPEED", json!(1.5), be(0x4A, 1.5f32.to_be_bytes())),

@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
-"""A device written from fb-bridge/README.md alone, with Eclipse paho-mqtt 2.x (MQTT 5).
+"""A device written from the device contract alone (docs/device-contract.md, then
+fb-bridge/README.md), with Eclipse paho-mqtt 2.x (MQTT 5).
 
     fb_contract.py --port 1883 [--host 127.0.0.1] [--device py-dev]
 
 The device:
 
-1. connects with its id as client id and username (README section 1) and subscribes to
+1. connects with its id as client id and username (contract section 1) and subscribes to
    its diag topic `fbbus/diag/<id>` before declaring (section 2);
 2. declares one FB whose event output MOVED carries WITH data (INT, STRING, TIME,
    ARRAY [3] OF REAL) and checks the `{"kind": "declaration", "ok": true, ...}` answer;
@@ -15,7 +16,7 @@ The device:
    PUBACK reason 0x99, read in on_publish, and a `rejected` diag with code 153) and a
    second valid one;
 5. checks that fb/ subscribers got exactly the two valid events in canonical JSON with
-   seq and ts stamped, and fbdk/ subscribers the bytes computed here from the README's
+   seq and ts stamped, and fbdk/ subscribers the bytes computed here from the contract's
    byte layout;
 6. reads its retained registry record `fbbus/devices/<id>` and the line's retained online
    count `fbbus/lines/<line>/online` (section 4).
@@ -39,10 +40,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 WAIT = 10.0
 
-# fbdk (README section 3, "Other encodings"): each value is a tag byte `0x40 | type number`
-# and a big-endian value. The type numbers are the IEC 61499 compliance profile's (ASN.1
-# application tags); the README does not list them, so they are spelled out here for the
-# types this device uses.
+# fbdk (contract section 3, "Other encodings of the same ports"): each value is a tag byte
+# `0x40 | type number` and a big-endian value. The type numbers are the IEC 61499
+# compliance profile's (ASN.1 application tags), spelled out here for the types this
+# device uses.
 TYPE_NUMBER = {"BOOL": 1, "INT": 3, "REAL": 10, "TIME": 12, "STRING": 16}
 ARRAY_TAG = 0x76
 
@@ -93,7 +94,7 @@ class Device:
             protocol=mqtt.MQTTv5,
             reconnect_on_failure=False,
         )
-        # README section 1: the device id as client id and username.
+        # Contract section 1: the device id as client id and username.
         self.c.username_pw_set(device, None)
         self.connected = threading.Event()
         self.connect_reason = None
@@ -257,7 +258,7 @@ def run(args, observed):
     extra = dev.quiet(event_topic, 0.3)
     check(extra is None, f"an extra message on {event_topic}: {extra!r}")
 
-    # fbdk: the WITH values in WITH order, from the README's byte layout.
+    # fbdk: the WITH values in WITH order, from the contract's byte layout.
     def fbdk_event(data):
         return (
             fbdk_int(data["N"])

@@ -1,5 +1,6 @@
 """A zenoh application in Python (eclipse-zenoh 1.10) on the fbbus bus, written from
-fb-bridge/README.md section 7 alone. Run by broker/tests/bridge.rs against a real line.
+docs/device-contract.md section 7 alone (then fb-bridge/README.md). Run by
+broker/tests/bridge.rs against a real line.
 
 It joins the bus as a line of its own, `line-py`, with one device `pydev`:
   1. announces the line and the device (liveliness tokens) and serves the device's
@@ -41,7 +42,7 @@ EPOCH = int(time.time() * 1e6)
 
 
 def stamp(seq, qos=1, retain=False):
-    """fb-bridge/README.md section 7: version, flags, epoch, seq (big-endian), line."""
+    """docs/device-contract.md section 7: version, flags, epoch, seq (big-endian), line."""
     flags = (qos & 0b11) | (0b100 if retain else 0)
     return struct.pack(">BBQQ", 1, flags, EPOCH, seq) + LINE.encode()
 

@@ -4,8 +4,9 @@
 //! When the log is full, the next append drops the oldest segment, and a reader still in
 //! it skips what it had not read (`Skipped`). That is right for a reader that stopped, and
 //! wrong for one that reads, only slower than a burst comes in: in `fbbus-bench`'s burst
-//! of a million messages the one subscriber lost about 70% of them, where Mosquitto
-//! delivers them all (it buffers without bound).
+//! of a million messages (now `fbbus-loadtest compare --scenarios msgmem`) the one
+//! subscriber lost about 70% of them, where Mosquitto delivers them all (it buffers
+//! without bound).
 //!
 //! So when a publish would make a log drop messages that a live reader has not read, the
 //! router stops taking that publisher's packets. The publish and everything after it go
