@@ -857,7 +857,7 @@ fn bridge_carries_every_message_from_line_a_to_line_b() {
         ),
         |_| {},
     );
-    // The bridge is subscription-driven (fb-bridge/README.md section 7): line A exports
+    // The bridge is subscription-driven (docs/device-contract.md section 7): line A exports
     // only once line B's interest reached it, some time after the SUBACK. The harness
     // waits for a probe to cross before its first batch (rig.rs `across_the_bridge`);
     // without that, the batch was lost in about half the runs.
