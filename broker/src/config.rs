@@ -148,6 +148,9 @@ pub struct AuthSection {
     pub password_file: Option<PathBuf>,
     /// Access rules; without one every authenticated client may do everything.
     pub acl_file: Option<PathBuf>,
+    /// Which client ids a client that logs in with a username may use: "any", "%u" (the
+    /// username) or "%u-*" (the username, or the username, `-` and anything).
+    pub client_id: crate::identity::ClientIdRule,
     /// Rewrite a Mosquitto `$7$`/`$6$` entry as argon2id after its next successful login.
     pub rehash_legacy: bool,
     /// Password verifications run at once (argon2 is CPU-bound: more than the cores only queues).
@@ -164,6 +167,7 @@ impl Default for AuthSection {
         AuthSection {
             password_file: None,
             acl_file: None,
+            client_id: Default::default(),
             rehash_legacy: true,
             verify_concurrency: std::thread::available_parallelism()
                 .map(|n| n.get())
@@ -401,6 +405,16 @@ impl Config {
         if self.auth.reload_poll_ms < 100 {
             return Err(invalid(file, "auth.reload_poll_ms", "must be at least 100"));
         }
+        if self.auth.client_id != crate::identity::ClientIdRule::Any
+            && self.auth.password_file.is_none()
+        {
+            return Err(invalid(
+                file,
+                "auth.client_id",
+                "binds client ids to verified usernames, so it needs [auth] password_file; \
+                 without one nobody's username is checked",
+            ));
+        }
         let t = &self.auth.throttle;
         if t.base_delay_ms == 0 || t.max_delay_ms < t.base_delay_ms {
             return Err(invalid(
@@ -568,6 +582,32 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("broker.max_connections"), "{err}");
+    }
+
+    #[test]
+    fn client_id_binding_needs_a_password_file() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let err = Config::parse(&format!("[auth]\nclient_id = \"%u\"\n{listener}"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("auth.client_id"), "{err}");
+        let err = Config::parse(&format!("[auth]\nclient_id = \"%c\"\n{listener}"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("auth.client_id"), "{err}");
+        let c = Config::parse(
+            &format!("[auth]\npassword_file = \"p\"\nclient_id = \"%u-*\"\n{listener}"),
+            "f",
+        )
+        .unwrap();
+        assert_eq!(
+            c.auth.client_id,
+            crate::identity::ClientIdRule::UsernamePrefix
+        );
+        assert_eq!(
+            Config::embedded_default().auth.client_id,
+            crate::identity::ClientIdRule::Any
+        );
     }
 
     /// Regression (broker/fuzz/regressions/config_load): a max_connections the broker

@@ -10,6 +10,7 @@ use std::time::Duration;
 use tokio::sync::watch;
 
 use crate::authenticator::Authenticator;
+use crate::identity::Identities;
 use crate::metrics::Metrics;
 use crate::policy::typed::FbTopics;
 use crate::policy::PublishPolicy;
@@ -23,6 +24,8 @@ use crate::wills::Wills;
 pub struct Context {
     pub router: RouterHandle,
     pub authenticator: Arc<Authenticator>,
+    /// Who owns a session, which client ids a user may use (`identity`).
+    pub identity: Identities,
     /// What every publication passes, whichever way it came in: access, typed check,
     /// origin mark (`policy`).
     pub policy: PublishPolicy,

@@ -39,6 +39,7 @@ mod broker_publisher;
 pub mod config;
 mod context;
 mod health;
+mod identity;
 mod listener;
 mod logging;
 mod memory;

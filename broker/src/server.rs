@@ -16,6 +16,7 @@ use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
 use crate::context::Context;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
+use crate::identity::Identities;
 use crate::listener::Listener;
 use crate::listener::ListenerPolicy;
 use crate::metrics::Metrics;
@@ -149,6 +150,7 @@ impl Broker {
         let ctx = Arc::new(Context {
             router,
             authenticator,
+            identity: Identities::new(config.auth.password_file.is_some(), config.auth.client_id),
             policy: PublishPolicy::new(
                 Access::new(acl.clone()),
                 Arc::clone(&fb),

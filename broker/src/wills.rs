@@ -7,7 +7,9 @@
 //! connection whether it fires (see `connection::End::fires_will`), and this module
 //! publishes it into the router through an internal link, immediately or after the
 //! MQTT 5 will delay. A new connection with the same client id cancels a delayed will,
-//! as MQTT 5 section 3.1.3.2.2 requires.
+//! as MQTT 5 section 3.1.3.2.2 requires, if it is of the same identity (`identity`): the
+//! session table refuses another identity's CONNECT before it gets here, and a delayed
+//! will also remembers its owner, so it holds even once the session left the table.
 //!
 //! The will topic is checked against the ACL when the client connects, so a client
 //! cannot use its will to publish where it may not publish itself.
@@ -23,6 +25,7 @@ use tokio::task::AbortHandle;
 use crate::supervisor::Tasks;
 
 use crate::broker_publisher::{BrokerPublisher, Message};
+use crate::identity::Owner;
 use crate::metrics::Metrics;
 
 /// The MQTT 5 user property a will carries with its connection's session number, so a
@@ -66,7 +69,8 @@ impl Will {
 /// Publishes wills and keeps the delayed ones until they are due.
 pub struct Wills {
     publisher: Arc<BrokerPublisher>,
-    delayed: Mutex<HashMap<String, Vec<AbortHandle>>>,
+    /// By client id: the delayed wills' tasks, with whose session they are.
+    delayed: Mutex<HashMap<String, Vec<(Owner, AbortHandle)>>>,
     metrics: Arc<Metrics>,
     /// Where delayed wills wait: finished (not fired) when the broker shuts down.
     tasks: Tasks,
@@ -82,22 +86,31 @@ impl Wills {
         })
     }
 
-    /// A client with this id connected: a will still waiting for its delay is dropped.
-    pub fn cancel_delayed(&self, client_id: &str) {
-        if let Some(tasks) = self
-            .delayed
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .remove(client_id)
-        {
-            tasks.iter().for_each(AbortHandle::abort);
+    /// `owner` connected with this client id: its wills still waiting for their delay
+    /// are dropped. Another identity's are not.
+    pub fn cancel_delayed(&self, client_id: &str, owner: &Owner) {
+        let mut delayed = self.delayed.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some(tasks) = delayed.get_mut(client_id) else {
+            return;
+        };
+        let waiting = tasks.len();
+        tasks.retain(|(of, task)| {
+            if of == owner {
+                task.abort();
+            }
+            of != owner
+        });
+        if tasks.len() < waiting {
             tracing::debug!(client_id, "delayed will cancelled by reconnect");
+        }
+        if tasks.is_empty() {
+            delayed.remove(client_id);
         }
     }
 
-    /// Publishes `will` of `client_id`'s session `session` now, or after its delay unless
-    /// the client comes back first.
-    pub fn fire(self: &Arc<Self>, client_id: &str, session: u64, will: Will) {
+    /// Publishes `will` of `client_id`'s session `session`, which `owner` created, now, or
+    /// after its delay unless the client comes back first.
+    pub fn fire(self: &Arc<Self>, client_id: &str, session: u64, owner: &Owner, will: Will) {
         if will.delay.is_zero() {
             self.publish(client_id, session, will);
             return;
@@ -106,10 +119,7 @@ impl Wills {
         let id = client_id.to_owned();
         let task = self.tasks.spawn(async move {
             tokio::time::sleep(will.delay).await;
-            this.delayed
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .remove(&id);
+            this.forget(&id, tokio::task::id());
             this.publish(&id, session, will);
         });
         // Several when a typed will is published in several encodings.
@@ -118,7 +128,18 @@ impl Wills {
             .unwrap_or_else(PoisonError::into_inner)
             .entry(client_id.to_owned())
             .or_default()
-            .push(task);
+            .push((owner.clone(), task));
+    }
+
+    /// The delayed will `task` of `client_id` is due: it can no longer be cancelled.
+    fn forget(&self, client_id: &str, task: tokio::task::Id) {
+        let mut delayed = self.delayed.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(tasks) = delayed.get_mut(client_id) {
+            tasks.retain(|(_, t)| t.id() != task);
+            if tasks.is_empty() {
+                delayed.remove(client_id);
+            }
+        }
     }
 
     fn publish(&self, client_id: &str, session: u64, will: Will) {

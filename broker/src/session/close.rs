@@ -109,6 +109,7 @@ impl Session {
         }
         let will = self.will.take().filter(|_| end.fires_will());
         if let Some(will) = will.map(|w| *w) {
+            let owner = self.ctx.identity.owner(self.username.as_deref());
             // A will on a typed topic is a publication like any other: checked against
             // the declaration now, and re-encoded like one (the reference line's CONNECT
             // FB sets a BOOL output to FALSE this way).
@@ -125,7 +126,9 @@ impl Session {
                     .admit(Door::Will, &mut self.fb, &self.client_id, publication);
             match admission {
                 Admission::Route { routes: None, .. } => {
-                    self.ctx.wills.fire(&self.client_id, self.session, will)
+                    self.ctx
+                        .wills
+                        .fire(&self.client_id, self.session, &owner, will)
                 }
                 Admission::Route {
                     routes: Some(routes),
@@ -135,7 +138,9 @@ impl Session {
                         let mut copy = will.clone();
                         copy.topic = topic.into();
                         copy.payload = payload;
-                        self.ctx.wills.fire(&self.client_id, self.session, copy);
+                        self.ctx
+                            .wills
+                            .fire(&self.client_id, self.session, &owner, copy);
                     }
                 }
                 Admission::Consumed | Admission::Refused { .. } => {}

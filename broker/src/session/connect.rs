@@ -1,6 +1,7 @@
 //! Opening a session: the CONNECT is checked, the client authenticated (step 1 of the
-//! packet path), its will authorized, and the session linked to the router and answered
-//! with CONNACK.
+//! packet path), its client id checked against its identity (`identity`: the binding and
+//! the ownership rule), its will authorized, and the session linked to the router and
+//! answered with CONNACK.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::net::SocketAddr;
@@ -15,11 +16,12 @@ use security::Identity;
 use super::ack_order::AckOrder;
 use super::lifetime::{purge_router_session, SessionLifetime};
 use super::packet_ids::PacketIds;
-use super::table::Remains;
+use super::table::{Owned, Remains};
 use super::Session;
 use crate::authenticator::Outcome;
 use crate::broker_publisher::is_reserved_client_id;
 use crate::context::Context;
+use crate::identity::Owner;
 use crate::listener::ListenerPolicy;
 use crate::metrics::DisconnectReason;
 use crate::policy::typed::FbSession;
@@ -32,17 +34,25 @@ use crate::wire::framed::Io;
 struct Refused {
     code: ConnectReturnCode,
     reason: &'static str,
+    /// The step that refused logged it already (rate-limited).
+    logged: bool,
 }
 
 fn refused(code: ConnectReturnCode, reason: &'static str) -> Refused {
-    Refused { code, reason }
+    Refused {
+        code,
+        reason,
+        logged: false,
+    }
 }
 
 impl Session {
     /// Opens a session for a CONNECT, in order: the client id, authentication (step 1 of
-    /// the packet path), the will's topic, the router link, CONNACK, then the registry and
-    /// whatever an earlier connection of the session left unacknowledged. Returns None
-    /// when the client was refused (its CONNACK said why) or went away.
+    /// the packet path), the client id's binding to the username, the will's topic, the
+    /// claim on the client id's session (the ownership rule), the router link, CONNACK,
+    /// then the registry and whatever an earlier connection of the session left
+    /// unacknowledged. Returns None when the client was refused (its CONNACK said why) or
+    /// went away. Every refusal comes before the claim and changes nothing.
     pub(super) async fn open(
         mut io: Io,
         connect: Packet,
@@ -62,13 +72,24 @@ impl Session {
         let accepted = async {
             let (client_id, assigned) = client_id(&connect)?;
             let username = authenticate(ctx, peer, login, listener.anonymous).await?;
+            let owner = ctx.identity.owner(username.as_deref());
+            bound_to_username(ctx, peer, &client_id, username.as_deref(), &owner)?;
             let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
             authorize_will(ctx, &client_id, username.as_deref(), will.as_ref())?;
             let lifetime = match version {
                 Version::V311 => SessionLifetime::v311(connect.clean_session),
                 Version::V5 => SessionLifetime::v5(connect.clean_session, session_expiry),
             };
-            let (linked, ack) = link(ctx, &client_id, username.as_deref(), lifetime).await?;
+            let claimed = claim(ctx, peer, &client_id, &owner)?;
+            let (linked, ack) = link(
+                ctx,
+                &client_id,
+                username.as_deref(),
+                &owner,
+                claimed,
+                lifetime,
+            )
+            .await?;
             Ok(Accepted {
                 client_id,
                 assigned,
@@ -82,9 +103,15 @@ impl Session {
         .await;
         let accepted = match accepted {
             Ok(accepted) => accepted,
-            Err(Refused { code, reason }) => {
+            Err(Refused {
+                code,
+                reason,
+                logged,
+            }) => {
                 ctx.metrics.refused(reason);
-                tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
+                if !logged {
+                    tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
+                }
                 let _ = io.send(connack(code, None)).await;
                 return None;
             }
@@ -219,6 +246,74 @@ async fn authenticate(
     }
 }
 
+/// `[auth] client_id`: a client that logs in with a username uses a client id bound to it
+/// (`identity::ClientIdRule`), or is refused (MQTT 5 0x85, 3.1.1 0x02).
+fn bound_to_username(
+    ctx: &Context,
+    peer: SocketAddr,
+    client_id: &str,
+    username: Option<&str>,
+    owner: &Owner,
+) -> Result<(), Refused> {
+    if ctx.identity.bound(client_id, username) {
+        return Ok(());
+    }
+    if ctx.identity.may_log(client_id, owner) {
+        tracing::warn!(
+            %peer,
+            client_id,
+            username = %owner,
+            "CONNECT refused: [auth] client_id does not let this user use this client id \
+             (logged once a minute per client id and user; all counted in \
+             fbbus_connects_refused_total{{reason=\"client_id_binding\"}})"
+        );
+    }
+    Err(Refused {
+        logged: true,
+        ..refused(
+            ConnectReturnCode::ClientIdentifierNotValid,
+            "client_id_binding",
+        )
+    })
+}
+
+/// The ownership rule (`identity`): a client id's session, connected or kept, belongs to
+/// the identity that created it. Another identity's CONNECT is refused (MQTT 5 0x85, 3.1.1
+/// 0x02) here, before anything of that session is touched: no delayed will cancelled, no
+/// session number taken, no registry change, no router link (which would take the session
+/// over). Otherwise the client id's next session number is taken, before the router link,
+/// because linking is what ends an older connection with this id, and that one must see it
+/// is stale. Returns the session number and whether the previous connection still runs.
+fn claim(
+    ctx: &Context,
+    peer: SocketAddr,
+    client_id: &str,
+    owner: &Owner,
+) -> Result<(u64, bool), Refused> {
+    let Owned { connected } = match ctx.sessions.open(client_id, owner) {
+        Ok(claimed) => return Ok(claimed),
+        Err(owned) => owned,
+    };
+    if ctx.identity.may_log(client_id, owner) {
+        tracing::warn!(
+            %peer,
+            client_id,
+            username = %owner,
+            session = if connected { "connected" } else { "kept offline" },
+            "CONNECT refused: this client id's session belongs to another user \
+             (logged once a minute per client id and user; all counted in \
+             fbbus_connects_refused_total{{reason=\"client_id_owned\"}})"
+        );
+    }
+    Err(Refused {
+        logged: true,
+        ..refused(
+            ConnectReturnCode::ClientIdentifierNotValid,
+            "client_id_owned",
+        )
+    })
+}
+
 /// A will may only go where the client may publish (the publish policy decides).
 fn authorize_will(
     ctx: &Context,
@@ -253,18 +348,17 @@ struct Linked {
     link_rx: LinkRx,
 }
 
-/// Takes a session number and links the session to the router, which takes over an older
-/// session with the same id. Also returns the router's CONNACK.
+/// Links the claimed session (`claim`) to the router, which takes over an older session
+/// with the same id. Also returns the router's CONNACK.
 async fn link(
     ctx: &Context,
     client_id: &str,
     username: Option<&str>,
+    owner: &Owner,
+    (session, predecessor_running): (u64, bool),
     lifetime: SessionLifetime,
 ) -> Result<(Linked, Notification), Refused> {
-    ctx.wills.cancel_delayed(client_id);
-    // The session number is taken before the router link, because linking is what ends
-    // an older connection with this id, and that one must see it is stale.
-    let (session, predecessor_running) = ctx.sessions.open(client_id);
+    ctx.wills.cancel_delayed(client_id, owner);
     let speaks_for_device = match username {
         Some(user) => user == client_id,
         None => ctx.fb.anonymous_devices,

@@ -20,12 +20,20 @@
 //! ([`SessionTable::due`]) instead of a sleeping task per session. Before, every client
 //! id ever seen stayed (~350 bytes each, found by `fbbus-loadtest churn`), and every MQTT
 //! 5 session with an expiry left a task asleep for that long.
+//!
+//! **Owned** (issue 20). Each entry records the identity that created the session
+//! ([`Owner`]), connected or kept offline, and [`SessionTable::open`] refuses a client id
+//! whose entry belongs to another identity, atomically with taking the session number:
+//! two CONNECTs racing for one client id cannot both pass. A refused CONNECT changes
+//! nothing here.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
 use tokio::time::Instant;
+
+use crate::identity::Owner;
 
 pub struct SessionTable {
     inner: Mutex<Inner>,
@@ -46,12 +54,21 @@ struct Inner {
 }
 
 struct Client {
+    /// Who created the session: only this identity may connect with the client id.
+    owner: Owner,
     /// The client id's latest session number.
     latest: u64,
     /// Whether that session is connected.
     connected: bool,
     /// While offline: its place in `offline`, and in `expiries` if it expires.
     closed: Option<(u64, Option<Instant>)>,
+}
+
+/// A CONNECT's client id belongs to another identity's session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Owned {
+    /// That session is connected (else it is kept offline).
+    pub connected: bool,
 }
 
 /// What remains of a session once its connection ended.
@@ -78,15 +95,23 @@ impl SessionTable {
         self.inner.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Registers a new connection for `client_id`; returns its session number, and whether
-    /// the previous connection of that client id is still running (has not closed yet).
-    pub fn open(&self, client_id: &str) -> (u64, bool) {
+    /// Registers a new connection of `owner` for `client_id`; returns its session number,
+    /// and whether the previous connection of that client id is still running (has not
+    /// closed yet). Refused, changing nothing, when the client id's connected or kept
+    /// session belongs to another identity.
+    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Owned> {
         let mut inner = self.inner();
+        if let Some(other) = inner.clients.get(client_id).filter(|c| c.owner != *owner) {
+            return Err(Owned {
+                connected: other.connected,
+            });
+        }
         inner.last += 1;
         let session = inner.last;
         let previous = inner.clients.insert(
             client_id.to_owned(),
             Client {
+                owner: owner.clone(),
                 latest: session,
                 connected: true,
                 closed: None,
@@ -96,7 +121,7 @@ impl SessionTable {
         if let Some(previous) = previous {
             inner.forget_closed(&previous);
         }
-        (session, previous_running)
+        Ok((session, previous_running))
     }
 
     /// Numbers sessions above `session` from now on (from the persisted registry).
@@ -229,14 +254,19 @@ impl Inner {
 mod tests {
     use super::*;
 
+    fn open(t: &SessionTable, client_id: &str) -> (u64, bool) {
+        t.open(client_id, &Owner::Anonymous)
+            .expect("anonymous owns these")
+    }
+
     #[test]
     fn a_newer_session_makes_the_older_one_stale() {
         let t = SessionTable::new(10);
         let kept = Remains::Kept(None);
-        let (a, running) = t.open("plc");
+        let (a, running) = open(&t, "plc");
         assert!(!running);
         assert!(t.is_current("plc", a));
-        let (b, running) = t.open("plc");
+        let (b, running) = open(&t, "plc");
         assert!(b > a);
         assert!(running, "a has not closed");
         assert!(!t.is_current("plc", a));
@@ -251,7 +281,7 @@ mod tests {
         );
         assert_eq!(t.with_idle("plc", b, || 7), Some(7));
         assert_eq!(t.len(), (0, 0), "an ended session leaves the table");
-        let (c, running) = t.open("plc");
+        let (c, running) = open(&t, "plc");
         assert!(c > b && !running);
     }
 
@@ -262,14 +292,14 @@ mod tests {
         let mut last = 0;
         for i in 0..1000 {
             let id = format!("client-{}", i % 7);
-            let (session, _) = t.open(&id);
+            let (session, _) = open(&t, &id);
             assert!(session > last);
             last = session;
             t.close(&id, session, Remains::Nothing);
         }
         assert_eq!(t.len(), (0, 0));
         t.seed(5000);
-        assert_eq!(t.open("x").0, 5001);
+        assert_eq!(open(&t, "x").0, 5001);
     }
 
     /// Issue 14: at most `limit` offline sessions, the oldest closed dropped first, with
@@ -279,7 +309,7 @@ mod tests {
         let t = SessionTable::new(3);
         let mut sessions = Vec::new();
         for id in ["a", "b", "c", "d"] {
-            let (s, _) = t.open(id);
+            let (s, _) = open(&t, id);
             sessions.push(s);
             t.close(id, s, Remains::Kept(Some(Duration::from_secs(60))));
         }
@@ -290,7 +320,7 @@ mod tests {
         );
         assert!(t.is_current("d", sessions[3]));
         // "b" comes back: connected, no longer offline, its expiry gone.
-        let (b2, running) = t.open("b");
+        let (b2, running) = open(&t, "b");
         assert!(!running);
         assert_eq!(t.len(), (1, 2));
         tokio::time::advance(Duration::from_secs(61)).await;
@@ -305,5 +335,32 @@ mod tests {
         assert_eq!(t.len(), (1, 1));
         t.close("b", b2, Remains::Nothing);
         assert_eq!(t.len(), (0, 1));
+    }
+
+    /// Issue 20: a client id's session, connected or kept, belongs to its identity.
+    #[test]
+    fn another_identity_is_refused_and_changes_nothing() {
+        let t = SessionTable::new(10);
+        let dev_b = Owner::User("devB".into());
+        let dev_a = Owner::User("devA".into());
+        let (b1, _) = t.open("devB", &dev_b).unwrap();
+        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: true }));
+        assert_eq!(
+            t.open("devB", &Owner::Anonymous),
+            Err(Owned { connected: true })
+        );
+        assert!(
+            t.is_current("devB", b1),
+            "the refusal took no session number"
+        );
+        t.close("devB", b1, Remains::Kept(None));
+        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: false }));
+        assert_eq!(t.len(), (0, 1), "the kept session is still there");
+        // The owner itself takes its session back.
+        let (b2, running) = t.open("devB", &dev_b).unwrap();
+        assert!(b2 > b1 && !running);
+        // A clean session leaves nothing: the client id is free again.
+        t.close("devB", b2, Remains::Nothing);
+        assert!(t.open("devB", &dev_a).is_ok());
     }
 }
