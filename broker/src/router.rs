@@ -69,8 +69,10 @@ pub struct LinkRefused(String);
 
 type Linked = Result<(LinkTx, LinkRx, Notification), LinkRefused>;
 
+/// Links connections to the router; clones link to the same router.
+#[derive(Clone)]
 pub struct RouterHandle {
-    builder: Box<Builder>,
+    builder: Arc<Builder>,
 }
 
 impl RouterHandle {
@@ -144,7 +146,7 @@ impl RouterHandle {
         };
         let router_tx = Router::new(0, config).with_hooks(hooks).spawn();
         RouterHandle {
-            builder: Box::new(move |client_id| LinkBuilder::new(client_id, router_tx.clone())),
+            builder: Arc::new(move |client_id| LinkBuilder::new(client_id, router_tx.clone())),
         }
     }
 

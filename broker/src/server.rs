@@ -25,6 +25,7 @@ use crate::policy::typed::FbTopics;
 use crate::policy::PublishPolicy;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
+use crate::session::lifetime::purge_evicted;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
 use crate::session::Observers;
@@ -121,7 +122,11 @@ impl Broker {
         })?;
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
-        let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker));
+        let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker))
+            .evicting({
+                let (router, tasks) = (router.clone(), tasks.clone());
+                move |client_id| purge_evicted(&router, &tasks, client_id)
+            });
         for (_, session) in registry.sessions() {
             sessions.seed(session);
         }

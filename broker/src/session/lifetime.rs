@@ -17,6 +17,7 @@ use tokio::sync::watch;
 use crate::context::Context;
 use crate::router::{unlink, RouterHandle};
 use crate::session::table::Remains;
+use crate::supervisor::Tasks;
 
 /// When the router's copy of a session ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -71,6 +72,28 @@ pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
     let linked = router.link(client_id, true, 0).await;
     if let Ok((tx, _rx, _)) = linked {
         let _ = unlink(tx).await;
+    }
+}
+
+/// The session table dropped `client_id`'s offline session at its limit
+/// (`SessionTable::evicting`, called with the table held): the router's saved session of
+/// that client id ends too, so it cannot outlive its owner's record and be resumed by
+/// another identity. The router drops its oldest saved session at the same limit, but by
+/// its own order; usually it has already dropped this one and the purge finds nothing.
+pub fn purge_evicted(router: &RouterHandle, tasks: &Tasks, client_id: &str) {
+    match router.link_blocking(client_id, true) {
+        Ok((tx, rx, _)) => {
+            tasks.spawn(async move {
+                let _ = unlink(tx).await;
+                drop(rx);
+            });
+        }
+        Err(e) => tracing::warn!(
+            client_id,
+            error = %e,
+            "could not end the router's saved session of a client id the session table \
+             dropped at its limit"
+        ),
     }
 }
 

@@ -25,7 +25,10 @@
 //! ([`Owner`]), connected or kept offline, and [`SessionTable::open`] refuses a client id
 //! whose entry belongs to another identity, atomically with taking the session number:
 //! two CONNECTs racing for one client id cannot both pass. A refused CONNECT changes
-//! nothing here.
+//! nothing here. An offline entry dropped at the limit takes the router's saved session
+//! with it (the eviction hook, [`SessionTable::evicting`], run with the table held): the
+//! router drops its oldest saved session by its own order, which may differ, and a
+//! session the router kept without an owner here could be resumed by anyone.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Mutex, PoisonError};
@@ -35,10 +38,14 @@ use tokio::time::Instant;
 
 use crate::identity::Owner;
 
+/// What is done with a client id whose offline session left the table at the limit.
+type Evict = Box<dyn Fn(&str) + Send + Sync>;
+
 pub struct SessionTable {
     inner: Mutex<Inner>,
     /// Offline sessions kept at most.
     limit: usize,
+    evicted: Evict,
 }
 
 #[derive(Default)]
@@ -86,7 +93,15 @@ impl SessionTable {
         SessionTable {
             inner: Mutex::default(),
             limit,
+            evicted: Box::new(|_| ()),
         }
+    }
+
+    /// Runs `hook` with each client id whose offline session is dropped at the limit,
+    /// with the table held: no connection of that client id starts before it returns.
+    pub fn evicting(mut self, hook: impl Fn(&str) + Send + Sync + 'static) -> SessionTable {
+        self.evicted = Box::new(hook);
+        self
     }
 
     /// The table, also after a panic elsewhere left the lock poisoned: every update below
@@ -182,7 +197,9 @@ impl SessionTable {
                 Remains::Nothing => {
                     inner.clients.remove(client_id);
                 }
-                Remains::Kept(expires_after) => inner.keep(client_id, expires_after, self.limit),
+                Remains::Kept(expires_after) => {
+                    inner.keep(client_id, expires_after, self.limit, &self.evicted)
+                }
             }
         }
         f(superseded)
@@ -214,7 +231,13 @@ impl SessionTable {
 
 impl Inner {
     /// `client_id`'s current session went offline and is kept.
-    fn keep(&mut self, client_id: &str, expires_after: Option<Duration>, limit: usize) {
+    fn keep(
+        &mut self,
+        client_id: &str,
+        expires_after: Option<Duration>,
+        limit: usize,
+        evicted: &Evict,
+    ) {
         self.closes += 1;
         let order = self.closes;
         let Some(client) = self.clients.get_mut(client_id) else {
@@ -235,6 +258,7 @@ impl Inner {
             if let Some(dropped) = self.clients.remove(&oldest) {
                 self.forget_closed(&dropped);
             }
+            evicted(&oldest);
         }
     }
 
@@ -362,5 +386,22 @@ mod tests {
         // A clean session leaves nothing: the client id is free again.
         t.close("devB", b2, Remains::Nothing);
         assert!(t.open("devB", &dev_a).is_ok());
+    }
+
+    /// Issue 20: an offline entry dropped at the limit is handed to the eviction hook (which
+    /// ends the router's saved session), with the table held.
+    #[test]
+    fn evicted_sessions_are_reported() {
+        let evicted = std::sync::Arc::new(Mutex::new(Vec::new()));
+        let t = SessionTable::new(2).evicting({
+            let evicted = evicted.clone();
+            move |id| evicted.lock().unwrap().push(id.to_owned())
+        });
+        for id in ["a", "b", "c", "d"] {
+            let (s, _) = open(&t, id);
+            t.close(id, s, Remains::Kept(None));
+        }
+        assert_eq!(*evicted.lock().unwrap(), ["a", "b"]);
+        assert_eq!(t.len(), (0, 2));
     }
 }
