@@ -80,6 +80,8 @@ pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
 /// that client id ends too, so it cannot outlive its owner's record and be resumed by
 /// another identity. The router drops its oldest saved session at the same limit, but by
 /// its own order; usually it has already dropped this one and the purge finds nothing.
+/// Blocks the thread for one router turn (`RouterHandle::link_blocking`, multi-thread
+/// runtime only, as `end_idle_session`); only a close beyond the limit does this.
 pub fn purge_evicted(router: &RouterHandle, tasks: &Tasks, client_id: &str) {
     match router.link_blocking(client_id, true) {
         Ok((tx, rx, _)) => {
