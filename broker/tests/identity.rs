@@ -198,7 +198,7 @@ async fn another_user_cannot_take_a_live_session() {
     // Logged once per client id and user, not per attempt.
     let log = broker.log_text();
     assert_eq!(
-        log.matches("belongs to another user").count(),
+        log.matches("belongs to another identity").count(),
         1,
         "log: {log}"
     );

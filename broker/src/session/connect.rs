@@ -300,7 +300,7 @@ fn claim(
             client_id,
             username = %owner,
             session = if connected { "connected" } else { "kept offline" },
-            "CONNECT refused: this client id's session belongs to another user \
+            "CONNECT refused: this client id's session belongs to another identity \
              (logged once a minute per client id and user; all counted in \
              fbbus_connects_refused_total{{reason=\"client_id_owned\"}})"
         );
