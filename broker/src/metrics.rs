@@ -225,10 +225,15 @@ impl Metrics {
                 "Connection ends ignored by the registry because the device is on a newer session",
             ),
             connects: counter("fbbus_connects_total", "CONNECTs accepted"),
-            connects_refused: counter_vec(
-                "fbbus_connects_refused_total",
-                "CONNECTs refused, by reason",
-                &["reason"],
+            // The identity refusals (issue 20) exist at 0, so an alert on their first
+            // increase sees it.
+            connects_refused: with_series(
+                counter_vec(
+                    "fbbus_connects_refused_total",
+                    "CONNECTs refused, by reason",
+                    &["reason"],
+                ),
+                &[&["client_id_owned"], &["client_id_binding"]],
             ),
             disconnects: counter_vec(
                 "fbbus_disconnects_total",
