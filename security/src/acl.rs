@@ -43,6 +43,7 @@
 //! how `$share/<group>/` is split off, is MQTT's grammar, decided in
 //! `fb_bridge::topic::filter` for the ACL, the bus and the broker alike.
 
+use std::borrow::Cow;
 use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
@@ -350,8 +351,10 @@ fn parse_rule(keyword: &'static str, words: &[&str]) -> Result<(Access, String),
 }
 
 /// The outcome of replacing `%u` and `%c` in a rule's filter.
-enum Substituted {
-    Filter(String),
+enum Substituted<'a> {
+    /// Borrowed when the filter has nothing to substitute: no allocation for most rules,
+    /// which are checked at every publication and delivery.
+    Filter(Cow<'a, str>),
     /// `%u` is used and the client has no user name: the rule is about
     /// users, so it does not apply (as in Mosquitto).
     NoUser,
@@ -361,9 +364,9 @@ enum Substituted {
     Unsafe,
 }
 
-fn substitute(filter: &str, who: Identity) -> Substituted {
+fn substitute<'a>(filter: &'a str, who: Identity) -> Substituted<'a> {
     if !filter.contains('%') {
-        return Substituted::Filter(filter.to_owned());
+        return Substituted::Filter(Cow::Borrowed(filter));
     }
     let mut out = String::with_capacity(filter.len());
     let mut rest = filter;
@@ -389,7 +392,7 @@ fn substitute(filter: &str, who: Identity) -> Substituted {
         rest = &after[1..];
     }
     out.push_str(rest);
-    Substituted::Filter(out)
+    Substituted::Filter(Cow::Owned(out))
 }
 
 #[cfg(test)]
