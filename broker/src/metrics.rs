@@ -260,7 +260,7 @@ impl Metrics {
             ),
             acl_denied: counter_vec(
                 "fbbus_acl_denied_total",
-                "Operations refused by the access rules, by action (publish, subscribe, will)",
+                "Operations refused by the access rules, by action (publish, subscribe, will, deliver)",
                 &["action"],
             ),
             messages_in: counter("fbbus_messages_received_total", "PUBLISH packets received"),

@@ -7,6 +7,7 @@
 //! because a half-edited file must not lock a whole line out.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, PoisonError, RwLock};
 use std::time::SystemTime;
 
@@ -21,6 +22,9 @@ pub struct WatchedFile<T> {
     loader: Loader<T>,
     current: RwLock<Arc<T>>,
     stamp: RwLock<Option<Stamp>>,
+    /// Bumped after each new version is installed, so a reader may keep what it derived
+    /// from the contents (a verdict) until this changes ([`WatchedFile::generation`]).
+    generation: AtomicU64,
 }
 
 /// What tells a changed file from an unchanged one without reading it.
@@ -57,6 +61,7 @@ impl<T> WatchedFile<T> {
             loader: Box::new(loader),
             current: RwLock::new(Arc::new(value)),
             stamp: RwLock::new(stamp_before),
+            generation: AtomicU64::new(0),
         })
     }
 
@@ -68,6 +73,14 @@ impl<T> WatchedFile<T> {
             .clone()
     }
 
+    /// Which version [`WatchedFile::get`] returns: changes whenever new contents are
+    /// installed. Read it before `get`: the new contents are installed before the number
+    /// changes, so what is derived from `get` is at least as new as the number it is
+    /// remembered under, never older.
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+
     pub fn path(&self) -> &Path {
         &self.path
     }
@@ -76,7 +89,12 @@ impl<T> WatchedFile<T> {
     /// so the poll does not reload what is already in memory.
     pub fn replace(&self, value: T) {
         *self.stamp.write().unwrap_or_else(PoisonError::into_inner) = stamp(&self.path);
+        self.install(value);
+    }
+
+    fn install(&self, value: T) {
         *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(value);
+        self.generation.fetch_add(1, Ordering::Release);
     }
 
     /// Reloads if the file changed since the last load (`force`: reload anyway, for SIGHUP).
@@ -89,7 +107,7 @@ impl<T> WatchedFile<T> {
         *self.stamp.write().unwrap_or_else(PoisonError::into_inner) = now;
         match (self.loader)(&self.path) {
             Ok(value) => {
-                *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(value);
+                self.install(value);
                 metrics.reloads.with_label_values(&[self.kind, "ok"]).inc();
                 tracing::info!(file = %self.path.display(), kind = self.kind, "reloaded");
                 true

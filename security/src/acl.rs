@@ -32,15 +32,18 @@
 //! granting rule does not match and a `deny` rule denies everything to
 //! that client, so a crafted client id or user name can never widen access.
 //!
-//! Subscriptions are checked once, when made: a filter is allowed only if
-//! every topic it could match is readable, i.e. it is a subset of a granted
-//! read filter and shares no topic with an applicable deny filter. The
-//! broker then never needs to re-check individual messages.
+//! Subscriptions are checked when made: a filter is allowed only if every
+//! topic it could match is readable, i.e. it is a subset of a granted read
+//! filter and shares no topic with an applicable deny filter. Rules change
+//! (the file is reloaded) and sessions outlive connections, so the broker
+//! also checks each delivered topic ([`AclRules::can_read`]); for a topic
+//! the two checks agree.
 //!
 //! What a topic or filter is, what matches, covers and overlaps what, and
 //! how `$share/<group>/` is split off, is MQTT's grammar, decided in
 //! `fb_bridge::topic::filter` for the ACL, the bus and the broker alike.
 
+use std::borrow::Cow;
 use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
@@ -261,6 +264,25 @@ impl AclRules {
         })
     }
 
+    /// May `who` read `topic`, i.e. be sent a message published on it? True iff some
+    /// applicable read rule matches the topic and no applicable deny rule does: exactly
+    /// when `can_subscribe(who, topic)` would be, so every topic of an allowed
+    /// subscription is readable. The broker asks at delivery, so a subscription made
+    /// under older rules (or by an earlier connection of the session) delivers only what
+    /// the rules in force allow.
+    pub fn can_read(&self, who: Identity, topic: &str) -> bool {
+        if !valid_topic(topic) {
+            return false;
+        }
+        if self.allow_all {
+            return true;
+        }
+        self.decide(who, |access, rule_filter| match access {
+            Access::Deny => covers(rule_filter, topic),
+            _ => access.grants_read() && covers(rule_filter, topic),
+        })
+    }
+
     /// Runs `applies(access, effective_filter)` over the rules that apply
     /// to `who`: allowed iff it is true for some grant and for no deny.
     fn decide(&self, who: Identity, applies: impl Fn(Access, &str) -> bool) -> bool {
@@ -329,8 +351,10 @@ fn parse_rule(keyword: &'static str, words: &[&str]) -> Result<(Access, String),
 }
 
 /// The outcome of replacing `%u` and `%c` in a rule's filter.
-enum Substituted {
-    Filter(String),
+enum Substituted<'a> {
+    /// Borrowed when the filter has nothing to substitute: no allocation for most rules,
+    /// which are checked at every publication and delivery.
+    Filter(Cow<'a, str>),
     /// `%u` is used and the client has no user name: the rule is about
     /// users, so it does not apply (as in Mosquitto).
     NoUser,
@@ -340,9 +364,9 @@ enum Substituted {
     Unsafe,
 }
 
-fn substitute(filter: &str, who: Identity) -> Substituted {
+fn substitute<'a>(filter: &'a str, who: Identity) -> Substituted<'a> {
     if !filter.contains('%') {
-        return Substituted::Filter(filter.to_owned());
+        return Substituted::Filter(Cow::Borrowed(filter));
     }
     let mut out = String::with_capacity(filter.len());
     let mut rest = filter;
@@ -368,7 +392,7 @@ fn substitute(filter: &str, who: Identity) -> Substituted {
         rest = &after[1..];
     }
     out.push_str(rest);
-    Substituted::Filter(out)
+    Substituted::Filter(Cow::Owned(out))
 }
 
 #[cfg(test)]
@@ -437,6 +461,43 @@ topic deny secrets/#         # `deny` (Mosquitto style) overrides any grant
         // Deny by default.
         assert!(!acl.can_publish(alice, "other/topic"));
         assert!(!acl.can_subscribe(alice, "#"));
+    }
+
+    #[test]
+    fn can_read_agrees_with_can_subscribe_on_topics() {
+        let acl = rules(EXAMPLE);
+        let ids = [
+            who(Some("alice"), "x"),
+            who(None, "plc-7"),
+            who(None, "plc-8"),
+            who(Some("dév-ß"), "dév-ß"),
+            who(None, "a/b"),
+            who(None, "$x"),
+        ];
+        let topics = [
+            "$SYS/broker/uptime",
+            "line1/alice/x",
+            "cell/7/state",
+            "fb/plc-8/CONV/SPEED",
+            "fb/dév-ß/CONV",
+            "secrets/a",
+            "other",
+            "fb",
+        ];
+        for c in ids {
+            for t in topics {
+                assert_eq!(acl.can_read(c, t), acl.can_subscribe(c, t), "{c:?} {t}");
+            }
+        }
+        assert!(acl.can_read(who(None, "plc-8"), "fb/plc-8/x"));
+        assert!(!acl.can_read(who(None, "plc-7"), "cell/7/state"));
+        assert!(!acl.can_read(who(Some("alice"), "x"), "secrets/fb"));
+        // Not topics: never readable, with or without rules.
+        for t in ["fb/+", "fb/#", ""] {
+            assert!(!acl.can_read(who(Some("alice"), "x"), t), "{t}");
+            assert!(!AclRules::allow_all().can_read(who(None, "x"), t), "{t}");
+        }
+        assert!(AclRules::allow_all().can_read(who(None, "x"), "secrets/a"));
     }
 
     #[test]

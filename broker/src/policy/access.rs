@@ -31,6 +31,26 @@ impl Access {
         }
     }
 
+    /// May `who` be sent a message published on `topic`? Asked at delivery
+    /// (`session::read_access`), so subscriptions the rules no longer allow (made before
+    /// a reload, or by an earlier connection of the session) deliver nothing they refuse.
+    pub fn can_read(&self, who: Identity<'_>, topic: &str) -> bool {
+        match self {
+            Access::AllowAll => true,
+            Access::Rules(rules) => rules.get().can_read(who, topic),
+        }
+    }
+
+    /// Which version of the rules is in force: None without an ACL file (nothing ever
+    /// changes), otherwise a number that changes with each reload. Verdicts remembered
+    /// under one number hold until it changes; read it before asking.
+    pub fn generation(&self) -> Option<u64> {
+        match self {
+            Access::AllowAll => None,
+            Access::Rules(rules) => Some(rules.generation()),
+        }
+    }
+
     /// May `who` subscribe to `filter`?
     pub fn can_subscribe(&self, who: Identity<'_>, filter: &str) -> bool {
         match self {

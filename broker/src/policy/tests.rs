@@ -324,3 +324,136 @@ fn a_will_is_checked_at_connect() {
     let all = self::line(None);
     assert!(!all.policy.will_allowed(who, "fbbus/registry/plc-1"));
 }
+
+/// A line in either `undeclared` mode, without an ACL file.
+fn line_in_mode(undeclared: Undeclared, anonymous_devices: bool) -> Line {
+    let mut line = line(None);
+    let (publisher, _) = BrokerPublisher::detached();
+    line.fb = Arc::new(FbTopics::new(
+        Arc::clone(&line.fb.registry),
+        undeclared,
+        anonymous_devices,
+        publisher,
+        Arc::clone(&line.metrics),
+    ));
+    line.policy = PublishPolicy::new(
+        Access::AllowAll,
+        Arc::clone(&line.fb),
+        Arc::clone(&line.metrics),
+    );
+    line
+}
+
+/// Every shape under `<namespace>/<device>` at depths 2 to 6, in every encoding.
+fn namespace_topics(device: &str) -> Vec<String> {
+    let mut topics = Vec::new();
+    for encoding in fb_bridge::codec::Encoding::ALL {
+        for rest in [
+            "",
+            "/CONV",
+            "/CONV/SPEED",
+            "/CONV/SPEED/x",
+            "/CONV/SPEED/x/ß€",
+        ] {
+            topics.push(format!("{}/{device}{rest}", encoding.namespace()));
+        }
+    }
+    topics
+}
+
+fn refused_not_authorized(admission: &Admission) -> bool {
+    matches!(
+        admission,
+        Admission::Refused {
+            stage: Stage::Typed,
+            refusal: Refusal::NotAuthorized
+        }
+    )
+}
+
+#[test]
+fn another_devices_namespace_is_refused_at_every_depth_in_every_mode_and_door() {
+    for undeclared in [Undeclared::Reject, Undeclared::Pass] {
+        for anonymous_devices in [false, true] {
+            let line = line_in_mode(undeclared, anonymous_devices);
+            // Whoever publishes: another device (declared or not), a client claiming
+            // plc-2's id with another identity, or plc-2's id without a username on a
+            // line with passwords.
+            let mut publishers = vec![
+                ("plc-1, declared", line.device()),
+                ("plc-1", FbSession::new(&line.fb, "plc-1", Some("plc-1"), 2)),
+                (
+                    "plc-2 as plc-1",
+                    FbSession::new(&line.fb, "plc-2", Some("plc-1"), 3),
+                ),
+            ];
+            if !anonymous_devices {
+                publishers.push((
+                    "plc-2, anonymous",
+                    FbSession::new(&line.fb, "plc-2", None, 4),
+                ));
+            }
+            for (who, mut publisher) in publishers {
+                for topic in namespace_topics("plc-2")
+                    .iter()
+                    .chain(&["fb/".to_owned(), "fbdk//x".to_owned()])
+                {
+                    // The bus door checks a remote device once its record is here.
+                    let doors = match publisher.interface() {
+                        Some(_) => &DOORS[..],
+                        None => &[Door::Client, Door::Will][..],
+                    };
+                    for &door in doors {
+                        let admission = line.admit(door, &mut publisher, topic, "3");
+                        assert!(
+                            refused_not_authorized(&admission),
+                            "{undeclared:?} anonymous={anonymous_devices} {who} {door:?} {topic}: {admission:?}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn a_device_keeps_its_own_namespace_in_lenient_mode() {
+    for anonymous_devices in [false, true] {
+        let line = line_in_mode(Undeclared::Pass, anonymous_devices);
+        let mut own = FbSession::new(&line.fb, "plc-2", Some("plc-2"), 1);
+        for topic in namespace_topics("plc-2") {
+            let admission = line.admit(Door::Client, &mut own, &topic, "3");
+            assert!(
+                matches!(admission, Admission::Route { routes: None, .. }),
+                "{topic}: {admission:?}"
+            );
+        }
+    }
+    // Without passwords a client id alone is a device.
+    let line = line_in_mode(Undeclared::Pass, true);
+    let mut anonymous = FbSession::new(&line.fb, "plc-2", None, 1);
+    let admission = line.admit(Door::Client, &mut anonymous, "fb/plc-2/CONV/SPEED/x", "3");
+    assert!(
+        matches!(admission, Admission::Route { .. }),
+        "{admission:?}"
+    );
+}
+
+#[test]
+fn in_strict_mode_the_own_namespace_still_needs_the_typed_shape() {
+    let line = line_in_mode(Undeclared::Reject, false);
+    let mut device = line.device();
+    for topic in ["fb/plc-1", "fb/plc-1/CONV", "fbdk/plc-1/CONV/SPEED/x"] {
+        let admission = line.admit(Door::Client, &mut device, topic, "3");
+        assert!(
+            matches!(
+                admission,
+                Admission::Refused {
+                    stage: Stage::Typed,
+                    refusal: Refusal::TopicNameInvalid
+                }
+            ),
+            "{topic}: {admission:?}"
+        );
+    }
+}

@@ -6,7 +6,7 @@
 //! - **a declaration** on `fbbus/declare/<own id>`: validated, stored in the registry,
 //!   answered on `fbbus/diag/<id>`, never routed;
 //! - **typed**, on `<encoding>/<device>/<fb>/<port>`: only the device itself may publish
-//!   there, the port must be a declared output, and the payload must decode to values of
+//!   there (and anywhere under `<encoding>/<device>`, whatever the topic's depth), the port must be a declared output, and the payload must decode to values of
 //!   the declared types. Accepted messages are routed canonically on `fb/...` and, once
 //!   anyone has subscribed to them, re-encoded on `dinasore/...` and `fbdk/...`, so a
 //!   FORTE device and a DINASORE device read each other without knowing each other's
@@ -14,7 +14,8 @@
 //!
 //! In lenient mode (`[fb] undeclared = "pass"`, for migrating untyped lines) typed-namespace
 //! topics nobody declared pass through unchecked; declared ports are still checked, so an
-//! ill-typed message is never delivered in either mode.
+//! ill-typed message is never delivered in either mode, and another device's namespace is
+//! refused in both.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -258,6 +259,21 @@ impl FbSession {
     }
 
     fn decide(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
+        // A device's namespace is its own on every topic shape and in every mode: lenient
+        // mode routes topics that are not typed ports unchecked, and without this a client
+        // could publish `fb/<other>/CONV/SPEED/x` or `fb/<other>` in another device's name.
+        if let Some((encoding, device)) = topic::namespace_owner(topic) {
+            if device != self.device || !self.identity_verified() {
+                return refuse(
+                    Refusal::NotAuthorized,
+                    format!(
+                        "only device {device} publishes under {}/{device}/, and only with \
+                         its id as both client id and username",
+                        encoding.namespace()
+                    ),
+                );
+            }
+        }
         // The broker's own `$` namespace: its readiness probe must not be fed or flooded.
         if topic.starts_with(crate::health::RESERVED_TOPICS) {
             return refuse(
@@ -283,17 +299,7 @@ impl FbSession {
             }
             return Check::Pass;
         };
-        if typed.device != self.device || !self.identity_verified() {
-            return refuse(
-                Refusal::NotAuthorized,
-                format!(
-                    "only device {} publishes under {}/{}/",
-                    typed.device,
-                    typed.encoding.namespace(),
-                    typed.device
-                ),
-            );
-        }
+        // `typed.device` is this device: the namespace check above refused any other.
         let Some(interface) = self.interface.clone() else {
             return match fb.undeclared {
                 Undeclared::Pass => Check::Pass,

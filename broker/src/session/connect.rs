@@ -173,6 +173,7 @@ impl Session {
             outstanding_out: 0,
             ids,
             rare: None,
+            read_verdicts: None,
             held: VecDeque::new(),
             wake_pending: false,
             subscriptions: BTreeMap::new(),

@@ -1,5 +1,6 @@
 //! Packets from the router to the client: deliveries with the MQTT rules rumqttd's router
-//! leaves out, SUBACKs completed for refused filters, acknowledgements kept in order.
+//! leaves out and the access rules in force, SUBACKs completed for refused filters,
+//! acknowledgements kept in order.
 
 use fb_bridge::topic::filter;
 use rumqttd::local::LinkError;
@@ -132,6 +133,8 @@ impl Session {
     /// - the delivery QoS is min(publication QoS, subscription QoS) [MQTT-3.8.4-8]: the
     ///   router sends at the subscription's QoS, so a lower publication QoS is restored from
     ///   the message's `origin`;
+    /// - the access rules in force must let the client read the topic
+    ///   ([`Session::may_read`]), whichever subscription, however old, matched it;
     /// - a packet over the client's Maximum Packet Size is not sent [MQTT-3.1.2-25].
     ///
     /// A QoS 1/2 delivery goes out under the packet id the client sees (`PacketIds`):
@@ -145,7 +148,12 @@ impl Session {
     ) {
         let origin = origin::take(&mut publish);
         let published = origin.as_ref().map(|o| o.qos);
-        let (deliver, retain_as_published) = self.subscription_options(&publish, origin.as_ref());
+        let (mut deliver, retain_as_published) =
+            self.subscription_options(&publish, origin.as_ref());
+        // Whatever subscription matched, and whenever it was made: the rules in force now.
+        if deliver && !self.may_read(&publish.topic) {
+            deliver = false;
+        }
         if retain_as_published {
             publish.retain = true;
         }

@@ -16,8 +16,8 @@
 //! client, then the PUBLISH and SUBSCRIBE handlers), [`deliver`] (what the router sends
 //! back: the MQTT rules its router leaves out — delivery QoS, No Local, Retain As
 //! Published, the client's Maximum Packet Size and Receive Maximum — SUBACKs completed for
-//! refused filters), [`close`] (why a session ended, the DISCONNECT reason, the will);
-//! around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
+//! refused filters; [`read_access`]: the access rules in force at each delivery),
+//! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
 //! session expiry), [`observer`] (who else is told of subscriptions). Bytes and packets
 //! are `wire`'s business.
@@ -35,6 +35,7 @@ mod inbound;
 pub mod lifetime;
 mod observer;
 pub mod packet_ids;
+mod read_access;
 pub mod redelivery;
 pub mod table;
 
@@ -193,6 +194,9 @@ struct Session {
     special_subscriptions: bool,
     /// Typed-topic state: the device's interface, event sequence numbers.
     fb: FbSession,
+    /// Read verdicts by topic under the ACL in force, allocated at the first delivery
+    /// checked against an ACL file ([`read_access`]).
+    read_verdicts: Option<Box<read_access::ReadVerdicts>>,
     /// State most sessions never need, allocated on first use ([`Session::rare`]).
     rare: Option<Box<Rare>>,
 }

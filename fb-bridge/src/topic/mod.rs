@@ -73,6 +73,18 @@ pub fn is_typed_namespace(topic: &str) -> bool {
         .is_some_and(|(ns, _)| Encoding::from_namespace(ns).is_some())
 }
 
+/// The device whose namespace `topic` is in: the second level of any topic in a typed
+/// namespace, at any depth (`fb/<device>`, `fbdk/<device>/a/b/c`, ...), None outside the
+/// typed namespaces. Only that device may publish there, whatever shape the topic has:
+/// a topic that is not a typed port (lenient mode routes those unchecked) is still the
+/// device's. The device may be empty (`fb/`, `fb//x`): a namespace no device owns.
+pub fn namespace_owner(topic: &str) -> Option<(Encoding, &str)> {
+    let (namespace, rest) = topic.split_once('/')?;
+    let encoding = Encoding::from_namespace(namespace)?;
+    let device = rest.split_once('/').map_or(rest, |(device, _)| device);
+    Some((encoding, device))
+}
+
 pub fn declare(device: &str) -> String {
     format!("{DECLARE}{device}")
 }
@@ -92,6 +104,27 @@ pub fn line_online(line: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_namespace_owner_is_the_second_level_at_any_depth() {
+        for (topic, owner) in [
+            ("fb/dev-b", Some((Encoding::Json, "dev-b"))),
+            ("fb/dev-b/CONV", Some((Encoding::Json, "dev-b"))),
+            ("fbdk/dev-b/CONV/SPEED", Some((Encoding::Fbdk, "dev-b"))),
+            (
+                "dinasore/dév-ß/CONV/SPEED/x/y",
+                Some((Encoding::Dinasore, "dév-ß")),
+            ),
+            ("fb/", Some((Encoding::Json, ""))),
+            ("fb//x", Some((Encoding::Json, ""))),
+            ("fb", None),
+            ("fbx/dev-b/CONV/SPEED", None),
+            ("fbbus/declare/dev-b", None),
+            ("a/fb/dev-b", None),
+        ] {
+            assert_eq!(namespace_owner(topic), owner, "{topic}");
+        }
+    }
 
     #[test]
     fn typed_topics_parse_in_every_namespace() {

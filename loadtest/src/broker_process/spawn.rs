@@ -68,6 +68,8 @@ pub struct Spec<'a> {
     pub tables: &'a str,
     /// Only the users of these files may connect.
     pub auth: Option<&'a AuthFiles>,
+    /// fbbus: its `[auth] acl_file`.
+    pub acl: Option<&'a Path>,
 }
 
 /// A broker child process; killed and reaped on drop.
@@ -289,18 +291,23 @@ fn fbbus_config(spec: &Spec<'_>, addr: SocketAddr, admin: SocketAddr) -> Result<
     config.push_str(&format!(
         "\n[[listener]]\nname = \"bench\"\nbind = \"{addr}\"\n"
     ));
+    let mut auth = String::new();
     match spec.auth {
         Some(a) => {
             let file = a
                 .fbbus
                 .as_ref()
                 .ok_or_else(|| Error::Process("no fbbus password file was prepared".into()))?;
-            config.push_str(&format!(
-                "\n[auth]\npassword_file = \"{}\"\n",
-                file.display()
-            ));
+            auth.push_str(&format!("password_file = \"{}\"\n", file.display()));
         }
         None => config.push_str("allow_anonymous = true\n"),
+    }
+    if let Some(acl) = spec.acl {
+        auth.push_str(&format!("acl_file = \"{}\"\n", acl.display()));
+    }
+    if !auth.is_empty() {
+        config.push_str("\n[auth]\n");
+        config.push_str(&auth);
     }
     config.push_str(&format!(
         "\n[admin]\nbind = \"{admin}\"\n\n[log]\nlevel = \"warn\"\n"

@@ -96,6 +96,10 @@ struct RunArgs {
     /// `router_segment_bytes=1048576` (repeatable; default: fbbus's own defaults).
     #[arg(long = "fbbus-broker-option", value_name = "KEY=VALUE")]
     fbbus_broker_options: Vec<String>,
+    /// An ACL file every fbbus serves with (`[auth] acl_file`), to measure the access
+    /// checks: it must let the scenarios' anonymous clients use `bench/#`.
+    #[arg(long = "fbbus-acl", value_name = "FILE")]
+    fbbus_acl: Option<PathBuf>,
     /// Runs of each scenario per broker, alternating brokers round by round (A B A B);
     /// the ratios use each broker's median.
     #[arg(long, default_value_t = 1, value_name = "N")]
@@ -249,6 +253,13 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
             bail!("--fbbus-broker-option wants KEY=VALUE, got `{option}`");
         }
     }
+    let fbbus_acl = match &args.fbbus_acl {
+        Some(file) => Some(
+            std::fs::canonicalize(file)
+                .with_context(|| format!("--fbbus-acl {}", file.display()))?,
+        ),
+        None => None,
+    };
     let mut params = if args.quick {
         Params::quick()
     } else {
@@ -288,6 +299,9 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
     }
 
     let mut t = Transcript::default();
+    if let Some(acl) = &fbbus_acl {
+        t.line(format!("fbbus serves with the ACL file {}", acl.display()));
+    }
     table::header(
         &mut t,
         &contenders,
@@ -346,6 +360,7 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
                     scenario,
                     c,
                     &args.fbbus_broker_options,
+                    fbbus_acl.as_deref(),
                     &params,
                     storm.as_ref(),
                 )
@@ -379,6 +394,7 @@ async fn run_one(
     scenario: Scenario,
     contender: &Contender,
     fbbus_broker_options: &[String],
+    fbbus_acl: Option<&Path>,
     params: &Params,
     storm: Option<&Storm>,
 ) -> Outcome {
@@ -400,6 +416,7 @@ async fn run_one(
         broker_keys: fbbus_broker_options,
         tables: "",
         auth: auth.map(|s| &s.files),
+        acl: fbbus_acl,
     };
     let mut broker: Running = match spawn::start(&spec).await {
         Ok(b) => b,
@@ -435,6 +452,7 @@ async fn start_fbbus(fbbus: &Path, broker_keys: &[String], tables: &str) -> Resu
         broker_keys,
         tables,
         auth: None,
+        acl: None,
     })
     .await?)
 }
