@@ -144,9 +144,13 @@ impl Session {
                 .filter(|m| *m > 0)
                 .unwrap_or(u16::MAX),
             outstanding_out: 0,
+            alive_until: tokio::time::Instant::now(),
+            unhandled_read: false,
+            qos0_unwritten: 0,
             ids,
             rare: None,
             held: VecDeque::new(),
+            held_bytes: 0,
             wake_pending: false,
             subscriptions: BTreeMap::new(),
             special_subscriptions: false,
