@@ -110,7 +110,7 @@ impl Session {
         // would only delay its will. Its unwritten QoS 0 deliveries are lost, and counted;
         // QoS 1/2 ones stay with a persistent session for its return (`into_resume` above,
         // the router's queue).
-        let stalled = !self.io.write.is_empty();
+        let stalled = self.io.unwritten() > 0;
         if stalled {
             let reason = match end {
                 End::SlowConsumer | End::KeepAlive => "slow_consumer",

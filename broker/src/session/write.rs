@@ -42,7 +42,7 @@ const READ_WHILE_WRITING: usize = 64 * 1024;
 impl Session {
     /// Writes the write buffer out under the deadlines above; counts the bytes.
     pub(super) async fn write_out(&mut self) -> Result<(), End> {
-        let queued = self.io.write.len();
+        let queued = self.io.unwritten();
         if queued > 0 {
             let first = poll_fn(|cx| Poll::Ready(self.io.poll_write_out(cx))).await;
             match first {
@@ -75,7 +75,7 @@ impl Session {
 
     /// The slow path of [`Session::write_out`]: the socket did not take everything.
     async fn wait_for_socket(&mut self) -> Result<(), End> {
-        let queued = self.io.write.len() + self.held_bytes;
+        let queued = self.io.unwritten() + self.held_bytes;
         if queued > self.ctx.max_queued_bytes {
             self.over_quota(queued);
             return Err(End::SlowConsumer);
@@ -118,7 +118,7 @@ impl Session {
         })
         .await;
         if let Err(end) = waited {
-            let unwritten = self.io.write.len();
+            let unwritten = self.io.unwritten();
             match end {
                 End::SlowConsumer => tracing::warn!(
                     client_id = &*self.client_id,

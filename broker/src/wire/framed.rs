@@ -18,7 +18,7 @@ use std::pin::Pin;
 use std::task::{Context, Poll};
 use std::time::Duration;
 
-use bytes::{Buf, BytesMut};
+use bytes::BytesMut;
 use rumqttd::protocol::{ConnectReturnCode, Packet};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite};
 
@@ -70,6 +70,10 @@ pub struct Io {
     max_packet: usize,
     /// How long [`Io::flush`] waits for the socket to take the write buffer.
     pub write_timeout: Duration,
+    /// Bytes at the start of `write` the socket already took (a write that waits): kept
+    /// as an offset, not advanced past, so the buffer's allocation is still known when it
+    /// is empty again (a burst-sized one is let go of).
+    written: usize,
 }
 
 impl Io {
@@ -82,6 +86,7 @@ impl Io {
             codec: Codec(Version::V311),
             max_packet,
             write_timeout: DEFAULT_WRITE_TIMEOUT,
+            written: 0,
         }
     }
 
@@ -215,10 +220,10 @@ impl Io {
     /// Writes the write buffer out within the write timeout; returns the bytes written.
     /// On a timeout (`ErrorKind::TimedOut`) what the socket did not take stays buffered.
     pub async fn flush(&mut self) -> std::io::Result<usize> {
-        if self.write.is_empty() {
+        if self.unwritten() == 0 {
             return Ok(0);
         }
-        let n = self.write.len();
+        let n = self.unwritten();
         // First without a timer: the socket nearly always takes it at once.
         match poll_fn(|cx| Poll::Ready(self.poll_write_out(cx))).await {
             Poll::Ready(Ok(())) => return Ok(n),
@@ -237,19 +242,27 @@ impl Io {
     /// (TLS keeps records of its own); Ready(Ok) once everything is out. Cancel-safe: what
     /// the socket took is gone from the buffer, what it did not stays.
     pub fn poll_write_out(&mut self, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
-        while !self.write.is_empty() {
-            match Pin::new(&mut self.stream).poll_write(cx, &self.write) {
+        while self.written < self.write.len() {
+            let rest = &self.write[self.written..];
+            match Pin::new(&mut self.stream).poll_write(cx, rest) {
                 Poll::Ready(Ok(0)) => return Poll::Ready(Err(ErrorKind::WriteZero.into())),
-                Poll::Ready(Ok(n)) => self.write.advance(n),
+                Poll::Ready(Ok(n)) => self.written += n,
                 Poll::Ready(Err(e)) => return Poll::Ready(Err(e)),
                 Poll::Pending => return Poll::Pending,
             }
         }
-        // Everything went out: let go of a burst-sized buffer.
+        self.written = 0;
         if self.write.capacity() > KEPT_WRITE_CAPACITY {
             self.write = BytesMut::new();
+        } else {
+            self.write.clear();
         }
         Pin::new(&mut self.stream).poll_flush(cx)
+    }
+
+    /// Bytes in the write buffer the socket has not taken yet.
+    pub fn unwritten(&self) -> usize {
+        self.write.len() - self.written
     }
 
     /// Reads what the socket has into the read buffer without waiting, at most until it
