@@ -671,3 +671,58 @@ fn lines_of(child: &mut Child) -> mpsc::Receiver<String> {
     });
     rx
 }
+
+/// An MQTT 5 client with Receive Maximum 1 that reads but never acknowledges: deliveries
+/// wait for its window, and once they hold more than `slow_consumer_max_bytes` it is a
+/// slow consumer, told so with DISCONNECT 0x97 (its socket still takes data).
+#[test]
+fn deliveries_held_for_a_client_that_never_acknowledges_are_bounded() {
+    let broker = Broker::start_with(
+        Options {
+            // The smallest limit: 1 MiB + max_packet_bytes.
+            extra: "slow_consumer_max_bytes = 1114112\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let mut client = RawClient::connect(broker.port());
+    let code = client.handshake(&Connect {
+        version: 5,
+        client_id: "never-acks",
+        receive_maximum: Some(1),
+        ..Connect::default()
+    });
+    assert_eq!(code, 0);
+    client.send(&raw::subscribe_with_options(1, "held/t", 1));
+    assert_eq!(client.read_packet().expect("SUBACK").0, 0x90);
+
+    let mut publisher = RawClient::connect(broker.port());
+    assert_eq!(
+        publisher.handshake(&Connect {
+            client_id: "held-pub",
+            ..Connect::default()
+        }),
+        0
+    );
+    for pkid in 1..=40u16 {
+        publisher.send(&publish_qos1("held/t", pkid, &[1u8; 60 * 1024]));
+    }
+    // The client reads everything it is sent, acknowledging nothing.
+    let mut publishes = 0;
+    let disconnect = loop {
+        let Some((byte1, body)) = client.read_packet() else {
+            panic!("closed without DISCONNECT; log:\n{}", broker.log_text());
+        };
+        match byte1 & 0xf0 {
+            0x30 => publishes += 1,
+            0xE0 => break body,
+            other => panic!("unexpected packet {other:#04x}"),
+        }
+    };
+    assert_eq!(publishes, 1, "one delivery in the window of 1");
+    assert_eq!(disconnect.first(), Some(&0x97), "DISCONNECT Quota exceeded");
+    assert_eq!(
+        broker.wait_metric("fbbus_disconnects_total{reason=\"slow_consumer\"}", 1.0),
+        1.0
+    );
+}
