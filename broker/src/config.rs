@@ -36,6 +36,10 @@ bind = "127.0.0.1:9883"
 pub const MAX_CONNECTIONS: usize = 1_000_000;
 const _: () = assert!(MAX_CONNECTIONS < tokio::sync::Semaphore::MAX_PERMITS);
 
+/// `broker.slow_consumer_max_bytes` is at least this more than `max_packet_bytes`: the
+/// size of the batches `session::deliver` writes.
+pub const MIN_QUEUED_BYTES: usize = 1024 * 1024;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("cannot read config file {path}: {source}")]
@@ -122,6 +126,17 @@ pub struct BrokerSection {
     /// otherwise lose messages it has not read (the filter's commit log is full); 0: never
     /// held, a lagging subscriber skips.
     pub slow_subscriber_hold_ms: u64,
+    /// Longest time a write to a client (at most 1 MiB and a packet) may wait for its
+    /// socket: a write that has not completed by then closes the connection as a slow
+    /// consumer (its will is published). Every socket write has this deadline.
+    pub slow_consumer_timeout_ms: u64,
+    /// Most outgoing bytes queued for one connection (unwritten, and held for its MQTT 5
+    /// Receive Maximum); a connection with more is closed as a slow consumer at once.
+    pub slow_consumer_max_bytes: usize,
+    /// TCP keep-alive and `TCP_USER_TIMEOUT` on every accepted socket: a peer that
+    /// vanished (power cut, pulled cable) is noticed by the kernel within about this long,
+    /// whatever the client's MQTT keep-alive (0 included). 0: the kernel's defaults.
+    pub dead_link_timeout_s: u64,
 }
 
 impl Default for BrokerSection {
@@ -137,6 +152,9 @@ impl Default for BrokerSection {
             router_segment_count: 4,
             router_max_outgoing_packets: 1_000,
             slow_subscriber_hold_ms: 1_000,
+            slow_consumer_timeout_ms: 10_000,
+            slow_consumer_max_bytes: 64 * 1024 * 1024,
+            dead_link_timeout_s: 20,
         }
     }
 }
@@ -395,6 +413,29 @@ impl Config {
                  that long",
             ));
         }
+        if !(100..=600_000).contains(&b.slow_consumer_timeout_ms) {
+            return Err(invalid(
+                file,
+                "broker.slow_consumer_timeout_ms",
+                "must be between 100 and 600000: every write to a client needs a deadline",
+            ));
+        }
+        if b.slow_consumer_max_bytes < MIN_QUEUED_BYTES + b.max_packet_bytes {
+            return Err(invalid(
+                file,
+                "broker.slow_consumer_max_bytes",
+                "must be at least 1 MiB (1048576) more than broker.max_packet_bytes: the broker \
+                 writes to a client in batches of up to 1 MiB, and a healthy client may have one \
+                 batch and a message waiting",
+            ));
+        }
+        if b.dead_link_timeout_s > 3_600 {
+            return Err(invalid(
+                file,
+                "broker.dead_link_timeout_s",
+                "must be at most 3600 (0: the kernel's defaults)",
+            ));
+        }
         if self.auth.verify_concurrency == 0 {
             return Err(invalid(
                 file,
@@ -517,6 +558,12 @@ impl Config {
     pub fn connect_timeout(&self) -> Duration {
         Duration::from_millis(self.broker.connect_timeout_ms)
     }
+
+    /// `broker.dead_link_timeout_s`; None when it is 0 (kernel defaults).
+    pub fn dead_link_timeout(&self) -> Option<Duration> {
+        (self.broker.dead_link_timeout_s > 0)
+            .then(|| Duration::from_secs(self.broker.dead_link_timeout_s))
+    }
 }
 
 fn invalid(file: &str, key: &str, message: impl Into<String>) -> ConfigError {
@@ -627,5 +674,42 @@ mod tests {
             assert!(err.contains("broker.max_connections"), "{n}: {err}");
         }
         assert!(config(MAX_CONNECTIONS as u64).is_ok());
+    }
+
+    #[test]
+    fn liveness_limits_are_bounded() {
+        let config = |keys: &str| {
+            Config::parse(
+                &format!("[broker]\n{keys}\n[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n"),
+                "f",
+            )
+        };
+        let c = config("").unwrap();
+        assert_eq!(c.broker.slow_consumer_timeout_ms, 10_000);
+        assert_eq!(c.dead_link_timeout(), Some(Duration::from_secs(20)));
+        for (keys, key) in [
+            (
+                "slow_consumer_timeout_ms = 0",
+                "broker.slow_consumer_timeout_ms",
+            ),
+            (
+                "slow_consumer_timeout_ms = 600001",
+                "broker.slow_consumer_timeout_ms",
+            ),
+            (
+                "slow_consumer_max_bytes = 1000",
+                "broker.slow_consumer_max_bytes",
+            ),
+            ("dead_link_timeout_s = 3601", "broker.dead_link_timeout_s"),
+        ] {
+            let err = config(keys).unwrap_err().to_string();
+            assert!(err.contains(key), "{keys}: {err}");
+        }
+        assert_eq!(
+            config("dead_link_timeout_s = 0")
+                .unwrap()
+                .dead_link_timeout(),
+            None
+        );
     }
 }

@@ -40,6 +40,12 @@ pub struct Context {
     /// `broker.max_keep_alive_s` (see `session::connect::keep_alive`).
     pub max_keep_alive: u16,
     pub connect_timeout: Duration,
+    /// `broker.slow_consumer_timeout_ms`: the deadline of every write to a client.
+    pub write_timeout: Duration,
+    /// `broker.slow_consumer_max_bytes`: outgoing bytes queued for one connection at most.
+    pub max_queued_bytes: usize,
+    /// `broker.dead_link_timeout_s`: TCP keep-alive and `TCP_USER_TIMEOUT` (`listener`).
+    pub dead_link: Option<Duration>,
     /// Becomes true when the broker shuts down.
     pub shutdown: watch::Receiver<bool>,
     /// Tests only: a publication on this topic makes its session panic (`supervisor`).

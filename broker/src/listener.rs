@@ -6,9 +6,16 @@
 //! `max_connections`, enforced with a semaphore so a refused connection costs nothing.
 //! Nagle is turned off: MQTT messages on a line are small and latency matters more than
 //! packet count.
+//!
+//! Every accepted socket gets TCP keep-alive and `TCP_USER_TIMEOUT` from
+//! `broker.dead_link_timeout_s` ([`dead_link_options`]), so the kernel notices a peer that
+//! vanished (power cut, pulled cable) even when the client asked for no MQTT keep-alive,
+//! and even with data in flight, instead of retransmitting for ~15 minutes (Linux's
+//! `tcp_retries2`).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
@@ -42,7 +49,7 @@ impl Listener {
                     Err(e) => {
                         // EMFILE and friends: log, breathe, and keep serving the others.
                         tracing::error!(listener = self.policy.name, error = %e, "accept failed");
-                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                        tokio::time::sleep(Duration::from_millis(50)).await;
                         continue;
                     }
                 },
@@ -53,6 +60,11 @@ impl Listener {
                 continue;
             };
             let _ = tcp.set_nodelay(true);
+            if let Some(timeout) = ctx.dead_link {
+                if let Err(e) = dead_link_options(&tcp, timeout) {
+                    tracing::warn!(%peer, error = %e, "TCP keep-alive or user timeout not set");
+                }
+            }
             let ctx = Arc::clone(&ctx);
             let policy = Arc::clone(&self.policy);
             let tls = self.tls.clone();
@@ -79,6 +91,34 @@ impl Listener {
             });
         }
     }
+}
+
+/// Makes the kernel end a connection whose peer stopped answering for `timeout`:
+///
+/// - `TCP_USER_TIMEOUT` = `timeout`: data sent and not acknowledged for that long ends the
+///   connection (`ETIMEDOUT`), instead of the ~15 minutes of retransmissions Linux allows
+///   by default; since Linux 5.11 it also ends a peer that keeps advertising a zero window
+///   for that long.
+/// - TCP keep-alive: an idle connection is probed after `timeout / 2`, then every
+///   `max(1 s, timeout / 10)`; with the user timeout set, the kernel ends it at the first
+///   probe `timeout` after the peer was last heard. So an idle peer that vanished is gone
+///   within `timeout + max(1 s, timeout / 10)`, MQTT keep-alive or not.
+///
+/// The session's read or write then fails and it ends as a lost connection, its will
+/// published.
+pub fn dead_link_options(tcp: &tokio::net::TcpStream, timeout: Duration) -> std::io::Result<()> {
+    let socket = socket2::SockRef::from(tcp);
+    let idle = (timeout / 2).max(Duration::from_secs(1));
+    let interval = (timeout / 10).max(Duration::from_secs(1));
+    let keepalive = socket2::TcpKeepalive::new()
+        .with_time(idle)
+        .with_interval(interval)
+        // Only used when no user timeout is in force; the user timeout decides otherwise.
+        .with_retries(5);
+    socket.set_tcp_keepalive(&keepalive)?;
+    #[cfg(target_os = "linux")]
+    socket.set_tcp_user_timeout(Some(timeout))?;
+    Ok(())
 }
 
 /// What a listener decides for the connections it accepts.

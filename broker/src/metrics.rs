@@ -22,6 +22,9 @@ pub enum DisconnectReason {
     Abrupt,
     /// Nothing received for 1.5 x keep-alive.
     KeepAlive,
+    /// The client did not take its outgoing data in time (`broker.slow_consumer_timeout_ms`)
+    /// or let too much of it queue (`broker.slow_consumer_max_bytes`).
+    SlowConsumer,
     /// Another connection with the same client id took the session over.
     Takeover,
     /// The client sent bytes that are not MQTT.
@@ -46,6 +49,7 @@ impl DisconnectReason {
             DisconnectReason::ClientWithWill => "client_with_will",
             DisconnectReason::Abrupt => "abrupt",
             DisconnectReason::KeepAlive => "keep_alive",
+            DisconnectReason::SlowConsumer => "slow_consumer",
             DisconnectReason::Takeover => "takeover",
             DisconnectReason::Malformed => "malformed",
             DisconnectReason::Oversized => "oversized",
@@ -63,6 +67,7 @@ impl DisconnectReason {
             DisconnectReason::ClientWithWill => "disconnect with will",
             DisconnectReason::Abrupt => "connection lost",
             DisconnectReason::KeepAlive => "keep-alive expired",
+            DisconnectReason::SlowConsumer => "slow consumer",
             DisconnectReason::Takeover => "taken over by a new connection",
             DisconnectReason::Malformed => "malformed packet",
             DisconnectReason::Oversized => "packet too large",
@@ -268,10 +273,17 @@ impl Metrics {
             bytes_in: counter("fbbus_bytes_received_total", "MQTT bytes received"),
             bytes_out: counter("fbbus_bytes_sent_total", "MQTT bytes sent"),
             wills_published: counter("fbbus_wills_published_total", "Will messages published"),
-            messages_dropped: counter_vec(
+            // Exported from the start at 0, so an alert on slow consumers has its series.
+            messages_dropped: with_series(
+                counter_vec(
                 "fbbus_messages_dropped_total",
-                "Deliveries not sent, by reason (client_max_packet_size)",
-                &["reason"],
+                "Deliveries not sent, by reason (client_max_packet_size; slow_consumer: QoS 0 \
+                 deliveries a connection closed as a slow consumer, or at keep-alive expiry \
+                 while a write waited, had not taken; connection_closed: the same at \
+                 another end)",
+                    &["reason"],
+                ),
+                &[&["client_max_packet_size"], &["slow_consumer"]],
             ),
             messages_skipped: counter(
                 "fbbus_messages_skipped_total",

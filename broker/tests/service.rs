@@ -512,7 +512,9 @@ async fn server_only_packet_types_end_the_connection_cleanly() {
         ..Default::default()
     };
     assert_eq!(c.handshake(&connect), 0);
-    assert_eq!(broker.metric("fbbus_connections"), 2.0);
+    // The gauge counts a connection once its CONNACK is written: the client may read the
+    // CONNACK before the broker has counted it.
+    assert_eq!(broker.wait_metric("fbbus_connections", 2.0), 2.0);
     c.send(&[0x2d, 0x02, 0x04, 0x1f]);
     let (byte1, body) = c.read_packet().expect("DISCONNECT");
     assert_eq!((byte1, body[0]), (0xE0, 0x82), "protocol error");

@@ -23,6 +23,9 @@ pub(super) enum End {
     },
     Abrupt,
     KeepAlive,
+    /// The client did not take its outgoing data within `broker.slow_consumer_timeout_ms`,
+    /// or more than `broker.slow_consumer_max_bytes` of it waited (`session::write`).
+    SlowConsumer,
     Takeover,
     Malformed,
     Oversized,
@@ -46,6 +49,7 @@ impl End {
             End::Client { with_will: true } => DisconnectReason::ClientWithWill,
             End::Abrupt => DisconnectReason::Abrupt,
             End::KeepAlive => DisconnectReason::KeepAlive,
+            End::SlowConsumer => DisconnectReason::SlowConsumer,
             End::Takeover => DisconnectReason::Takeover,
             End::Malformed => DisconnectReason::Malformed,
             End::Oversized => DisconnectReason::Oversized,
@@ -60,6 +64,11 @@ impl End {
     pub(super) fn v5_disconnect(self) -> Option<DisconnectReasonCode> {
         match self {
             End::KeepAlive => Some(DisconnectReasonCode::KeepAliveTimeout),
+            // 0x97 Quota exceeded, "an implementation or administrative imposed limit has
+            // been exceeded": the client's outgoing data passed this connection's limits.
+            // Not 0x89 Server busy, which blames the server and invites an immediate retry.
+            // (It reaches the client only if the socket takes it: see `close`.)
+            End::SlowConsumer => Some(DisconnectReasonCode::QuotaExceeded),
             End::Takeover => Some(DisconnectReasonCode::SessionTakenOver),
             End::Malformed => Some(DisconnectReasonCode::MalformedPacket),
             End::Oversized => Some(DisconnectReasonCode::PacketTooLarge),
@@ -96,14 +105,32 @@ impl Session {
             .close_with(client_id, session, remains, |superseded| {
                 redeliveries.save(client_id, session, open, superseded)
             });
-        if self.version == Version::V5 {
-            if let Some(reason_code) = end.v5_disconnect() {
-                self.io
-                    .queue(Packet::Disconnect(Disconnect { reason_code }, None));
-                let _ = timeout(Duration::from_secs(1), self.io.flush()).await;
+        // A client whose socket did not take its last write (slow consumer, keep-alive
+        // expired while a write waited) would not take a DISCONNECT either: waiting for it
+        // would only delay its will. Its unwritten QoS 0 deliveries are lost, and counted;
+        // QoS 1/2 ones stay with a persistent session for its return (`into_resume` above,
+        // the router's queue).
+        let stalled = self.io.unwritten() > 0;
+        if stalled {
+            let reason = match end {
+                End::SlowConsumer | End::KeepAlive => "slow_consumer",
+                _ => "connection_closed",
+            };
+            self.ctx
+                .metrics
+                .messages_dropped
+                .with_label_values(&[reason])
+                .inc_by(u64::from(self.qos0_unwritten));
+        } else {
+            if self.version == Version::V5 {
+                if let Some(reason_code) = end.v5_disconnect() {
+                    self.io
+                        .queue(Packet::Disconnect(Disconnect { reason_code }, None));
+                    let _ = timeout(Duration::from_secs(1), self.io.flush()).await;
+                }
             }
+            let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
         }
-        let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;
         }

@@ -13,24 +13,39 @@ use rumqttd::Notification;
 use super::close::End;
 use super::redelivery::{self};
 use super::{Session, HOLD_LIMIT};
+
+/// Encoded bytes after which `deliver` writes out before it encodes more
+/// (`broker.slow_consumer_max_bytes` leaves room for one batch and a packet).
+const WRITE_BATCH: usize = crate::config::MIN_QUEUED_BYTES;
 use crate::policy::origin;
 
 impl Session {
     /// Writes what the router delivered, draining everything it has queued.
+    ///
+    /// What it encodes is written out whenever [`WRITE_BATCH`] bytes are waiting, not only
+    /// at the end: one router batch (up to `router_max_outgoing_packets` messages, 64 MB of
+    /// large ones) is never copied into one buffer, and each write's deadline
+    /// (`session::write`) is for at most a batch, which any client that reads takes in
+    /// time. Small messages (a line's usual traffic) still go out in one write per batch.
     pub(super) async fn deliver(&mut self) -> Result<(), End> {
         let mut unscheduled = false;
         loop {
             match self.link_rx.recv_deadline(std::time::Instant::now()) {
                 Ok(Some(Notification::Unschedule)) => unscheduled = true,
-                Ok(Some(notification)) => self.outbound(notification),
+                Ok(Some(notification)) => {
+                    self.outbound(notification);
+                    if self.io.write.len() >= WRITE_BATCH {
+                        self.route().await?;
+                        self.write_out().await?;
+                    }
+                }
                 Ok(None) => {}
                 Err(LinkError::RecvTimeout(_)) => break,
                 Err(_) => return Err(self.router_dropped().await),
             }
         }
         self.route().await?;
-        let written = self.io.flush().await.map_err(|_| End::Abrupt)?;
-        self.ctx.metrics.bytes_out.inc_by(written as u64);
+        self.write_out().await?;
         if unscheduled {
             if self.held.len() < HOLD_LIMIT {
                 self.link_rx.wake().await.map_err(|_| End::Router)?;
@@ -44,7 +59,8 @@ impl Session {
     /// The router dropped this link: either a newer connection took the client id over,
     /// or the router refused something this client sent.
     pub(super) async fn router_dropped(&mut self) -> End {
-        let _ = self.io.flush().await;
+        // What was queued before the drop, briefly: the connection is ending anyway.
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(1), self.io.flush()).await;
         if self.ctx.sessions.is_current(&self.client_id, self.session) {
             tracing::warn!(
                 client_id = &*self.client_id,
@@ -62,6 +78,7 @@ impl Session {
             let Some((publish, properties)) = self.held.pop_front() else {
                 break;
             };
+            self.held_bytes = self.held_bytes.saturating_sub(held_size(&publish));
             self.deliver_publish(publish, properties);
         }
     }
@@ -92,6 +109,7 @@ impl Session {
                 if self.held.is_empty() && self.outstanding_out < self.client_receive_max {
                     self.deliver_publish(publish, properties);
                 } else {
+                    self.held_bytes += held_size(&publish);
                     self.held.push_back((publish, properties));
                 }
             }
@@ -232,7 +250,9 @@ impl Session {
             }
             _ => {
                 self.ctx.metrics.messages_out.inc();
-                if qos > 0 {
+                if qos == 0 {
+                    self.qos0_unwritten = self.qos0_unwritten.saturating_add(1);
+                } else {
                     self.outstanding_out = self.outstanding_out.saturating_add(1);
                     if dup {
                         self.io.write[before] |= 0b0000_1000;
@@ -310,4 +330,10 @@ impl Session {
         };
         self.ack_order.ack(pkid, ack, &mut self.to_router);
     }
+}
+
+/// What a held delivery counts towards the connection's queued bytes
+/// (`broker.slow_consumer_max_bytes`): its topic and payload, which it keeps alive.
+fn held_size(publish: &Publish) -> usize {
+    publish.topic.len() + publish.payload.len()
 }

@@ -19,8 +19,9 @@
 //! refused filters; [`read_access`]: the access rules in force at each delivery),
 //! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
-//! session expiry), [`observer`] (who else is told of subscriptions). Bytes and packets
-//! are `wire`'s business.
+//! session expiry), [`observer`] (who else is told of subscriptions), [`write`] (every
+//! write to the client under its deadlines: liveness does not depend on the client
+//! reading). Bytes and packets are `wire`'s business.
 //!
 //! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
 //! needs what that loop hides: the peer address (login throttling), keep-alive 0
@@ -38,6 +39,7 @@ pub mod packet_ids;
 mod read_access;
 pub mod redelivery;
 pub mod table;
+mod write;
 
 pub use observer::{Observers, SubscriptionObserver};
 
@@ -117,7 +119,7 @@ async fn accept(
     listener: Arc<ListenerPolicy>,
     ctx: &Arc<Context>,
 ) -> Option<Session> {
-    let mut io = Io::new(stream, ctx.max_packet);
+    let mut io = Io::new(stream, ctx.max_packet).with_write_timeout(ctx.write_timeout);
     let connect = match timeout(ctx.connect_timeout, io.read_connect()).await {
         Ok(Ok(packet)) => packet,
         Ok(Err(refusal)) => {
@@ -181,11 +183,23 @@ struct Session {
     client_receive_max: u16,
     /// QoS 1/2 deliveries sent and not yet acknowledged by the client.
     outstanding_out: u16,
+    /// When the keep-alive expires (1.5 x keep-alive after the client was last heard);
+    /// unused without keep-alive. Kept here, not only in `run`'s timer, because a write
+    /// that waits for the client hears it too (`write`).
+    alive_until: Instant,
+    /// Bytes were read while a write waited; their packets are handled next in `run`.
+    unhandled_read: bool,
+    /// QoS 0 deliveries in the write buffer: lost, and counted, if the connection ends
+    /// before the socket took them (QoS 1/2 ones stay in the session for its return).
+    qos0_unwritten: u32,
     /// The packet ids the client sees for deliveries, and the router's for each; what a
     /// later connection of this session re-sends, and under which ids (`redelivery`).
     ids: PacketIds,
     /// Deliveries waiting for the client's window, in order.
     held: VecDeque<(Publish, Option<PublishProperties>)>,
+    /// Topic and payload bytes of `held`: part of the outgoing bytes queued for the
+    /// client (`broker.slow_consumer_max_bytes`, `write`).
+    held_bytes: usize,
     /// The router paused delivery and is woken once `held` is short again.
     wake_pending: bool,
     /// The client's subscriptions by filter, with their MQTT 5 options.
@@ -240,8 +254,12 @@ impl Session {
     async fn run(&mut self) -> End {
         let mut shutdown = self.ctx.shutdown.clone();
         let far_future = Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600);
-        let deadline =
-            tokio::time::sleep_until(self.keep_alive.map_or(far_future, |k| Instant::now() + k));
+        self.heard();
+        let deadline = tokio::time::sleep_until(if self.keep_alive.is_some() {
+            self.alive_until
+        } else {
+            far_future
+        });
         tokio::pin!(deadline);
         // Packets that came in the same read as CONNECT (a client that does not wait for
         // CONNACK): handled now, not when the socket next has something.
@@ -251,6 +269,16 @@ impl Session {
             }
         }
         loop {
+            // Packets read while a write waited for the client (`write`).
+            if self.unhandled_read {
+                if let Err(end) = Box::pin(self.read_packets()).await {
+                    return end;
+                }
+            }
+            // The client may have been heard elsewhere (`write`): one deadline for both.
+            if self.keep_alive.is_some() && deadline.deadline() != self.alive_until {
+                deadline.as_mut().reset(self.alive_until);
+            }
             // Backpressure: while the router has not taken this client's previous packets,
             // stop reading its socket, so a fast publisher is slowed by TCP instead of
             // growing the router's input queue without bound.
@@ -275,9 +303,7 @@ impl Session {
             let handled = match wake {
                 Wake::Backlogged => {
                     // Not reading is the broker's choice, not client silence.
-                    if let Some(k) = self.keep_alive {
-                        deadline.as_mut().reset(Instant::now() + k);
-                    }
+                    self.heard();
                     Ok(())
                 }
                 Wake::Read(read) => {
@@ -286,9 +312,7 @@ impl Session {
                         Err(_) => return End::Abrupt,
                     };
                     self.ctx.metrics.bytes_in.inc_by(n as u64);
-                    if let Some(k) = self.keep_alive {
-                        deadline.as_mut().reset(Instant::now() + k);
-                    }
+                    self.heard();
                     Box::pin(self.read_packets()).await
                 }
                 Wake::Router { linked: true } => Box::pin(self.deliver()).await,
@@ -300,8 +324,17 @@ impl Session {
         }
     }
 
+    /// The client was heard (or is not read by the broker's choice): its keep-alive
+    /// starts again.
+    fn heard(&mut self) {
+        if let Some(k) = self.keep_alive {
+            self.alive_until = Instant::now() + k;
+        }
+    }
+
     /// Handles every complete packet in the read buffer, then hands the batch to the router.
     async fn read_packets(&mut self) -> Result<(), End> {
+        self.unhandled_read = false;
         loop {
             let header = match self.io.next_frame() {
                 Ok(Some(header)) => header,
@@ -348,7 +381,7 @@ impl Session {
         }
         self.release_held();
         self.route().await?;
-        self.io.flush().await.map_err(|_| End::Abrupt)?;
+        self.write_out().await?;
         if self.wake_pending && self.held.len() < HOLD_LIMIT {
             self.wake_pending = false;
             self.link_rx.wake().await.map_err(|_| End::Router)?;

@@ -4,12 +4,23 @@
 //! select on it. Buffers start small, because most of a line's devices are idle most of
 //! the time, grow with the traffic, and are let go of once they are empty again: a device
 //! that sent one burst must not keep a burst-sized buffer for the rest of the shift.
+//!
+//! Writing is cancel-safe too ([`Io::poll_write_out`] removes from the buffer what the
+//! socket took), so the session can wait for a slow socket and for its other deadlines at
+//! once (`session::write`). Every write has a deadline: [`Io::flush`] gives up after the
+//! write timeout (`broker.slow_consumer_timeout_ms`); a peer that takes nothing must not
+//! hold a task, its buffers and its will forever.
 
+use std::future::poll_fn;
+use std::io::ErrorKind;
 use std::net::SocketAddr;
+use std::pin::Pin;
+use std::task::{Context, Poll};
+use std::time::Duration;
 
 use bytes::BytesMut;
 use rumqttd::protocol::{ConnectReturnCode, Packet};
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite};
 
 use crate::metrics::Metrics;
 use crate::wire::codec::{decode_frame, Codec, ReadError, Version};
@@ -47,6 +58,9 @@ const BUSY_READ_RESERVE: usize = 4 * 1024;
 /// A write buffer larger than this is freed after it was written out, not kept.
 const KEPT_WRITE_CAPACITY: usize = 1024;
 
+/// The deadline of a write when the broker's configuration did not give one.
+pub const DEFAULT_WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+
 /// The socket with its read and write buffers.
 pub struct Io {
     pub stream: Box<dyn Stream>,
@@ -54,6 +68,12 @@ pub struct Io {
     pub write: BytesMut,
     pub codec: Codec,
     max_packet: usize,
+    /// How long [`Io::flush`] waits for the socket to take the write buffer.
+    pub write_timeout: Duration,
+    /// Bytes at the start of `write` the socket already took (a write that waits): kept
+    /// as an offset, not advanced past, so the buffer's allocation is still known when it
+    /// is empty again (a burst-sized one is let go of).
+    written: usize,
 }
 
 impl Io {
@@ -65,7 +85,15 @@ impl Io {
             write: BytesMut::new(),
             codec: Codec(Version::V311),
             max_packet,
+            write_timeout: DEFAULT_WRITE_TIMEOUT,
+            written: 0,
         }
+    }
+
+    /// The same, with writes given up after `write_timeout`.
+    pub fn with_write_timeout(mut self, write_timeout: Duration) -> Io {
+        self.write_timeout = write_timeout;
+        self
     }
 
     /// Reads more bytes from the socket. Cancel-safe: bytes read stay in the buffer.
@@ -189,19 +217,83 @@ impl Io {
         }
     }
 
-    /// Writes the write buffer out; returns the bytes written.
+    /// Writes the write buffer out within the write timeout; returns the bytes written.
+    /// On a timeout (`ErrorKind::TimedOut`) what the socket did not take stays buffered.
     pub async fn flush(&mut self) -> std::io::Result<usize> {
-        if self.write.is_empty() {
+        if self.unwritten() == 0 {
             return Ok(0);
         }
-        self.stream.write_all(&self.write).await?;
-        let n = self.write.len();
+        let n = self.unwritten();
+        // First without a timer: the socket nearly always takes it at once.
+        match poll_fn(|cx| Poll::Ready(self.poll_write_out(cx))).await {
+            Poll::Ready(Ok(())) => return Ok(n),
+            Poll::Ready(Err(e)) => return Err(e),
+            Poll::Pending => {}
+        }
+        match tokio::time::timeout(self.write_timeout, poll_fn(|cx| self.poll_write_out(cx))).await
+        {
+            Ok(Ok(())) => Ok(n),
+            Ok(Err(e)) => Err(e),
+            Err(_) => Err(ErrorKind::TimedOut.into()),
+        }
+    }
+
+    /// Writes as much of the write buffer as the socket takes, then flushes the stream
+    /// (TLS keeps records of its own); Ready(Ok) once everything is out. Cancel-safe: what
+    /// the socket took is gone from the buffer, what it did not stays.
+    pub fn poll_write_out(&mut self, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        while self.written < self.write.len() {
+            let rest = &self.write[self.written..];
+            match Pin::new(&mut self.stream).poll_write(cx, rest) {
+                Poll::Ready(Ok(0)) => return Poll::Ready(Err(ErrorKind::WriteZero.into())),
+                Poll::Ready(Ok(n)) => self.written += n,
+                Poll::Ready(Err(e)) => return Poll::Ready(Err(e)),
+                Poll::Pending => return Poll::Pending,
+            }
+        }
+        self.written = 0;
         if self.write.capacity() > KEPT_WRITE_CAPACITY {
             self.write = BytesMut::new();
         } else {
             self.write.clear();
         }
-        Ok(n)
+        Pin::new(&mut self.stream).poll_flush(cx)
+    }
+
+    /// Bytes in the write buffer the socket has not taken yet.
+    pub fn unwritten(&self) -> usize {
+        self.write.len() - self.written
+    }
+
+    /// Reads what the socket has into the read buffer without waiting, at most until it
+    /// holds `limit` bytes: Ready(Ok(n)) with the bytes read (0: none, the buffer is full
+    /// to `limit`), Ready(Err) when the connection closed, Pending when nothing is there.
+    /// Used while a write waits (`session::write`): a client that is heard is alive.
+    pub fn poll_fill_up_to(
+        &mut self,
+        cx: &mut Context<'_>,
+        limit: usize,
+    ) -> Poll<Result<usize, ReadError>> {
+        if self.read.len() >= limit {
+            return Poll::Ready(Ok(0));
+        }
+        // Through a small stack buffer: this path only runs while a write waits, and
+        // carries a client's PINGREQs and acknowledgements, not its bulk traffic.
+        let mut chunk = [0u8; 1024];
+        let room = chunk.len().min(limit - self.read.len());
+        let mut buf = tokio::io::ReadBuf::new(&mut chunk[..room]);
+        match Pin::new(&mut self.stream).poll_read(cx, &mut buf) {
+            Poll::Ready(Ok(())) => {
+                let filled = buf.filled();
+                if filled.is_empty() {
+                    return Poll::Ready(Err(ReadError::Closed));
+                }
+                self.read.extend_from_slice(filled);
+                Poll::Ready(Ok(filled.len()))
+            }
+            Poll::Ready(Err(_)) => Poll::Ready(Err(ReadError::Closed)),
+            Poll::Pending => Poll::Pending,
+        }
     }
 
     pub async fn send(&mut self, packet: Packet) -> std::io::Result<usize> {
