@@ -13,14 +13,13 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
 use common::clients::V4;
+use common::netns::{lines_of, VethPair};
 use common::raw::{self, Connect, RawClient};
 use common::{http_get, Broker, Options};
 
@@ -366,86 +365,27 @@ async fn a_client_that_stops_reading_is_a_slow_consumer_and_keeps_its_qos1_messa
     );
 }
 
-/// Two network namespaces joined by a veth pair: `a` holds the broker, `b` the devices;
-/// deleted (with the pair) on drop; the processes started in them are the test's to kill
-/// first. The addresses exist only inside them.
-struct Net {
-    a: String,
-    b: String,
-    veth_b: String,
-}
+/// The broker's namespace `a` and the devices' namespace `b` (`common::netns`).
+struct Net(VethPair);
 
 const BROKER_IP: &str = "10.214.0.1";
 
+impl std::ops::Deref for Net {
+    type Target = VethPair;
+    fn deref(&self) -> &VethPair {
+        &self.0
+    }
+}
+
 impl Net {
     fn create() -> Result<Net, String> {
-        let tag = std::process::id() % 100_000;
-        let net = Net {
-            a: format!("fblA{tag}"),
-            b: format!("fblB{tag}"),
-            veth_b: format!("vlb{tag}"),
-        };
-        let veth_a = format!("vla{tag}");
-        let steps: Vec<Vec<&str>> = vec![
-            vec!["netns", "add", &net.a],
-            vec!["netns", "add", &net.b],
-            vec![
-                "link",
-                "add",
-                &veth_a,
-                "type",
-                "veth",
-                "peer",
-                "name",
-                &net.veth_b,
-            ],
-            vec!["link", "set", &veth_a, "netns", &net.a],
-            vec!["link", "set", &net.veth_b, "netns", &net.b],
-            vec!["-n", &net.a, "addr", "add", "10.214.0.1/24", "dev", &veth_a],
-            vec![
-                "-n",
-                &net.b,
-                "addr",
-                "add",
-                "10.214.0.2/24",
-                "dev",
-                &net.veth_b,
-            ],
-            vec!["-n", &net.a, "link", "set", &veth_a, "up"],
-            vec!["-n", &net.b, "link", "set", &net.veth_b, "up"],
-            vec!["-n", &net.a, "link", "set", "lo", "up"],
-            vec!["-n", &net.b, "link", "set", "lo", "up"],
-        ];
-        for step in steps {
-            let out = Command::new("ip")
-                .args(&step)
-                .output()
-                .map_err(|e| format!("ip: {e}"))?;
-            if !out.status.success() {
-                return Err(format!(
-                    "`ip {}` failed: {}",
-                    step.join(" "),
-                    String::from_utf8_lossy(&out.stderr).trim()
-                ));
-            }
-        }
-        Ok(net)
-    }
-
-    fn exec(&self, ns: &str, program: &str) -> Command {
-        let mut c = Command::new("ip");
-        c.args(["netns", "exec", ns, program]);
-        c
+        VethPair::create("fbl", "vl", "10.214.0").map(Net)
     }
 
     /// Pulls the cable on the devices' side: their end goes down, the broker's end loses
     /// its carrier, and whatever the broker sends them vanishes without an error.
     fn cut(&self) {
-        let status = Command::new("ip")
-            .args(["-n", &self.b, "link", "set", &self.veth_b, "down"])
-            .status()
-            .unwrap();
-        assert!(status.success(), "cutting the link");
+        self.set_link(&self.b, &self.veth_b, false);
     }
 
     fn record(&self, id: &str) -> Option<Value> {
@@ -456,14 +396,6 @@ impl Net {
             .output()
             .ok()?;
         serde_json::from_slice(&out.stdout).ok()
-    }
-}
-
-impl Drop for Net {
-    fn drop(&mut self) {
-        for ns in [&self.a, &self.b] {
-            let _ = Command::new("ip").args(["netns", "del", ns]).status();
-        }
     }
 }
 
@@ -656,20 +588,6 @@ fn a_cut_link_ends_the_session_within_the_keep_alive_or_dead_link_bound() {
             record.unwrap()["last_will_reason"]
         );
     }
-}
-
-/// Lines of a child's stdout, on a channel.
-fn lines_of(child: &mut Child) -> mpsc::Receiver<String> {
-    let (tx, rx) = mpsc::channel();
-    let stdout = child.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                return;
-            }
-        }
-    });
-    rx
 }
 
 /// An MQTT 5 client with Receive Maximum 1 that reads but never acknowledges: deliveries

@@ -13,85 +13,42 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader, Write};
-use std::process::{Child, Command, Stdio};
+use std::io::Write;
+use std::process::{Child, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
+use common::netns::{lines_of, VethPair};
+
 const CONV: &str = r#"{"fbs":{"CONV":{"data_out":{"POSITION":"INT"}}}}"#;
 
-/// Two namespaces joined by a veth pair; deleted (with the pair) on drop, with every
-/// process started in them killed first.
+/// The two lines' namespaces (`common::netns`), and every process started in them,
+/// killed on drop before the namespaces go.
 struct Partition {
-    a: String,
-    b: String,
-    veth_a: String,
+    net: VethPair,
     children: Vec<Child>,
+}
+
+impl std::ops::Deref for Partition {
+    type Target = VethPair;
+    fn deref(&self) -> &VethPair {
+        &self.net
+    }
 }
 
 impl Partition {
     fn create() -> Result<Partition, String> {
-        let tag = std::process::id() % 100_000;
-        let p = Partition {
-            a: format!("fbbA{tag}"),
-            b: format!("fbbB{tag}"),
-            veth_a: format!("vfa{tag}"),
+        Ok(Partition {
+            net: VethPair::create("fbb", "vf", "10.213.0")?,
             children: Vec::new(),
-        };
-        let veth_b = format!("vfb{tag}");
-        let steps: Vec<Vec<&str>> = vec![
-            vec!["netns", "add", &p.a],
-            vec!["netns", "add", &p.b],
-            vec![
-                "link", "add", &p.veth_a, "type", "veth", "peer", "name", &veth_b,
-            ],
-            vec!["link", "set", &p.veth_a, "netns", &p.a],
-            vec!["link", "set", &veth_b, "netns", &p.b],
-            vec!["-n", &p.a, "addr", "add", "10.213.0.1/24", "dev", &p.veth_a],
-            vec!["-n", &p.b, "addr", "add", "10.213.0.2/24", "dev", &veth_b],
-            vec!["-n", &p.a, "link", "set", &p.veth_a, "up"],
-            vec!["-n", &p.b, "link", "set", &veth_b, "up"],
-            vec!["-n", &p.a, "link", "set", "lo", "up"],
-            vec!["-n", &p.b, "link", "set", "lo", "up"],
-        ];
-        for step in steps {
-            let out = Command::new("ip")
-                .args(&step)
-                .output()
-                .map_err(|e| format!("ip: {e}"))?;
-            if !out.status.success() {
-                return Err(format!(
-                    "`ip {}` failed: {}",
-                    step.join(" "),
-                    String::from_utf8_lossy(&out.stderr).trim()
-                ));
-            }
-        }
-        Ok(p)
-    }
-
-    fn exec(&self, ns: &str, program: &str) -> Command {
-        let mut c = Command::new("ip");
-        c.args(["netns", "exec", ns, program]);
-        c
+        })
     }
 
     /// Cuts (false) or restores (true) the link between the namespaces.
     fn link(&self, up: bool) {
-        let status = Command::new("ip")
-            .args([
-                "-n",
-                &self.a,
-                "link",
-                "set",
-                &self.veth_a,
-                if up { "up" } else { "down" },
-            ])
-            .status()
-            .unwrap();
-        assert!(status.success());
+        self.set_link(&self.a, &self.veth_a, up);
     }
 
     /// Starts an fbbus line in `ns` (MQTT 127.0.0.1:1883, admin 127.0.0.1:9883 there).
@@ -160,24 +117,7 @@ impl Drop for Partition {
             let _ = child.kill();
             let _ = child.wait();
         }
-        for ns in [&self.a, &self.b] {
-            let _ = Command::new("ip").args(["netns", "del", ns]).status();
-        }
     }
-}
-
-/// Lines of a child's stdout, on a channel.
-fn lines_of(child: &mut Child) -> mpsc::Receiver<String> {
-    let (tx, rx) = mpsc::channel();
-    let stdout = child.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                return;
-            }
-        }
-    });
-    rx
 }
 
 /// Publishes `values` through the device's open connection until the subscriber has

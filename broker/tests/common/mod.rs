@@ -3,6 +3,7 @@
 
 pub mod clients;
 pub mod fb;
+pub mod netns;
 pub mod raw;
 
 use std::io::{Read, Write};
