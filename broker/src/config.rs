@@ -543,6 +543,11 @@ impl Config {
         if let Some(p) = &self.auth.acl_file {
             check("auth.acl_file".into(), p)?;
         }
+        if let Some(tls) = self.bridge.as_ref().and_then(|b| b.tls.as_ref()) {
+            check("bridge.tls.root_ca".into(), &tls.root_ca)?;
+            check("bridge.tls.cert".into(), &tls.cert)?;
+            check("bridge.tls.key".into(), &tls.key)?;
+        }
         for (i, l) in self.listeners.iter().enumerate() {
             if let Some(tls) = &l.tls {
                 check(format!("listener[{i}].tls.cert"), &tls.cert)?;

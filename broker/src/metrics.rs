@@ -112,6 +112,7 @@ pub struct Metrics {
     /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
     pub bridge_messages: IntCounterVec,
     pub bridge_dropped: IntCounterVec,
+    pub bridge_refused: IntCounterVec,
     pub bridge_remote_subscriptions: IntGauge,
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
@@ -191,6 +192,13 @@ impl Metrics {
                 "fbbus_bridge_dropped_total",
                 "Bridged messages not delivered, by reason (duplicate, acl, type, filter, unbridgeable, zenoh_error)",
                 &["reason"],
+            ),
+            bridge_refused: counter_vec(
+                "fbbus_bridge_refused_total",
+                "Messages from other lines refused because they did not come from where they \
+                 claim, by origin line (at most 64 lines, then `other`) and reason \
+                 (forged_origin, unknown_device, local_device, other_line_device)",
+                &["line", "reason"],
             ),
             bridge_remote_subscriptions: gauge(
                 "fbbus_bridge_remote_subscriptions",

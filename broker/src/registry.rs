@@ -188,6 +188,28 @@ pub struct LoadError {
     pub message: String,
 }
 
+/// Why a device is not a device of the line a bus message claims it for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NotOfLine {
+    /// No record of it: its line never announced it.
+    Unknown,
+    /// It is a device of this line: nobody else speaks for it.
+    Local,
+    /// Its record names a third line.
+    OtherLine,
+}
+
+impl NotOfLine {
+    /// The metric label and the diagnostic's word.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            NotOfLine::Unknown => "unknown_device",
+            NotOfLine::Local => "local_device",
+            NotOfLine::OtherLine => "other_line_device",
+        }
+    }
+}
+
 impl Registry {
     /// Loads the registry from `file` (if it exists) with every device offline, publishes
     /// the records, and starts persisting changes to `file`.
@@ -348,14 +370,17 @@ impl Registry {
             .cloned()
     }
 
-    /// The declared interface of `id` if it is a device of `line` (the bridge's typed
-    /// check of messages from that line: no record is cloned).
-    pub fn remote_interface(&self, id: &str, line: &str) -> Option<Arc<Interface>> {
+    /// The declared interface of `id` if it is a device of the other line `line`, as
+    /// `line`'s own record declared it: the bridge imports a message of `id` from `line`
+    /// only then, and checks it against this interface (no record is cloned).
+    pub fn remote_interface(&self, id: &str, line: &str) -> Result<Arc<Interface>, NotOfLine> {
         let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-        devices
-            .get(id)
-            .filter(|r| r.line == line)
-            .map(|r| Arc::clone(&r.interface))
+        match devices.get(id) {
+            None => Err(NotOfLine::Unknown),
+            Some(r) if r.line == self.line => Err(NotOfLine::Local),
+            Some(r) if r.line != line => Err(NotOfLine::OtherLine),
+            Some(r) => Ok(Arc::clone(&r.interface)),
+        }
     }
 
     /// Every device, by id.

@@ -146,7 +146,7 @@ impl Broker {
         #[cfg(feature = "bridge")]
         let bridge = match &config.bridge {
             Some(bus) => {
-                let bridge = crate::bridge::Bridge::new(bus)?;
+                let bridge = crate::bridge::Bridge::new(bus, &config.broker.line)?;
                 observers.register(Arc::clone(&bridge) as _);
                 Some(bridge)
             }
@@ -374,6 +374,10 @@ impl Files {
 /// Loads every file the configuration names (password file, ACL, TLS certificates and
 /// keys) without binding anything: `fbbus check-config`.
 pub fn check(config: &Config) -> Result<(), StartError> {
+    #[cfg(feature = "bridge")]
+    if let Some(bus) = &config.bridge {
+        crate::bridge::Bridge::check(bus, &config.broker.line)?;
+    }
     Files::load(config).map(|_| ())
 }
 

@@ -642,9 +642,9 @@ async fn cross_line_traffic_obeys_the_acl_and_the_export_filters() {
     );
 }
 
-/// A CA and one certificate for 127.0.0.1/localhost usable as TLS server and client,
-/// as PEM strings: (ca, cert, key).
-fn bus_pki() -> (String, String, String) {
+/// A CA and one certificate per name for 127.0.0.1/localhost, usable as TLS server and
+/// client, as PEM strings: (ca, [(cert, key)]).
+fn bus_pki(names: &[&str]) -> (String, Vec<(String, String)>) {
     use rcgen::{
         BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, KeyPair,
         KeyUsagePurpose,
@@ -660,38 +660,49 @@ fn bus_pki() -> (String, String, String) {
         KeyUsagePurpose::DigitalSignature,
     ];
     let ca = ca_params.self_signed(&ca_key).unwrap();
-    let key = KeyPair::generate().unwrap();
-    let mut params = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
-    params.distinguished_name.push(DnType::CommonName, "line");
-    params.use_authority_key_identifier_extension = true;
-    params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
-    params.extended_key_usages = vec![
-        ExtendedKeyUsagePurpose::ServerAuth,
-        ExtendedKeyUsagePurpose::ClientAuth,
-    ];
-    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
-    (ca.pem(), cert.pem(), key.serialize_pem())
+    let certs = names
+        .iter()
+        .map(|name| {
+            let key = KeyPair::generate().unwrap();
+            let mut params =
+                CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+            params.distinguished_name.push(DnType::CommonName, *name);
+            params.use_authority_key_identifier_extension = true;
+            params.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+            params.extended_key_usages = vec![
+                ExtendedKeyUsagePurpose::ServerAuth,
+                ExtendedKeyUsagePurpose::ClientAuth,
+            ];
+            let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+            (cert.pem(), key.serialize_pem())
+        })
+        .collect();
+    (ca.pem(), certs)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lines_link_over_zenoh_tls_with_certificates_on_both_sides() {
-    let (ca, cert, key) = bus_pki();
-    let write = |dir: &std::path::Path| {
-        std::fs::write(dir.join("ca.crt"), &ca).unwrap();
-        std::fs::write(dir.join("line.crt"), &cert).unwrap();
-        std::fs::write(dir.join("line.key"), &key).unwrap();
-        String::new()
+    let (ca, certs) = bus_pki(&["line-a", "line-b"]);
+    let write = |i: usize| {
+        let (ca, (cert, key)) = (ca.clone(), certs[i].clone());
+        move |dir: &std::path::Path| {
+            std::fs::write(dir.join("ca.crt"), &ca).unwrap();
+            std::fs::write(dir.join("line.crt"), &cert).unwrap();
+            std::fs::write(dir.join("line.key"), &key).unwrap();
+            String::new()
+        }
     };
-    let tls = "[bridge.tls]\nroot_ca = \"ca.crt\"\ncert = \"line.crt\"\nkey = \"line.key\"\nmutual = true\n";
+    let tls = "[bridge.tls]\nroot_ca = \"ca.crt\"\ncert = \"line.crt\"\nkey = \"line.key\"\n\
+               [bridge.peers]\nlines = [\"line-a\", \"line-b\"]\n";
     let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let a = Line::start_full("line-a", &endpoint, &[], tls, None, write);
+    let a = Line::start_full("line-a", &endpoint, &[], tls, None, write(0));
     let b = Line::start_full(
         "line-b",
         &format!("tls/127.0.0.1:{}", free_port()),
         &[&endpoint],
         tls,
         None,
-        write,
+        write(1),
     );
     let dev = device(&a, "conv-a").await;
     b.wait_record("conv-a", "online", PROPAGATION);

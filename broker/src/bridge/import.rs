@@ -3,6 +3,7 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use fb_bridge::bus::link::{Import, Inbound, Inbox, Link, RouteKeys};
@@ -14,7 +15,7 @@ use rumqttd::Notification;
 use tokio::sync::mpsc;
 
 use super::{Interest, IMPORT_CLIENT_ID};
-use crate::broker_publisher;
+use crate::broker_publisher::{self, Message as BrokerMessage};
 use crate::context::Context;
 use crate::policy::origin;
 use crate::policy::typed::FbSession;
@@ -94,6 +95,7 @@ pub(super) async fn inject_loop(
         route_keys,
         publisher: IMPORT_CLIENT_ID.into(),
         devices: HashMap::new(),
+        origin: Origins::default(),
         import,
         pkid: 0,
         packets: Vec::new(),
@@ -124,6 +126,7 @@ struct Injector {
     publisher: Arc<str>,
     /// Per remote device: the interface its session checks against.
     devices: HashMap<String, (Arc<fb_bridge::Interface>, FbSession)>,
+    origin: Origins,
     import: Vec<String>,
     pkid: u16,
     packets: Vec<Packet>,
@@ -140,7 +143,7 @@ impl Injector {
         if !self.dedup.first_time(&message.stamp) {
             return dropped("duplicate");
         }
-        self.route_keys.note(&message.stamp.line, &message.topic);
+        self.route_keys.note(&message.line, &message.topic);
         if !BusConfig::allows(&self.import, &message.topic) {
             return dropped("filter");
         }
@@ -148,32 +151,23 @@ impl Injector {
             return dropped("unbridgeable");
         };
         let device = typed.device;
-        // The device's typed-topic state: its declared interface once the registry has its
-        // record from the other line, none until then (see `PublishPolicy::admit`).
-        let interface = ctx
-            .fb
-            .registry
-            .remote_interface(device, &message.stamp.line);
-        let mut unknown;
-        let publisher = match interface {
-            Some(interface) => {
-                let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
-                    (
-                        Arc::clone(&interface),
-                        FbSession::new(&ctx.fb, device, Some(device), 0),
-                    )
-                });
-                if !Arc::ptr_eq(&entry.0, &interface) || entry.1.interface().is_none() {
-                    entry.0 = Arc::clone(&interface);
-                    entry.1.set_interface(Some(interface));
-                }
-                &mut entry.1
-            }
-            None => {
-                unknown = FbSession::new(&ctx.fb, device, Some(device), 0);
-                &mut unknown
-            }
+        // Authentication: the message is of a device its line declared. Then the device's
+        // typed-topic state, checked against that declaration like a local device's.
+        let interface = match self.origin.authenticate(ctx, &message, device) {
+            Ok(interface) => interface,
+            Err(()) => return,
         };
+        let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
+            (
+                Arc::clone(&interface),
+                FbSession::new(&ctx.fb, device, Some(device), 0),
+            )
+        });
+        if !Arc::ptr_eq(&entry.0, &interface) || entry.1.interface().is_none() {
+            entry.0 = Arc::clone(&interface);
+            entry.1.set_interface(Some(interface));
+        }
+        let publisher = &mut entry.1;
         let payload = Bytes::from(message.payload);
         let publication = Publication {
             topic: &message.topic,
@@ -222,5 +216,94 @@ impl Injector {
             origin::mark(&mut publish, origin.clone());
             self.packets.push(Packet::Publish(publish, None));
         }
+    }
+}
+
+/// The bus door's authentication: a message from another line is imported only if it
+/// comes from where it claims.
+///
+/// - Its stamp names the line whose key it came on. On a mutual-TLS bus zenoh's access
+///   control let only that line (or a router forwarding it) put there, so the key's line
+///   is the authenticated sender.
+/// - Its device is a device of that line: the registry holds the device's record as that
+///   line's own record put it. A line cannot speak for a device of this line, of a third
+///   line, or for a device it never announced.
+///
+/// Refusals are counted per origin line (`fbbus_bridge_refused_total`), logged once per
+/// line and reason, and described on the device's `fbbus/diag/<device>` at most once a
+/// second per line.
+#[derive(Default)]
+struct Origins {
+    /// Lines with a label of their own, and the last diagnostic each was described in.
+    lines: HashMap<String, Option<Instant>>,
+    logged: std::collections::HashSet<(String, &'static str)>,
+}
+
+/// Origin lines with a metric label of their own; past this many they share `other`
+/// (the key's line is any chunk an unauthenticated loopback peer writes).
+const ORIGIN_LABELS: usize = 64;
+
+impl Origins {
+    fn authenticate(
+        &mut self,
+        ctx: &Context,
+        message: &Inbound,
+        device: &str,
+    ) -> Result<Arc<fb_bridge::Interface>, ()> {
+        let refusal = if message.stamp.line != message.line {
+            "forged_origin"
+        } else {
+            match ctx.fb.registry.remote_interface(device, &message.line) {
+                Ok(interface) => return Ok(interface),
+                Err(not_of_line) => not_of_line.as_str(),
+            }
+        };
+        self.refuse(ctx, message, device, refusal);
+        Err(())
+    }
+
+    fn refuse(&mut self, ctx: &Context, message: &Inbound, device: &str, reason: &'static str) {
+        let line = &message.line;
+        if !self.lines.contains_key(line) && self.lines.len() < ORIGIN_LABELS {
+            self.lines.insert(line.clone(), None);
+        }
+        let label = match self.lines.contains_key(line) {
+            true => line.as_str(),
+            false => "other",
+        };
+        ctx.metrics
+            .bridge_refused
+            .with_label_values(&[label, reason])
+            .inc();
+        if self.logged.len() < 4 * ORIGIN_LABELS && self.logged.insert((line.clone(), reason)) {
+            tracing::warn!(
+                line = %message.line,
+                stamp_line = %message.stamp.line,
+                device,
+                topic = message.topic,
+                reason,
+                "message from the bus refused: it does not come from where it claims \
+                 (logged once per line and reason; counted in fbbus_bridge_refused_total)"
+            );
+        }
+        let Some(last) = self.lines.get_mut(line) else {
+            return;
+        };
+        if last.is_some_and(|t| t.elapsed() < Duration::from_secs(1)) {
+            return;
+        }
+        *last = Some(Instant::now());
+        ctx.fb.publish(vec![BrokerMessage::broker(
+            fb_bridge::topic::diag(device),
+            serde_json::json!({
+                "kind": "bus_refused",
+                "reason": reason,
+                "line": message.line,
+                "stamp_line": message.stamp.line,
+                "topic": message.topic,
+            })
+            .to_string(),
+            false,
+        )]);
     }
 }

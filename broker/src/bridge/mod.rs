@@ -185,9 +185,10 @@ impl Bridge {
     /// The bridge's handle, before anything is opened. It is registered with the session
     /// layer as a subscription observer before the first client connects; what clients
     /// subscribe to before [`Bridge::start`] links the bus is imported then.
-    pub fn new(config: &BusConfig) -> Result<Arc<Bridge>, BridgeError> {
-        // A bad `[bridge]` section fails the start whatever the mode.
-        fb_bridge::bus::link::validate(config)?;
+    pub fn new(config: &BusConfig, line: &str) -> Result<Arc<Bridge>, BridgeError> {
+        // A bad `[bridge]` section, or a certificate of another line, fails the start
+        // whatever the mode.
+        Bridge::check(config, line)?;
         let (interest, interest_rx) = mpsc::unbounded_channel();
         Ok(Arc::new(Bridge {
             import_filters: config.import.clone(),
@@ -196,6 +197,13 @@ impl Bridge {
             link: OnceLock::new(),
             tasks: Mutex::new(Vec::new()),
         }))
+    }
+
+    /// What `fbbus check-config` checks of the `[bridge]` section beyond its syntax: that
+    /// it makes a zenoh configuration and that the certificate names this line.
+    pub fn check(config: &BusConfig, line: &str) -> Result<(), BridgeError> {
+        fb_bridge::bus::link::validate(config, line)?;
+        Ok(())
     }
 
     /// Starts the bridge (once; a second call does nothing).

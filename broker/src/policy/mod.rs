@@ -125,24 +125,20 @@ impl PublishPolicy {
             };
         }
 
-        // 2. Typed check. A message from another line whose device's record has not
-        // arrived yet was checked by its own line against the same declaration, and passes
-        // as it came; once the record is here, it is checked like a local one.
-        let trusted_remote = door == Door::Bus && publisher.interface().is_none();
-        let routes = match trusted_remote {
-            true => None,
-            false => match publisher.check(&self.typed, topic, payload) {
-                Check::Pass => None,
-                Check::Route(routes) => Some(routes),
-                Check::Consumed => return Admission::Consumed,
-                Check::Refused(rejection) => {
-                    self.count_refusal(door, Stage::Typed);
-                    return Admission::Refused {
-                        stage: Stage::Typed,
-                        refusal: rejection.refusal,
-                    };
-                }
-            },
+        // 2. Typed check. A message from another line is checked like a local one,
+        // against its device's declaration as its own line's record gave it (the bus door
+        // imports nothing for a device without one: `bridge::import`).
+        let routes = match publisher.check(&self.typed, topic, payload) {
+            Check::Pass => None,
+            Check::Route(routes) => Some(routes),
+            Check::Consumed => return Admission::Consumed,
+            Check::Refused(rejection) => {
+                self.count_refusal(door, Stage::Typed);
+                return Admission::Refused {
+                    stage: Stage::Typed,
+                    refusal: rejection.refusal,
+                };
+            }
         };
 
         // 3. Origin mark.

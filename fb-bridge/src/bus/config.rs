@@ -48,8 +48,11 @@ pub struct BusConfig {
     /// How long a silent link stays up (zenoh lease). A line that stops answering is
     /// marked unreachable after at most this long.
     pub lease_ms: u64,
-    /// zenoh's own TLS for `tls/...` endpoints; off unless set.
+    /// zenoh's own TLS for `tls/...` endpoints; off unless set. Required, mutual, for an
+    /// endpoint that is not loopback.
     pub tls: Option<BusTls>,
+    /// Who may talk to this line over a mutual-TLS bus, by certificate common name.
+    pub peers: Option<BusPeers>,
 }
 
 impl Default for BusConfig {
@@ -63,6 +66,7 @@ impl Default for BusConfig {
             import: vec!["fb/#".into()],
             lease_ms: 3_000,
             tls: None,
+            peers: None,
         }
     }
 }
@@ -71,15 +75,67 @@ impl Default for BusConfig {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BusTls {
-    /// CA bundle the other side's certificate must chain to.
+    /// CA bundle the other side's certificate must chain to (the plant's bus CA; old and
+    /// new CA during a CA rotation).
     pub root_ca: std::path::PathBuf,
-    /// This bridge's certificate and key (listening side; also presented when connecting
-    /// if `mutual` is set).
+    /// This line's certificate and key, presented when listening and when connecting.
+    /// The certificate's common name is the line's identity: it must be `[broker] line`.
     pub cert: std::path::PathBuf,
     pub key: std::path::PathBuf,
-    /// Both sides present certificates.
-    #[serde(default)]
+    /// Both sides present certificates (default). `false` (the other side is not
+    /// identified, so no access control) is only accepted on a loopback-only bus.
+    #[serde(default = "yes")]
     pub mutual: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// `[bridge.peers]`: who may talk to this line over a mutual-TLS bus, by the common name
+/// of the certificate they present. Anyone else is refused by zenoh's access control
+/// (default deny); see [`super::access`] for exactly what each may do.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BusPeers {
+    /// Other lines (certificate CN = line name): may publish, announce and answer only
+    /// under their own line's keys.
+    pub lines: Vec<String>,
+    /// zenoh routers (`zenohd`, router-mode lines) that forward every line's traffic.
+    /// Trusted with every line's keys: a router certificate is a plant-wide secret.
+    pub routers: Vec<String>,
+    /// zenoh applications that may read the bus (subscribe, query) and nothing else.
+    pub readers: Vec<String>,
+}
+
+impl BusPeers {
+    fn names(&self) -> impl Iterator<Item = (&'static str, &String)> {
+        let tag = |key: &'static str| move |name| (key, name);
+        (self.lines.iter().map(tag("bridge.peers.lines")))
+            .chain(self.routers.iter().map(tag("bridge.peers.routers")))
+            .chain(self.readers.iter().map(tag("bridge.peers.readers")))
+    }
+}
+
+/// Whether a zenoh endpoint (`tcp/127.0.0.1:7447`, `tls/[::1]:7447#iface=lo`) is on
+/// loopback: 127.0.0.0/8, `::1` or `localhost`. Anything else, `0.0.0.0` and host names
+/// included, can be reached from (or reaches) another host.
+pub fn loopback_endpoint(endpoint: &str) -> bool {
+    let Some((_, address)) = endpoint.split_once('/') else {
+        return false;
+    };
+    let address = address.split(['?', '#']).next().unwrap_or_default();
+    let Some((host, _port)) = address.rsplit_once(':') else {
+        return false;
+    };
+    let host = host
+        .strip_prefix('[')
+        .and_then(|h| h.strip_suffix(']'))
+        .unwrap_or(host);
+    match host.parse::<std::net::IpAddr>() {
+        Ok(ip) => ip.is_loopback(),
+        Err(_) => host.eq_ignore_ascii_case("localhost"),
+    }
 }
 
 impl BusConfig {
@@ -120,12 +176,71 @@ impl BusConfig {
                 if e.starts_with("tls/") && self.tls.is_none() {
                     return Err((key.into(), format!("`{e}` needs a [bridge.tls] section")));
                 }
+                let secure = e.starts_with("tls/") && self.mutual_tls();
+                if !(secure || loopback_endpoint(e)) {
+                    let tls = e.replacen("tcp/", "tls/", 1);
+                    return Err((
+                        key.into(),
+                        format!(
+                            "`{e}` is not loopback: a bus endpoint between hosts needs mutual \
+                             TLS, or any host that reaches it could speak for every line. Use \
+                             `{tls}` with [bridge.tls] (root_ca, cert, key: the certificate's \
+                             common name is this line's name; `fbbus bus-cert`) and \
+                             [bridge.peers] naming the lines and routers it accepts \
+                             (docs/bus-security.md)"
+                        ),
+                    ));
+                }
             }
         }
         if self.lease_ms < 500 {
             return Err(("bridge.lease_ms".into(), "at least 500".into()));
         }
+        match (&self.peers, self.mutual_tls()) {
+            (Some(_), false) => {
+                return Err((
+                    "bridge.peers".into(),
+                    "needs [bridge.tls] with mutual = true: a peer is known by its certificate"
+                        .into(),
+                ))
+            }
+            (None, true) => {
+                return Err((
+                    "bridge.peers".into(),
+                    "a mutual-TLS bus needs [bridge.peers]: name the lines (lines = [...]), \
+                     zenoh routers (routers = [...]) and read-only applications \
+                     (readers = [...]) it accepts, by certificate common name"
+                        .into(),
+                ))
+            }
+            _ => {}
+        }
+        if let Some(peers) = &self.peers {
+            if peers.names().next().is_none() {
+                return Err((
+                    "bridge.peers".into(),
+                    "names nobody: list at least one line, router or reader".into(),
+                ));
+            }
+            for (key, name) in peers.names() {
+                if !keys::valid_line(name) {
+                    return Err((
+                        key.into(),
+                        format!(
+                            "`{name}` cannot be a certificate name on the bus: use letters, \
+                             digits, `-`, `_`, `.`"
+                        ),
+                    ));
+                }
+            }
+        }
         Ok(())
+    }
+
+    /// Whether both sides of every TLS link present certificates, which is what zenoh's
+    /// access control identifies peers by.
+    pub fn mutual_tls(&self) -> bool {
+        self.tls.as_ref().is_some_and(|t| t.mutual)
     }
 
     /// Whether `topic` matches one of `filters`.
@@ -149,5 +264,90 @@ mod tests {
             ..BusConfig::default()
         };
         assert!(bad.validate("a").is_err());
+    }
+
+    #[test]
+    fn loopback_endpoints_are_told_apart_from_the_rest() {
+        for e in [
+            "tcp/127.0.0.1:7447",
+            "tls/127.0.0.5:7447",
+            "tcp/[::1]:7447",
+            "tls/localhost:7447",
+            "tcp/127.0.0.1:7447#iface=lo",
+        ] {
+            assert!(loopback_endpoint(e), "{e}");
+        }
+        for e in [
+            "tcp/0.0.0.0:7447",
+            "tls/[::]:7447",
+            "tls/10.0.2.1:7447",
+            "tls/line-b.plant:7447",
+            "tcp/127.0.0.1",
+            "garbage",
+            "tcp/ü:1",
+        ] {
+            assert!(!loopback_endpoint(e), "{e}");
+        }
+    }
+
+    fn tls(mutual: bool) -> Option<BusTls> {
+        Some(BusTls {
+            root_ca: "ca.crt".into(),
+            cert: "a.crt".into(),
+            key: "a.key".into(),
+            mutual,
+        })
+    }
+
+    #[test]
+    fn a_bus_between_hosts_needs_mutual_tls_and_named_peers() {
+        let peers = Some(BusPeers {
+            lines: vec!["line-b".into()],
+            ..BusPeers::default()
+        });
+        let plain = BusConfig {
+            listen: vec!["tcp/0.0.0.0:7447".into()],
+            ..BusConfig::default()
+        };
+        let (key, message) = plain.validate("line-a").unwrap_err();
+        assert_eq!(key, "bridge.listen");
+        assert!(message.contains("tls/0.0.0.0:7447"), "{message}");
+        assert!(message.contains("[bridge.peers]"), "{message}");
+        let one_way = BusConfig {
+            connect: vec!["tls/10.0.0.2:7447".into()],
+            tls: tls(false),
+            ..BusConfig::default()
+        };
+        assert_eq!(one_way.validate("line-a").unwrap_err().0, "bridge.connect");
+        let unnamed = BusConfig {
+            connect: vec!["tls/10.0.0.2:7447".into()],
+            tls: tls(true),
+            ..BusConfig::default()
+        };
+        assert_eq!(unnamed.validate("line-a").unwrap_err().0, "bridge.peers");
+        let secure = BusConfig {
+            peers: peers.clone(),
+            ..unnamed.clone()
+        };
+        assert_eq!(secure.validate("line-a"), Ok(()));
+        let bad_name = BusConfig {
+            peers: Some(BusPeers {
+                readers: vec!["his torian".into()],
+                ..BusPeers::default()
+            }),
+            ..unnamed
+        };
+        assert_eq!(
+            bad_name.validate("line-a").unwrap_err().0,
+            "bridge.peers.readers"
+        );
+        // Loopback stays simple; peers without mutual TLS name nobody zenoh could know.
+        let local = BusConfig {
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            ..BusConfig::default()
+        };
+        assert_eq!(local.validate("line-a"), Ok(()));
+        let unknowable = BusConfig { peers, ..local };
+        assert_eq!(unknowable.validate("line-a").unwrap_err().0, "bridge.peers");
     }
 }

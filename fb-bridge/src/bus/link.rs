@@ -33,6 +33,18 @@ use super::{keys, BusConfig, Stamp};
 pub enum LinkError {
     #[error("zenoh configuration `{key}`: {message}")]
     Config { key: String, message: String },
+    #[error(
+        "[bridge.tls] cert `{cert}` names `{name}`, but this line is `{line}`: a line is who \
+         its certificate says. Issue one with common name `{line}` \
+         (`fbbus bus-cert issue --name {line}`, docs/bus-security.md)"
+    )]
+    Identity {
+        cert: String,
+        name: String,
+        line: String,
+    },
+    #[error("[bridge.tls] cert `{cert}`: {message}")]
+    Certificate { cert: String, message: String },
     #[error("zenoh: {0}")]
     Zenoh(String),
 }
@@ -44,6 +56,9 @@ fn zerr(e: impl std::fmt::Display) -> LinkError {
 /// A message from another line, as it came off zenoh.
 #[derive(Debug, Clone)]
 pub struct Inbound {
+    /// The line whose key it came on (`fbbus/<line>/...`): on a mutual-TLS bus, the line
+    /// zenoh's access control let speak there. The stamp must name the same line.
+    pub line: String,
     pub stamp: Stamp,
     pub topic: String,
     pub payload: Vec<u8>,
@@ -152,10 +167,42 @@ pub struct Import {
 /// A device announced online on the bus; dropping it announces it gone.
 pub struct DeviceToken(#[allow(dead_code)] LivelinessToken);
 
-/// Checks that the `[bridge]` section makes a zenoh configuration, without opening
-/// anything: a bad section fails the broker's start whatever the mode.
-pub fn validate(config: &BusConfig) -> Result<(), LinkError> {
+/// Checks that the `[bridge]` section makes a zenoh configuration, and that the line's
+/// certificate names `line`, without opening anything: a bad section fails the broker's
+/// start (and `fbbus check-config`) whatever the mode.
+pub fn validate(config: &BusConfig, line: &str) -> Result<(), LinkError> {
+    if let Some(tls) = &config.tls {
+        let name = common_name(&tls.cert)?;
+        if name != line {
+            return Err(LinkError::Identity {
+                cert: tls.cert.display().to_string(),
+                name,
+                line: line.to_owned(),
+            });
+        }
+    }
     zenoh_config(config).map(drop)
+}
+
+/// The common name of the first certificate of a PEM file.
+fn common_name(path: &std::path::Path) -> Result<String, LinkError> {
+    let failed = |message: String| LinkError::Certificate {
+        cert: path.display().to_string(),
+        message,
+    };
+    let bytes = std::fs::read(path).map_err(|e| failed(e.to_string()))?;
+    let (_, pem) = x509_parser::pem::parse_x509_pem(&bytes)
+        .map_err(|e| failed(format!("not a PEM certificate ({e})")))?;
+    let cert = pem
+        .parse_x509()
+        .map_err(|e| failed(format!("not an X.509 certificate ({e})")))?;
+    let name = cert
+        .subject()
+        .iter_common_name()
+        .next()
+        .and_then(|cn| cn.as_str().ok())
+        .ok_or_else(|| failed("has no common name (CN): it names the line".into()))?;
+    Ok(name.to_owned())
 }
 
 /// Builds zenoh's configuration from the `[bridge]` section.
@@ -200,6 +247,14 @@ fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
             set("transport/link/tls/connect_certificate", path(&tls.cert))?;
             set("transport/link/tls/connect_private_key", path(&tls.key))?;
         }
+    }
+    // On a mutual-TLS bus every peer is known by its certificate: zenoh lets each do only
+    // what `[bridge.peers]` grants it (`super::access`), default deny.
+    if let (Some(peers), true) = (&config.peers, config.mutual_tls()) {
+        set(
+            "access_control",
+            super::access::access_control(peers).to_string(),
+        )?;
     }
     Ok(c)
 }
@@ -401,10 +456,13 @@ impl Link {
                     tracing::debug!(key = %sample.key_expr(), "bus sample without an fbbus stamp; ignored");
                     return;
                 };
-                if line == own || stamp.line != line {
+                // The stamp naming another line than the key is refused (and counted) by
+                // the importing broker.
+                if line == own {
                     return;
                 }
                 let _ = inbox.send(Inbound {
+                    line: line.to_owned(),
                     stamp,
                     topic: topic.to_owned(),
                     payload: sample.payload().to_bytes().into_owned(),
@@ -531,6 +589,7 @@ impl Link {
             };
             if line != self.line {
                 out.push(Inbound {
+                    line: line.to_owned(),
                     stamp,
                     topic: topic.to_owned(),
                     payload: sample.payload().to_bytes().into_owned(),

@@ -11,7 +11,8 @@
 //! - [`Stamp`]: the attachment each bridged message carries (origin line, origin epoch,
 //!   per-origin sequence, MQTT QoS and RETAIN), and [`Dedup`], which drops a message
 //!   already seen from that origin;
-//! - [`BusConfig`]: the `[bridge]` section of the broker's configuration.
+//! - [`BusConfig`]: the `[bridge]` section of the broker's configuration, and [`access`]:
+//!   zenoh's access control built from its `[bridge.peers]` (who may speak for which line).
 //!
 //! The zenoh session itself is [`link`] (cargo feature `zenoh`).
 //!
@@ -22,11 +23,12 @@
 //! second line of defence: zenoh delivers a sample once per matching subscriber, so two
 //! overlapping import filters of one line would otherwise inject it twice.
 
+pub mod access;
 mod config;
 pub mod keys;
 #[cfg(feature = "zenoh")]
 pub mod link;
 mod stamp;
 
-pub use config::{BusConfig, BusTls, Mode};
+pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode};
 pub use stamp::{Dedup, Stamp, DEDUP_WINDOW};
