@@ -10,6 +10,8 @@ use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
 mod devices_command;
+#[cfg(feature = "bridge")]
+mod zenohd_command;
 
 /// The allocator and its options: see the broker library's `memory` module for why these.
 #[cfg(feature = "jemalloc")]
@@ -64,6 +66,10 @@ enum Command {
         #[arg(long)]
         watch: bool,
     },
+    /// Print the configuration of the plant's zenoh router (`zenohd -c`): mutual TLS and
+    /// the same access control the lines apply (docs/bus-security.md).
+    #[cfg(feature = "bridge")]
+    ZenohdConfig(zenohd_command::ZenohdArgs),
 }
 
 #[derive(Args)]
@@ -109,6 +115,8 @@ fn main() -> std::process::ExitCode {
         Command::Serve { config } => serve(config),
         Command::CheckConfig { config } => check_config(&config),
         Command::Passwd(args) => passwd(args),
+        #[cfg(feature = "bridge")]
+        Command::ZenohdConfig(args) => zenohd_command::run(args),
         Command::Devices {
             id,
             admin,

@@ -2,8 +2,9 @@
 # Runs deploy/multi-line without containers and checks it: the plant's zenoh router
 # (`zenohd` 1.10.2, the same as the compose file's image) and the two lines from
 # line-a.toml and line-b.toml, as they are, on this host's loopback (ports 1883, 1884,
-# 9883, 9884 and 7447 must be free). Only the registry files move into a temporary
-# directory (the examples name the container's /var/lib/fbbus).
+# 9883, 9884 and 7447 must be free). Only the registry files and the bus certificates
+# move into a temporary directory (the examples name the container's /var/lib/fbbus and
+# /etc/zenoh/tls; make-certs.sh creates the certificates there).
 #
 #   bash deploy/multi-line/check.sh [path/to/fbbus]
 #
@@ -62,8 +63,10 @@ wait_for() { # wait_for SECONDS DESCRIPTION COMMAND...
 status_on_b() { "$FBBUS" devices --admin 127.0.0.1:9884 | awk -v d="$1" '$1 == d { print $2, $3 }'; }
 is() { [ "$(status_on_b plc-1)" = "line-a $1" ]; }
 
+bash deploy/multi-line/make-certs.sh "$WORK/tls" "$FBBUS" >/dev/null
+sed "s#/etc/zenoh/tls/#$WORK/tls/#" deploy/multi-line/zenohd.json5 >"$WORK/zenohd.json5"
 zenohd_up() {
-  "$ZENOHD" -c deploy/multi-line/zenohd.json5 >>"$WORK/zenohd.log" 2>&1 &
+  "$ZENOHD" -c "$WORK/zenohd.json5" >>"$WORK/zenohd.log" 2>&1 &
   ZPID=$!
   PIDS+=("$ZPID")
 }

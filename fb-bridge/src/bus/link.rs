@@ -34,9 +34,10 @@ pub enum LinkError {
     #[error("zenoh configuration `{key}`: {message}")]
     Config { key: String, message: String },
     #[error(
-        "[bridge.tls] cert `{cert}` names `{name}`, but this line is `{line}`: a line is who \
-         its certificate says. Issue one with common name `{line}` \
-         (`fbbus bus-cert issue --name {line}`, docs/bus-security.md)"
+        "[bridge.tls] cert `{cert}` names `{name}`, but this bridge is `{line}` (the \
+         [broker] line, or the router's name): a line is who its certificate says. Issue \
+         one with common name `{line}` (`fbbus bus-cert issue --name {line}`, \
+         docs/bus-security.md)"
     )]
     Identity {
         cert: String,
@@ -208,66 +209,80 @@ fn common_name(path: &std::path::Path) -> Result<String, LinkError> {
 /// Builds zenoh's configuration from the `[bridge]` section.
 fn zenoh_config(config: &BusConfig) -> Result<zenoh::Config, LinkError> {
     let mut c = zenoh::Config::default();
-    let mut set = |key: &str, value: String| {
-        c.insert_json5(key, &value).map_err(|e| LinkError::Config {
-            key: key.to_owned(),
-            message: e.to_string(),
-        })
-    };
-    let json = |v: &dyn erased::Json| v.json();
-    set("mode", json(&config.mode.as_str()))?;
-    set("listen/endpoints", json(&config.listen))?;
-    set("connect/endpoints", json(&config.connect))?;
-    // Peers that are down are tried again in the background (a zero timeout would try
-    // once and give up). A client's `open` returns once its router answered (zenoh
-    // retries every 1 to 4 s), which is why the broker opens a client in the background;
-    // a client reconnects to its router by itself later.
-    set("connect/timeout_ms", "-1".into())?;
-    if config.mode != super::Mode::Client {
-        set("connect/exit_on_failure", "false".into())?;
+    for (key, value) in settings(config) {
+        c.insert_json5(key, &value.to_string())
+            .map_err(|e| LinkError::Config {
+                key: key.to_owned(),
+                message: e.to_string(),
+            })?;
     }
-    set(
-        "scouting/multicast/enabled",
-        config.multicast_scouting.to_string(),
-    )?;
-    set("transport/link/tx/lease", config.lease_ms.to_string())?;
-    set("transport/link/tx/keep_alive", "4".into())?;
-    // zenoh holds a batch that is still being written to for up to `time_limit` ms (1 by
-    // default) to fill it: at a steady 10,000 msg/s every message waited for the next.
-    // Send what is there whenever the link is free instead; under a burst the batches fill
-    // anyway while the link is busy.
-    set("transport/link/tx/queue/batching/time_limit", "0".into())?;
+    Ok(c)
+}
+
+/// The plant's zenoh router configured like a line's bridge would be with `config`
+/// (`mode = "router"`): its endpoints, TLS and access control, as one JSON document for
+/// `zenohd -c`. `name` is the router's name, which its certificate must carry and the
+/// lines list under `[bridge.peers] routers`.
+pub fn zenohd_config(config: &BusConfig, name: &str) -> Result<serde_json::Value, LinkError> {
+    validate(config, name)?;
+    let mut root = serde_json::Value::Object(Default::default());
+    for (key, value) in settings(config) {
+        let mut node = &mut root;
+        for part in key.split('/') {
+            node = &mut node[part];
+        }
+        *node = value;
+    }
+    Ok(root)
+}
+
+/// What fbbus sets in zenoh's configuration, as (key path, value).
+fn settings(config: &BusConfig) -> Vec<(&'static str, serde_json::Value)> {
+    use serde_json::json;
+    let mut out = vec![
+        ("mode", json!(config.mode.as_str())),
+        ("listen/endpoints", json!(config.listen)),
+        ("connect/endpoints", json!(config.connect)),
+        // Peers that are down are tried again in the background (a zero timeout would try
+        // once and give up). A client's `open` returns once its router answered (zenoh
+        // retries every 1 to 4 s), which is why the broker opens a client in the
+        // background; a client reconnects to its router by itself later.
+        ("connect/timeout_ms", json!(-1)),
+    ];
+    if config.mode != super::Mode::Client {
+        out.push(("connect/exit_on_failure", json!(false)));
+    }
+    out.extend([
+        ("scouting/multicast/enabled", json!(config.multicast_scouting)),
+        ("transport/link/tx/lease", json!(config.lease_ms)),
+        ("transport/link/tx/keep_alive", json!(4)),
+        // zenoh holds a batch that is still being written to for up to `time_limit` ms (1
+        // by default) to fill it: at a steady 10,000 msg/s every message waited for the
+        // next. Send what is there whenever the link is free instead; under a burst the
+        // batches fill anyway while the link is busy.
+        ("transport/link/tx/queue/batching/time_limit", json!(0)),
+    ]);
     if let Some(tls) = &config.tls {
-        let path = |p: &std::path::Path| json(&p.display().to_string());
-        set("transport/link/tls/root_ca_certificate", path(&tls.root_ca))?;
-        set("transport/link/tls/listen_certificate", path(&tls.cert))?;
-        set("transport/link/tls/listen_private_key", path(&tls.key))?;
+        let path = |p: &std::path::Path| json!(p.display().to_string());
+        out.extend([
+            ("transport/link/tls/root_ca_certificate", path(&tls.root_ca)),
+            ("transport/link/tls/listen_certificate", path(&tls.cert)),
+            ("transport/link/tls/listen_private_key", path(&tls.key)),
+        ]);
         if tls.mutual {
-            set("transport/link/tls/enable_mtls", "true".into())?;
-            set("transport/link/tls/connect_certificate", path(&tls.cert))?;
-            set("transport/link/tls/connect_private_key", path(&tls.key))?;
+            out.extend([
+                ("transport/link/tls/enable_mtls", json!(true)),
+                ("transport/link/tls/connect_certificate", path(&tls.cert)),
+                ("transport/link/tls/connect_private_key", path(&tls.key)),
+            ]);
         }
     }
     // On a mutual-TLS bus every peer is known by its certificate: zenoh lets each do only
     // what `[bridge.peers]` grants it (`super::access`), default deny.
     if let (Some(peers), true) = (&config.peers, config.mutual_tls()) {
-        set(
-            "access_control",
-            super::access::access_control(peers).to_string(),
-        )?;
+        out.push(("access_control", super::access::access_control(peers)));
     }
-    Ok(c)
-}
-
-mod erased {
-    pub trait Json {
-        fn json(&self) -> String;
-    }
-    impl<T: serde::Serialize> Json for T {
-        fn json(&self) -> String {
-            serde_json::to_string(self).expect("plain values serialize")
-        }
-    }
+    out
 }
 
 impl Link {
