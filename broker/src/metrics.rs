@@ -112,7 +112,9 @@ pub struct Metrics {
     /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
     pub bridge_messages: IntCounterVec,
     pub bridge_dropped: IntCounterVec,
-    pub bridge_refused: IntCounterVec,
+    bridge_refused: IntCounterVec,
+    /// Origin lines with a `bridge_refused` label of their own (see [`Metrics::bus_refused`]).
+    refused_lines: Mutex<std::collections::HashSet<String>>,
     pub bridge_remote_subscriptions: IntGauge,
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
@@ -197,7 +199,8 @@ impl Metrics {
                 "fbbus_bridge_refused_total",
                 "Messages from other lines refused because they did not come from where they \
                  claim, by origin line (at most 64 lines, then `other`) and reason \
-                 (forged_origin, unknown_device, local_device, other_line_device)",
+                 (forged_origin, unknown_device, local_device, other_line_device; for registry records: \
+                 forged_record, local_device, claimed_device)",
                 &["line", "reason"],
             ),
             bridge_remote_subscriptions: gauge(
@@ -341,6 +344,7 @@ impl Metrics {
                  kept as many as it may",
             ),
             scrape: Mutex::new(()),
+            refused_lines: Mutex::new(Default::default()),
             registry,
         }
     }
@@ -364,7 +368,28 @@ impl Metrics {
     }
 }
 
+/// Origin lines with a `fbbus_bridge_refused_total` label of their own; past this many
+/// they share `other`: the line of a key is whatever an unauthenticated peer of a
+/// loopback bus writes there.
+pub const REFUSED_LINE_LABELS: usize = 64;
+
 impl Metrics {
+    /// Counts a message or record from the bus refused because it does not come from
+    /// where it claims (`line`: the line whose key it came on).
+    pub fn bus_refused(&self, line: &str, reason: &str) {
+        let mut lines = self
+            .refused_lines
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if !lines.contains(line) && lines.len() < REFUSED_LINE_LABELS {
+            lines.insert(line.to_owned());
+        }
+        let label = if lines.contains(line) { line } else { "other" };
+        self.bridge_refused
+            .with_label_values(&[label, reason])
+            .inc();
+    }
+
     /// The router's saved-session counters into their metrics.
     fn copy_router_sessions(&self) {
         let _one_at_a_time = self.scrape.lock().unwrap_or_else(PoisonError::into_inner);

@@ -188,6 +188,28 @@ pub struct LoadError {
     pub message: String,
 }
 
+/// Why a registry record from another line was not taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RecordRefused {
+    /// The record names another line than the one that sent it.
+    ForgedLine,
+    /// It is a device of this line.
+    LocalDevice,
+    /// The device is online on a third line.
+    HeldByAnotherLine,
+}
+
+impl RecordRefused {
+    /// The metric label.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RecordRefused::ForgedLine => "forged_record",
+            RecordRefused::LocalDevice => "local_device",
+            RecordRefused::HeldByAnotherLine => "claimed_device",
+        }
+    }
+}
+
 /// Why a device is not a device of the line a bus message claims it for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum NotOfLine {
@@ -416,27 +438,28 @@ impl Registry {
             .collect()
     }
 
-    /// Another line says this is its device's record. A device id is unique on the bus:
-    /// a local device of the same id wins.
-    pub fn remote_record(&self, record: Record) {
-        if record.line == self.line {
-            return;
+    /// Line `from` says this is its device's record (`from` is the line whose key it came
+    /// on: on a mutual-TLS bus, the line zenoh authenticated). A device id is unique on
+    /// the bus: a line speaks only for its own devices, a local device of the same id
+    /// wins, and a device online on another line is not taken over (a device that moved
+    /// is taken once its old line has it offline or unreachable).
+    pub fn remote_record(&self, from: &str, record: Record) -> Result<(), RecordRefused> {
+        if record.line != from || from == self.line {
+            return Err(RecordRefused::ForgedLine);
         }
         let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-        if devices.get(&record.id).is_some_and(|r| r.line == self.line) {
-            tracing::warn!(
-                device = record.id,
-                line = record.line,
-                "a device of this id lives on this line; the other line's record is ignored"
-            );
-            return;
-        }
-        if devices.get(&record.id) == Some(&record) {
-            return;
+        match devices.get(&record.id) {
+            Some(held) if held.line == self.line => return Err(RecordRefused::LocalDevice),
+            Some(held) if held.line != record.line && held.status == Status::Online => {
+                return Err(RecordRefused::HeldByAnotherLine)
+            }
+            Some(held) if *held == record => return Ok(()),
+            _ => {}
         }
         self.announce(&record);
         devices.insert(record);
         self.announce_count(&devices);
+        Ok(())
     }
 
     /// A remote device's status changed as seen from here (`Unreachable`, or back `Online`
@@ -659,15 +682,54 @@ mod tests {
         registry.session_started("d2", 5);
         registry.declare("d2", 5, interface());
         check("d2 declared again");
-        registry.remote_record(remote("r1", "b", Status::Online));
-        registry.remote_record(remote("r2", "b", Status::Offline));
-        registry.remote_record(remote("d3", "b", Status::Offline));
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Online)),
+            Ok(())
+        );
+        assert_eq!(
+            registry.remote_record("b", remote("r2", "b", Status::Offline)),
+            Ok(())
+        );
+        assert_eq!(
+            registry.remote_record("b", remote("d3", "b", Status::Offline)),
+            Err(RecordRefused::LocalDevice)
+        );
+        // A line speaks only for its own devices, and does not take one online elsewhere.
+        assert_eq!(
+            registry.remote_record("c", remote("r9", "b", Status::Online)),
+            Err(RecordRefused::ForgedLine)
+        );
+        assert_eq!(
+            registry.remote_record("c", remote("r1", "c", Status::Online)),
+            Err(RecordRefused::HeldByAnotherLine)
+        );
         check("remote records");
         registry.remote_status("b", "r1", Status::Unreachable);
         check("r1 unreachable");
         registry.remote_status("b", "r1", Status::Online);
-        registry.remote_record(remote("r1", "b", Status::Offline));
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Offline)),
+            Ok(())
+        );
         check("r1 replaced");
+        // Offline on its line, r1 may move to line c.
+        assert_eq!(
+            registry.remote_record("c", remote("r1", "c", Status::Online)),
+            Ok(())
+        );
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Offline)),
+            Err(RecordRefused::HeldByAnotherLine)
+        );
+        assert_eq!(
+            registry.remote_record("c", remote("r1", "c", Status::Offline)),
+            Ok(())
+        );
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Offline)),
+            Ok(())
+        );
+        check("r1 moved and back");
         registry.line_unreachable("b");
         check("line b unreachable");
         assert!(registry.disconnected("d3", 3, "keep-alive"));

@@ -63,6 +63,31 @@ fn line(dir: &Path, name: &str, router: u16) -> Broker {
     )
 }
 
+/// `fbbus check-config` passes on both line files as they are, next to the certificates
+/// `make-certs.sh` made, and fails on line A's file with line B's certificate.
+fn check_config(dir: &Path) {
+    let check = |file: &Path| {
+        common::run(
+            Command::new(fbbus_bin()).args(["check-config", file.to_str().unwrap()]),
+            Duration::from_secs(10),
+        )
+    };
+    for name in ["line-a", "line-b"] {
+        let file = dir.join(format!("{name}.toml"));
+        std::fs::write(&file, deploy(&format!("{name}.toml"))).unwrap();
+        let (ok, out, err) = check(&file);
+        assert!(ok, "deploy/multi-line/{name}.toml: {out}{err}");
+    }
+    let wrong = dir.join("wrong.toml");
+    std::fs::write(
+        &wrong,
+        deploy("line-a.toml").replace("tls/line-a.", "tls/line-b."),
+    )
+    .unwrap();
+    let (ok, _, err) = check(&wrong);
+    assert!(!ok && err.contains("names `line-b`"), "{err}");
+}
+
 fn status_on(line: &Broker, id: &str) -> Option<String> {
     let (code, body) = http_get(line.admin, &format!("/api/v1/devices/{id}"))?;
     let record: serde_json::Value = (code == 200).then(|| serde_json::from_str(&body).ok())??;
@@ -77,7 +102,10 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
     }
     let dir = tempfile::tempdir().unwrap();
     let tls = dir.path().join("tls");
-    let script = format!("{}/../deploy/multi-line/make-certs.sh", env!("CARGO_MANIFEST_DIR"));
+    let script = format!(
+        "{}/../deploy/multi-line/make-certs.sh",
+        env!("CARGO_MANIFEST_DIR")
+    );
     let (ok, out, err) = common::run(
         Command::new("bash").args([&script, tls.to_str().unwrap(), fbbus_bin()]),
         Duration::from_secs(30),
@@ -87,6 +115,7 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
     for name in ["line-a", "line-b", "zenohd"] {
         assert!(tls.join(format!("{name}.crt")).is_file(), "{name}: {out}");
     }
+    check_config(dir.path());
 
     // The router, on the example's configuration with its port and paths moved.
     let port = free_port();
@@ -99,7 +128,10 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
     )
     .unwrap();
     let endpoint = format!("tls/127.0.0.1:{port}");
-    let script = format!("{}/tests/python/zenoh_router.py", env!("CARGO_MANIFEST_DIR"));
+    let script = format!(
+        "{}/tests/python/zenoh_router.py",
+        env!("CARGO_MANIFEST_DIR")
+    );
     let path = |p: &Path| p.to_str().unwrap().to_owned();
     let mut router = Command::new("python3")
         .args([
@@ -118,7 +150,10 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
     let (lines_tx, lines) = std::sync::mpsc::channel::<String>();
     let stdout = router.stdout.take().unwrap();
     std::thread::spawn(move || {
-        for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
             let _ = lines_tx.send(line);
         }
     });
@@ -149,7 +184,11 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
     on_b.subscribe("fb/plc-1/#").await;
     let deadline = Instant::now() + WITHIN;
     while status_on(&b, "plc-1").as_deref() != Some("\"line-a\" \"online\"") {
-        assert!(Instant::now() < deadline, "line B never listed plc-1 of line-a:\n{}", b.log_text());
+        assert!(
+            Instant::now() < deadline,
+            "line B never listed plc-1 of line-a:\n{}",
+            b.log_text()
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     b.wait_metric("fbbus_bridge_imports", 1.0);
@@ -185,8 +224,15 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
             forged.push(p);
         }
     }
-    assert!(forged.is_empty(), "the stranger's messages were delivered: {forged:?}");
-    assert_eq!(status_on(&b, "press-7"), None, "line B lists the invented press-7");
+    assert!(
+        forged.is_empty(),
+        "the stranger's messages were delivered: {forged:?}"
+    );
+    assert_eq!(
+        status_on(&b, "press-7"),
+        None,
+        "line B lists the invented press-7"
+    );
     // What it put under its own line's key for line A's device reached line A through
     // the router, and was refused there.
     a.wait_metric(

@@ -8,7 +8,7 @@ use fb_bridge::bus::link::{DeviceToken, Event, Inbox, Link};
 use tokio::sync::mpsc;
 
 use crate::context::Context;
-use crate::registry::{Record, Status};
+use crate::registry::{Record, RecordRefused, Status};
 
 /// Liveliness and records of the other lines: the registry, and the exporter's interest.
 pub(super) async fn bus_events(
@@ -41,8 +41,8 @@ pub(super) async fn bus_events(
                 tokio::spawn(async move {
                     match link.query_records(&line).await {
                         Ok(records) => {
-                            for (_, _, json) in records {
-                                apply_record(&ctx, &json);
+                            for (from, device, json) in records {
+                                apply_record(&ctx, &from, &device, &json);
                             }
                         }
                         Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
@@ -62,9 +62,9 @@ pub(super) async fn bus_events(
                     let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
                     tokio::spawn(async move {
                         if let Ok(records) = link.query_records(&line).await {
-                            for (_, d, json) in records {
+                            for (from, d, json) in records {
                                 if d == device {
-                                    apply_record(&ctx, &json);
+                                    apply_record(&ctx, &from, &d, &json);
                                 }
                             }
                         }
@@ -82,15 +82,32 @@ pub(super) async fn bus_events(
                     registry.remote_status(&line, &device, Status::Unreachable);
                 }
             }
-            Event::Record { json, .. } => apply_record(&ctx, &json),
+            Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json),
         }
     }
 }
 
-pub(super) fn apply_record(ctx: &Context, json: &[u8]) {
-    match serde_json::from_slice::<Record>(json) {
-        Ok(record) => ctx.fb.registry.remote_record(record),
-        Err(e) => tracing::warn!(error = %e, "unreadable registry record from another line"),
+/// Takes a record line `from` put (or served) on `fbbus/@/record/<from>/<device>`: only
+/// for its own device, under the key's id; refusals counted like refused messages.
+pub(super) fn apply_record(ctx: &Context, from: &str, device: &str, json: &[u8]) {
+    let record = match serde_json::from_slice::<Record>(json) {
+        Ok(record) => record,
+        Err(e) => {
+            return tracing::warn!(line = from, error = %e, "unreadable registry record from another line")
+        }
+    };
+    let taken = match record.id == device {
+        true => ctx.fb.registry.remote_record(from, record),
+        false => Err(RecordRefused::ForgedLine),
+    };
+    if let Err(refused) = taken {
+        ctx.metrics.bus_refused(from, refused.as_str());
+        tracing::debug!(
+            line = from,
+            device,
+            reason = refused.as_str(),
+            "registry record from another line refused"
+        );
     }
 }
 

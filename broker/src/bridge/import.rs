@@ -234,14 +234,14 @@ impl Injector {
 /// second per line.
 #[derive(Default)]
 struct Origins {
-    /// Lines with a label of their own, and the last diagnostic each was described in.
-    lines: HashMap<String, Option<Instant>>,
+    /// When each origin line's refusals were last described on a diag topic.
+    described: HashMap<String, Option<Instant>>,
     logged: std::collections::HashSet<(String, &'static str)>,
 }
 
-/// Origin lines with a metric label of their own; past this many they share `other`
-/// (the key's line is any chunk an unauthenticated loopback peer writes).
-const ORIGIN_LABELS: usize = 64;
+/// Origin lines whose refusals are logged and described separately; past this many
+/// (an unauthenticated loopback peer writes any line on its keys) they are only counted.
+const ORIGINS: usize = crate::metrics::REFUSED_LINE_LABELS;
 
 impl Origins {
     fn authenticate(
@@ -263,19 +263,13 @@ impl Origins {
     }
 
     fn refuse(&mut self, ctx: &Context, message: &Inbound, device: &str, reason: &'static str) {
+        ctx.metrics.bus_refused(&message.line, reason);
         let line = &message.line;
-        if !self.lines.contains_key(line) && self.lines.len() < ORIGIN_LABELS {
-            self.lines.insert(line.clone(), None);
+        let known = self.described.contains_key(line) || self.described.len() < ORIGINS;
+        if !known {
+            return;
         }
-        let label = match self.lines.contains_key(line) {
-            true => line.as_str(),
-            false => "other",
-        };
-        ctx.metrics
-            .bridge_refused
-            .with_label_values(&[label, reason])
-            .inc();
-        if self.logged.len() < 4 * ORIGIN_LABELS && self.logged.insert((line.clone(), reason)) {
+        if self.logged.insert((line.clone(), reason)) {
             tracing::warn!(
                 line = %message.line,
                 stamp_line = %message.stamp.line,
@@ -286,10 +280,8 @@ impl Origins {
                  (logged once per line and reason; counted in fbbus_bridge_refused_total)"
             );
         }
-        let Some(last) = self.lines.get_mut(line) else {
-            return;
-        };
-        if last.is_some_and(|t| t.elapsed() < Duration::from_secs(1)) {
+        let last = self.described.entry(line.clone()).or_default();
+        if last.is_some_and(|t| t.elapsed() < DESCRIBE_EVERY) {
             return;
         }
         *last = Some(Instant::now());
@@ -307,3 +299,6 @@ impl Origins {
         )]);
     }
 }
+
+/// At most one diagnostic a second per origin line.
+const DESCRIBE_EVERY: Duration = Duration::from_secs(1);

@@ -253,7 +253,10 @@ fn settings(config: &BusConfig) -> Vec<(&'static str, serde_json::Value)> {
         out.push(("connect/exit_on_failure", json!(false)));
     }
     out.extend([
-        ("scouting/multicast/enabled", json!(config.multicast_scouting)),
+        (
+            "scouting/multicast/enabled",
+            json!(config.multicast_scouting),
+        ),
         ("transport/link/tx/lease", json!(config.lease_ms)),
         ("transport/link/tx/keep_alive", json!(4)),
         // zenoh holds a batch that is still being written to for up to `time_limit` ms (1
