@@ -9,6 +9,8 @@ use broker::{Broker, Config};
 use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
+#[cfg(feature = "bridge")]
+mod bus_cert;
 mod devices_command;
 
 /// The allocator and its options: see the broker library's `memory` module for why these.
@@ -64,6 +66,13 @@ enum Command {
         #[arg(long)]
         watch: bool,
     },
+    /// Create the plant's bus CA and the certificates of lines, zenoh routers and zenoh
+    /// applications, for mutual TLS on the bus (docs/bus-security.md).
+    #[cfg(feature = "bridge")]
+    BusCert {
+        #[command(subcommand)]
+        action: bus_cert::Action,
+    },
 }
 
 #[derive(Args)]
@@ -116,6 +125,8 @@ fn main() -> std::process::ExitCode {
             json,
             watch,
         } => devices(id, admin, config, json, watch),
+        #[cfg(feature = "bridge")]
+        Command::BusCert { action } => bus_cert::run(action),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
