@@ -9,6 +9,8 @@ use broker::{Broker, Config};
 use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
+#[cfg(feature = "bridge")]
+mod bus_cert;
 mod devices_command;
 #[cfg(feature = "bridge")]
 mod zenohd_command;
@@ -65,6 +67,13 @@ enum Command {
         /// Redraw every second until interrupted.
         #[arg(long)]
         watch: bool,
+    },
+    /// Create the plant's bus CA and the certificates of lines, zenoh routers and zenoh
+    /// applications, for mutual TLS on the bus (docs/bus-security.md).
+    #[cfg(feature = "bridge")]
+    BusCert {
+        #[command(subcommand)]
+        action: bus_cert::Action,
     },
     /// Print the configuration of the plant's zenoh router (`zenohd -c`): mutual TLS and
     /// the same access control the lines apply (docs/bus-security.md).
@@ -124,6 +133,8 @@ fn main() -> std::process::ExitCode {
             json,
             watch,
         } => devices(id, admin, config, json, watch),
+        #[cfg(feature = "bridge")]
+        Command::BusCert { action } => bus_cert::run(action),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
