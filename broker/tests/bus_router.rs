@@ -88,6 +88,45 @@ fn check_config(dir: &Path) {
     assert!(!ok && err.contains("names `line-b`"), "{err}");
 }
 
+/// `zenohd.json5` is `fbbus zenohd-config`'s output for the example (paths aside), so
+/// the router applies exactly the rules the lines apply.
+fn the_router_file_is_what_zenohd_config_prints(tls: &Path) {
+    let file = |name: &str| tls.join(name).to_str().unwrap().to_owned();
+    let (ok, out, err) = common::run(
+        Command::new(fbbus_bin()).args([
+            "zenohd-config",
+            "--name",
+            "zenohd",
+            "--listen",
+            "tls/127.0.0.1:7447",
+            "--root-ca",
+            &file("bus-ca.crt"),
+            "--cert",
+            &file("zenohd.crt"),
+            "--key",
+            &file("zenohd.key"),
+            "--lines",
+            "line-a,line-b",
+        ]),
+        Duration::from_secs(10),
+    );
+    assert!(ok, "fbbus zenohd-config: {err}");
+    let printed: serde_json::Value =
+        serde_json::from_str(&out.replace(&format!("{}/", tls.display()), "/etc/zenoh/tls/"))
+            .unwrap();
+    let committed: String = deploy("zenohd.json5")
+        .lines()
+        .filter(|l| !l.trim_start().starts_with("//"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let committed: serde_json::Value = serde_json::from_str(&committed).unwrap();
+    assert_eq!(
+        committed, printed,
+        "deploy/multi-line/zenohd.json5 differs from `fbbus zenohd-config` (regenerate it \
+         with the command in its header)"
+    );
+}
+
 fn status_on(line: &Broker, id: &str) -> Option<String> {
     let (code, body) = http_get(line.admin, &format!("/api/v1/devices/{id}"))?;
     let record: serde_json::Value = (code == 200).then(|| serde_json::from_str(&body).ok())??;
@@ -116,6 +155,7 @@ async fn the_example_router_holds_each_line_to_its_own_keys() {
         assert!(tls.join(format!("{name}.crt")).is_file(), "{name}: {out}");
     }
     check_config(dir.path());
+    the_router_file_is_what_zenohd_config_prints(&tls);
 
     // The router, on the example's configuration with its port and paths moved.
     let port = free_port();
