@@ -41,8 +41,8 @@ pub(super) async fn bus_events(
                 tokio::spawn(async move {
                     match link.query_records(&line).await {
                         Ok(records) => {
-                            for (_, _, json) in records {
-                                apply_record(&ctx, &json);
+                            for (l, d, json) in records {
+                                apply_record(&ctx, &l, &d, &json);
                             }
                         }
                         Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
@@ -62,9 +62,9 @@ pub(super) async fn bus_events(
                     let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
                     tokio::spawn(async move {
                         if let Ok(records) = link.query_records(&line).await {
-                            for (_, d, json) in records {
+                            for (l, d, json) in records {
                                 if d == device {
-                                    apply_record(&ctx, &json);
+                                    apply_record(&ctx, &l, &d, &json);
                                 }
                             }
                         }
@@ -82,14 +82,28 @@ pub(super) async fn bus_events(
                     registry.remote_status(&line, &device, Status::Unreachable);
                 }
             }
-            Event::Record { json, .. } => apply_record(&ctx, &json),
+            Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json),
         }
     }
 }
 
-pub(super) fn apply_record(ctx: &Context, json: &[u8]) {
+/// A record another line put or served under its key `fbbus/@/record/<line>/<device>`.
+/// Taken only if it is that line's record of that device: on a mutual-TLS bus zenoh's
+/// access control lets only `line` put or reply under its key, but the body is the
+/// sender's to write, and a record naming another line would make that line's devices
+/// (issue 22: line C registering a device of line A on line B).
+pub(super) fn apply_record(ctx: &Context, line: &str, device: &str, json: &[u8]) {
     match serde_json::from_slice::<Record>(json) {
-        Ok(record) => ctx.fb.registry.remote_record(record),
+        Ok(record) if record.line == line && record.id == device => {
+            ctx.fb.registry.remote_record(record)
+        }
+        Ok(record) => tracing::warn!(
+            key_line = line,
+            key_device = device,
+            line = record.line,
+            device = record.id,
+            "registry record refused: it is not the record of the line and device of its key"
+        ),
         Err(e) => tracing::warn!(error = %e, "unreadable registry record from another line"),
     }
 }
