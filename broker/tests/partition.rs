@@ -6,7 +6,9 @@
 //! their namespace's loopback, the device and the subscriber are `mosquitto_pub` and
 //! `mosquitto_sub` run inside them, the registry is read with `fbbus devices --json`. The
 //! only addresses used are the namespaces' loopbacks and the veth pair's 10.213.0.1/.2,
-//! which exist only inside the namespaces this test creates (and deletes).
+//! which exist only inside the namespaces this test creates (and deletes). Those are not
+//! loopback, so the bus between the lines is mutual TLS with access control, as between
+//! hosts (issue 22): certificates from a CA the test makes, valid for those addresses.
 //!
 //! Skipped, with the reason printed, where namespaces cannot be created (not root, no
 //! `ip`, a sandbox without CAP_NET_ADMIN) or the Mosquitto clients are missing.
@@ -21,6 +23,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use common::netns::{lines_of, VethPair};
+use common::pki::Pki;
 
 const CONV: &str = r#"{"fbs":{"CONV":{"data_out":{"POSITION":"INT"}}}}"#;
 
@@ -167,23 +170,46 @@ fn a_cut_link_marks_the_other_line_unreachable_and_healing_restores_it() {
     };
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = (net.a.clone(), net.b.clone());
+    // Between hosts the bus is mutual TLS (fbbus refuses to start otherwise): each line's
+    // certificate names it and is valid for the address the other connects to.
+    let pki = Pki::generate(
+        "partition test bus CA",
+        &["line-a", "line-b"],
+        &["10.213.0.1", "10.213.0.2"],
+    );
+    let security = |line: &str, peer: &str| {
+        let own = dir.path().join(line);
+        std::fs::create_dir_all(&own).unwrap();
+        pki.bridge_tables(&own, line, (&[peer], &[], &[]))
+    };
     net.broker(
         &a,
         "line-a",
-        "listen = [\"tcp/10.213.0.1:7447\"]",
+        &format!(
+            "listen = [\"tls/10.213.0.1:7447\"]\n{}",
+            security("line-a", "line-b")
+        ),
         dir.path(),
     );
     net.broker(
         &b,
         "line-b",
-        "connect = [\"tcp/10.213.0.1:7447\"]",
+        &format!(
+            "connect = [\"tls/10.213.0.1:7447\"]\n{}",
+            security("line-b", "line-a")
+        ),
         dir.path(),
     );
     let ready = Instant::now();
     while !net.ready(&a) || !net.ready(&b) {
+        let log = |line: &str| {
+            std::fs::read_to_string(dir.path().join(format!("{line}.log"))).unwrap_or_default()
+        };
         assert!(
             ready.elapsed() < Duration::from_secs(20),
-            "brokers not ready"
+            "brokers not ready:\nline-a: {}\nline-b: {}",
+            log("line-a"),
+            log("line-b")
         );
         std::thread::sleep(Duration::from_millis(100));
     }

@@ -140,7 +140,12 @@ impl Injector {
                 .with_label_values(&[reason])
                 .inc()
         };
-        if !self.dedup.first_time(&message.stamp) {
+        // Only a stamp naming the line whose key the message came on counts in that line's
+        // window of sequence numbers; a forged one (refused below, `forged_origin`) would
+        // move another line's window ahead and have all its messages dropped as old
+        // (issue 22: line C silencing line A on line B with one message).
+        let forged = message.stamp.line != message.line;
+        if !forged && !self.dedup.first_time(&message.stamp) {
             return dropped("duplicate");
         }
         self.route_keys.note(&message.line, &message.topic);

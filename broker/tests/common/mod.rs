@@ -1,9 +1,11 @@
 //! Test support: the real `fbbus` binary on free loopback ports, and small clients.
 #![allow(dead_code)]
 
+pub mod bus;
 pub mod clients;
 pub mod fb;
 pub mod netns;
+pub mod pki;
 pub mod raw;
 
 use std::io::{Read, Write};

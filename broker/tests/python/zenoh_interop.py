@@ -2,6 +2,9 @@
 docs/device-contract.md section 7 alone (then fb-bridge/README.md). Run by
 broker/tests/bridge.rs against a real line.
 
+Usage: zenoh_interop.py <endpoint> [<bus CA> <certificate> <key>]: with the three files,
+over mutual TLS (`tls/` endpoint) as line `line-py` (the certificate's common name).
+
 It joins the bus as a line of its own, `line-py`, with one device `pydev`:
   1. announces the line and the device (liveliness tokens) and serves the device's
      registry record (queryable), so fbbus lines know its declared types;
@@ -57,12 +60,26 @@ def say(*words):
     print(*words, flush=True)
 
 
-conf = zenoh.Config()
-conf.insert_json5("mode", '"client"')
-conf.insert_json5("connect/endpoints", json.dumps([ENDPOINT]))
-conf.insert_json5("scouting/multicast/enabled", "false")
+# A zenoh peer linked to the line's endpoint only (no scouting, no listener of its own).
+conf = zenoh.Config.from_json5(
+    json.dumps(
+        {
+            "mode": "peer",
+            "connect": {"endpoints": [ENDPOINT]},
+            "listen": {"endpoints": []},
+            "scouting": {"multicast": {"enabled": False}},
+        }
+    )
+)
+if len(sys.argv) > 2:
+    # The bus between hosts is mutual TLS: the plant's bus CA, and this application's
+    # own certificate, whose common name (`line-py`) the lines' [bridge.peers] name.
+    ca, cert, key = sys.argv[2:5]
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(ca))
+    conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(cert))
+    conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(key))
+    conf.insert_json5("transport/link/tls/enable_mtls", "true")
 session = zenoh.open(conf)
-
 
 
 def answer(query):
