@@ -169,6 +169,22 @@ async fn everyone_gets_everything_once(lines: &[&Line], n: i64) {
     }
     for (obs, at) in observers.iter_mut().zip(lines) {
         let received = drain(obs, Duration::from_millis(1500)).await;
+        if received.len() as i64 != n * lines.len() as i64 {
+            // What each line saw of the bus, for the failure below.
+            for l in lines {
+                eprintln!(
+                    "=== {} metrics:\n{}",
+                    l.name,
+                    l.broker
+                        .metrics()
+                        .lines()
+                        .filter(|x| x.contains("bridge") && !x.starts_with('#'))
+                        .collect::<Vec<_>>()
+                        .join("\n")
+                );
+                eprintln!("=== {} log:\n{}", l.name, l.broker.log_text());
+            }
+        }
         for line in lines {
             let topic = format!("fb/dev-{}/CONV/POSITION", line.name);
             assert_eq!(
@@ -237,8 +253,8 @@ fn devices_row(line: &Line, id: &str) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn remote_devices_are_unreachable_while_their_line_is_down_and_back_after() {
-    let a = Line::start("line-a", &[], "");
-    let b = Line::start("line-b", &[&a.zenoh], "");
+    let a = Line::start("line-a", &[], "lease_ms = 1000");
+    let b = Line::start("line-b", &[&a.zenoh], "lease_ms = 1000");
     let dev = device(&a, "conv-a").await;
     let quitter = device(&a, "quitter").await;
     b.wait_record("conv-a", "online", PROPAGATION);
@@ -274,7 +290,13 @@ async fn remote_devices_are_unreachable_while_their_line_is_down_and_back_after(
 
     // Line A comes back (same addresses) and its device reconnects: online again on B,
     // and B's subscriber, subscribed all along, gets the device's messages again, once.
-    let a = Line::start_on("line-a", &zenoh, &[], "", Some((mqtt, admin)));
+    let a = Line::start_on(
+        "line-a",
+        &zenoh,
+        &[],
+        "lease_ms = 1000",
+        Some((mqtt, admin)),
+    );
     let dev = device(&a, "conv-a").await;
     b.wait_record("conv-a", "online", PROPAGATION);
     a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);

@@ -29,16 +29,6 @@ fn deploy(file: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
-/// Whether Python's `eclipse-zenoh` is importable (`.ci/run` installs it).
-fn python_zenoh() -> bool {
-    Command::new("python3")
-        .args(["-c", "import zenoh"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success())
-}
-
 /// A line of the example: its file with the ports and the registry moved.
 fn line(dir: &Path, name: &str, router: u16) -> Broker {
     let (mqtt, admin) = (free_port(), free_port());
@@ -135,8 +125,7 @@ fn status_on(line: &Broker, id: &str) -> Option<String> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_example_router_holds_each_line_to_its_own_keys() {
-    if !python_zenoh() {
-        eprintln!("SKIPPED: Python eclipse-zenoh is not installed (pip install eclipse-zenoh==1.10.2; .ci/run does)");
+    if !common::bus::python_zenoh() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();

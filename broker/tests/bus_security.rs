@@ -197,7 +197,7 @@ async fn a_bus_endpoint_between_hosts_without_mutual_tls_does_not_start() {
     let (ok, out, err) = fbbus(&["check-config", impostor.to_str().unwrap()]);
     assert!(!ok, "line-a started with line-b's certificate: {out}{err}");
     assert!(
-        format!("{out}{err}").contains("names `line-b`, but this line is `line-a`"),
+        format!("{out}{err}").contains("names `line-b`, but this bridge is `line-a`"),
         "{out}{err}"
     );
     let secure = config("secure", &(tls(&files.cert, &files.key, true) + peers));
@@ -452,6 +452,39 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
             line.broker.metrics()
         );
     }
+    // A record under its own key whose body names line A was refused as forged.
+    for line in [&a, &b] {
+        line.wait_metric(
+            "fbbus_bridge_refused_total{line=\"line-c\",reason=\"forged_record\"}",
+            1.0,
+        );
+    }
+    // Line C's own record of dev-b, a device online on line B: line A does not move dev-b
+    // to line C (it would then take line C's messages as dev-b's), line B keeps its own.
+    c.ask("record line-c dev-b line-c");
+    a.wait_metric(
+        "fbbus_bridge_refused_total{line=\"line-c\",reason=\"claimed_device\"}",
+        1.0,
+    );
+    b.wait_metric(
+        "fbbus_bridge_refused_total{line=\"line-c\",reason=\"local_device\"}",
+        2.0,
+    );
+    assert_eq!(a.record("dev-b").unwrap()["line"], "line-b");
+    c.ask("put fbbus/line-c/fb/dev-b/CONV/POSITION line-c 9");
+    a.wait_metric(
+        "fbbus_bridge_refused_total{line=\"line-c\",reason=\"other_line_device\"}",
+        2.0,
+    );
+    let leaked: Vec<_> = received(&mut obs_a, Duration::from_millis(300))
+        .await
+        .into_iter()
+        .filter(|(topic, _)| topic.starts_with("fb/dev-b/"))
+        .collect();
+    assert!(
+        leaked.is_empty(),
+        "line C spoke for dev-b on line A: {leaked:?}"
+    );
     c.send("quit");
 
     // 4. A zenoh application with a reader's certificate: reads line A's messages (and the

@@ -87,7 +87,8 @@ const EXPORT_FILTER: &str = "fb/#";
 
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {
-    #[error("bridge: {0}")]
+    // The link's error is the source: `{:#}` prints it after this.
+    #[error("bridge")]
     Link(#[from] LinkError),
     #[error("bridge: router: {0}")]
     Router(String),
@@ -253,7 +254,10 @@ async fn start(
             (Err(e), _) => Err(e.into()),
         };
         if let Err(e) = started {
-            tracing::error!(error = %e, "bridge to the other lines not started");
+            tracing::error!(
+                error = format!("{e:#}"),
+                "bridge to the other lines not started"
+            );
         }
     });
     bridge.tasks().push(opener);

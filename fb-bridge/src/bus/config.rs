@@ -176,6 +176,15 @@ impl BusConfig {
                 if e.starts_with("tls/") && self.tls.is_none() {
                     return Err((key.into(), format!("`{e}` needs a [bridge.tls] section")));
                 }
+                if self.mutual_tls() && !e.starts_with("tls/") {
+                    return Err((
+                        key.into(),
+                        format!(
+                            "`{e}`: with mutual TLS every endpoint is tls/: a tcp/ peer has \
+                             no certificate, and the access control would refuse all it sends"
+                        ),
+                    ));
+                }
                 let secure = e.starts_with("tls/") && self.mutual_tls();
                 if !(secure || loopback_endpoint(e)) {
                     let tls = e.replacen("tcp/", "tls/", 1);
@@ -347,7 +356,19 @@ mod tests {
             ..BusConfig::default()
         };
         assert_eq!(local.validate("line-a"), Ok(()));
-        let unknowable = BusConfig { peers, ..local };
+        let unknowable = BusConfig {
+            peers: peers.clone(),
+            ..local.clone()
+        };
         assert_eq!(unknowable.validate("line-a").unwrap_err().0, "bridge.peers");
+        // With mutual TLS a plain tcp/ link could only be refused: say so at start.
+        let mixed = BusConfig {
+            listen: vec!["tls/127.0.0.1:7447".into()],
+            connect: vec!["tcp/127.0.0.1:7448".into()],
+            tls: tls(true),
+            peers,
+            ..local
+        };
+        assert_eq!(mixed.validate("line-a").unwrap_err().0, "bridge.connect");
     }
 }
