@@ -202,6 +202,16 @@ async fn everyone_gets_everything_once(lines: &[&Line], n: i64) {
         assert!(received.iter().all(|p| p.qos == rumqttc::QoS::AtLeastOnce));
     }
     for line in lines {
+        // No link went down meanwhile: over mutual TLS zenoh's TLS link once closed and
+        // reopened under load (vendor/zenoh-link-tls/FBBUS-CHANGES.md).
+        assert_eq!(
+            line.broker
+                .metric("fbbus_bridge_liveliness_changes_total{kind=\"line_down\"}"),
+            0.0,
+            "line {} saw a line go down during the run\n{}",
+            line.name,
+            line.broker.log_text()
+        );
         assert_eq!(
             line.broker
                 .metric("fbbus_bridge_messages_total{direction=\"export\"}"),
