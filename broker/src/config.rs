@@ -85,6 +85,10 @@ pub struct FbSection {
     /// (MQTT 5: 0x90), or "pass" them unchecked while migrating an untyped line.
     /// Declared ports are checked in both modes.
     pub undeclared: crate::policy::typed::Undeclared,
+    /// The unit of DATE, TIME_OF_DAY and DATE_AND_TIME in `fbdk/` payloads, read and
+    /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). One for the whole broker
+    /// until devices have profiles (issue 16).
+    pub fbdk_time_unit: fb_bridge::codec::fbdk::TimeUnit,
 }
 
 impl Default for FbSection {
@@ -92,6 +96,7 @@ impl Default for FbSection {
         FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
             undeclared: Default::default(),
+            fbdk_time_unit: Default::default(),
         }
     }
 }
@@ -660,6 +665,27 @@ mod tests {
             Config::embedded_default().auth.client_id,
             crate::identity::ClientIdRule::Any
         );
+    }
+
+    #[test]
+    fn fbdk_time_unit_is_ns_unless_ms_is_said() {
+        use fb_bridge::codec::fbdk::TimeUnit;
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let unit = |fb: &str| {
+            Config::parse(&format!("[fb]\n{fb}\n{listener}"), "f")
+                .map(|c| c.fb.fbdk_time_unit)
+                .map_err(|e| e.to_string())
+        };
+        assert_eq!(unit(""), Ok(TimeUnit::Nanoseconds));
+        assert_eq!(
+            Config::embedded_default().fb.fbdk_time_unit,
+            TimeUnit::Nanoseconds
+        );
+        assert_eq!(unit("fbdk_time_unit = \"ns\""), Ok(TimeUnit::Nanoseconds));
+        assert_eq!(unit("fbdk_time_unit = \"ms\""), Ok(TimeUnit::Milliseconds));
+        let err = unit("fbdk_time_unit = \"us\"").unwrap_err();
+        assert!(err.contains("fb.fbdk_time_unit"), "{err}");
+        assert!(err.contains("`ns` or `ms`"), "{err}");
     }
 
     /// Regression (broker/fuzz/regressions/config_load): a max_connections the broker

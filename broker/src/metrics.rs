@@ -106,6 +106,7 @@ pub struct Metrics {
     pub reloads: IntCounterVec,
     pub typed_accepted: IntCounter,
     pub typed_rejected: IntCounterVec,
+    pub typed_not_reencoded: IntCounterVec,
     pub declarations: IntCounterVec,
     pub registry_devices: IntGaugeVec,
     pub registry_stale_ends: IntCounter,
@@ -229,6 +230,12 @@ impl Metrics {
                 "fbbus_typed_messages_rejected_total",
                 "Publications on typed FB topics refused, by device, port (fb.port) and reason",
                 &["device", "port", "reason"],
+            ),
+            typed_not_reencoded: counter_vec(
+                "fbbus_typed_messages_not_reencoded_total",
+                "Accepted typed publications not delivered in one encoding because it cannot \
+                 carry a value (fbdk nanoseconds end in 2554), by device, port and namespace",
+                &["device", "port", "namespace"],
             ),
             declarations: counter_vec(
                 "fbbus_declarations_total",

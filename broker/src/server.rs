@@ -136,6 +136,7 @@ impl Broker {
             Arc::clone(&registry),
             config.fb.undeclared,
             config.auth.password_file.is_none(),
+            config.fb.fbdk_time_unit,
             publisher,
             Arc::clone(&metrics),
         ));

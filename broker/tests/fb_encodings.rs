@@ -177,10 +177,12 @@ async fn every_encoding_in_is_delivered_in_every_encoding_out() {
             json!("T#-250ms"),
             be(0x4C, (-250_000i64).to_be_bytes()),
         ),
+        // Nanoseconds, the default `[fb] fbdk_time_unit` (FORTE 3.x); both units are
+        // tested in fbdk_time_unit.rs.
         (
             "DAY",
             json!("D#1970-01-02"),
-            be(0x4D, 86_400_000u64.to_be_bytes()),
+            be(0x4D, 86_400_000_000_000u64.to_be_bytes()),
         ),
         (
             "LEVELS",

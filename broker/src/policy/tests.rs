@@ -50,6 +50,7 @@ fn line(acl: Option<&str>) -> Line {
         registry,
         Undeclared::Reject,
         false,
+        Default::default(),
         publisher,
         Arc::clone(&metrics),
     ));
@@ -332,6 +333,7 @@ fn line_in_mode(undeclared: Undeclared, anonymous_devices: bool) -> Line {
         Arc::clone(&line.fb.registry),
         undeclared,
         anonymous_devices,
+        Default::default(),
         publisher,
         Arc::clone(&line.metrics),
     ));
@@ -454,5 +456,109 @@ fn in_strict_mode_the_own_namespace_still_needs_the_typed_shape() {
             ),
             "{topic}: {admission:?}"
         );
+    }
+}
+
+/// plc-1 with one DATE_AND_TIME output, on a line whose `fbdk/` dates are in `unit` and
+/// that re-encodes into every namespace.
+fn dated_line(unit: fb_bridge::codec::fbdk::TimeUnit) -> (Line, FbSession) {
+    let mut line = line(None);
+    let (publisher, _) = BrokerPublisher::detached();
+    line.fb = Arc::new(FbTopics::new(
+        Arc::clone(&line.fb.registry),
+        Undeclared::Reject,
+        false,
+        unit,
+        publisher,
+        Arc::clone(&line.metrics),
+    ));
+    line.policy = PublishPolicy::new(
+        Access::AllowAll,
+        Arc::clone(&line.fb),
+        Arc::clone(&line.metrics),
+    );
+    line.fb.subscribed("#");
+    let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
+    let interface = Declaration::from_json(br#"{"fbs":{"CONV":{"data_out":{"AT":"DT"}}}}"#)
+        .unwrap()
+        .validate()
+        .unwrap();
+    device.set_interface(Some(line.fb.registry.declare("plc-1", 1, interface)));
+    (line, device)
+}
+
+fn routes(admission: Admission) -> Vec<(String, Vec<u8>)> {
+    match admission {
+        Admission::Route {
+            routes: Some(routes),
+            ..
+        } => routes.into_iter().map(|(t, p)| (t, p.to_vec())).collect(),
+        other => panic!("{other:?}"),
+    }
+}
+
+/// `[fb] fbdk_time_unit`: FORTE 3.x's nanoseconds by default, FORTE 2.x's milliseconds
+/// when configured; a date the unit cannot carry reaches every other namespace, and the
+/// publisher is told why `fbdk/` did not get it.
+#[test]
+fn fbdk_dates_are_in_the_configured_unit_and_one_it_cannot_carry_is_not_sent_there() {
+    use fb_bridge::codec::fbdk::TimeUnit;
+    let dt = |raw: u64| {
+        let mut bytes = vec![0x4F];
+        bytes.extend(raw.to_be_bytes());
+        bytes
+    };
+    // DT#2026-11-22-12:30:15.250
+    let ms: u64 = 1_795_350_615_250;
+    for (unit, wire) in [
+        (TimeUnit::Nanoseconds, ms * 1_000_000),
+        (TimeUnit::Milliseconds, ms),
+    ] {
+        let (line, mut device) = dated_line(unit);
+        let got = routes(line.admit(
+            Door::Client,
+            &mut device,
+            "fb/plc-1/CONV/AT",
+            r#""DT#2026-11-22-12:30:15.250""#,
+        ));
+        assert_eq!(
+            got[2],
+            ("fbdk/plc-1/CONV/AT".to_owned(), dt(wire)),
+            "{unit:?}"
+        );
+        // 2600 does not fit 64-bit nanoseconds (they end in 2554), but does milliseconds.
+        let later = r#""DT#2600-01-01-00:00:00""#;
+        let got = routes(line.admit(Door::Client, &mut device, "fb/plc-1/CONV/AT", later));
+        let topics: Vec<&str> = got.iter().map(|(t, _)| t.as_str()).collect();
+        let not_reencoded = line
+            .metrics
+            .typed_not_reencoded
+            .with_label_values(&["plc-1", "CONV.AT", "fbdk"])
+            .get();
+        let diags: Vec<String> = device
+            .take_outbox()
+            .into_iter()
+            .map(|m| String::from_utf8_lossy(&m.payload).into_owned())
+            .collect();
+        match unit {
+            TimeUnit::Nanoseconds => {
+                assert_eq!(topics, ["fb/plc-1/CONV/AT", "dinasore/plc-1/CONV/AT"]);
+                assert_eq!(not_reencoded, 1);
+                let diag: serde_json::Value = serde_json::from_str(&diags[0]).unwrap();
+                assert_eq!(diag["kind"], "not_reencoded", "{diag}");
+                assert_eq!(diag["topic"], "fbdk/plc-1/CONV/AT", "{diag}");
+                let detail = diag["detail"].as_str().unwrap();
+                assert!(
+                    detail.starts_with("CONV.AT: value: DT#2600-01-01-00:00:00 (")
+                        && detail.contains("2554"),
+                    "{detail}"
+                );
+            }
+            TimeUnit::Milliseconds => {
+                assert_eq!(got.len(), 3, "{topics:?}");
+                assert_eq!(not_reencoded, 0);
+                assert!(diags.is_empty(), "{diags:?}");
+            }
+        }
     }
 }

@@ -10,7 +10,10 @@
 //!   the declared types. Accepted messages are routed canonically on `fb/...` and, once
 //!   anyone has subscribed to them, re-encoded on `dinasore/...` and `fbdk/...`, so a
 //!   FORTE device and a DINASORE device read each other without knowing each other's
-//!   format. Refused ones are never routed: see [`Rejection`].
+//!   format. Refused ones are never routed: see [`Rejection`]. `fbdk` dates and times are
+//!   in the broker's `[fb] fbdk_time_unit`; an accepted value that unit cannot carry (a
+//!   DATE_AND_TIME after 2554 in nanoseconds) is routed everywhere else, and not on
+//!   `fbdk/`, with a `not_reencoded` diagnostic for its publisher.
 //!
 //! In lenient mode (`[fb] undeclared = "pass"`, for migrating untyped lines) typed-namespace
 //! topics nobody declared pass through unchecked; declared ports are still checked, so an
@@ -23,7 +26,7 @@ use std::sync::Arc;
 use std::time::SystemTime;
 
 use bytes::Bytes;
-use fb_bridge::codec::{self, Encoding};
+use fb_bridge::codec::{self, fbdk, CodecError, Encoding};
 use fb_bridge::topic::{self, TypedTopic};
 use fb_bridge::{Declaration, Interface, Message};
 use serde::Deserialize;
@@ -100,6 +103,8 @@ pub struct FbTopics {
     /// No password file: a client id alone identifies a device (see
     /// [`FbSession::identity_verified`]).
     pub anonymous_devices: bool,
+    /// The unit of DATE, TIME_OF_DAY and DATE_AND_TIME in `fbdk/` payloads.
+    pub fbdk_unit: fbdk::TimeUnit,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
     /// Per encoding: someone subscribed to a filter that can match its namespace, so
@@ -119,6 +124,7 @@ impl FbTopics {
         registry: Arc<Registry>,
         undeclared: Undeclared,
         anonymous_devices: bool,
+        fbdk_unit: fbdk::TimeUnit,
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
     ) -> FbTopics {
@@ -126,6 +132,7 @@ impl FbTopics {
             registry,
             undeclared,
             anonymous_devices,
+            fbdk_unit,
             publisher,
             metrics,
             mirrors: Default::default(),
@@ -187,7 +194,8 @@ pub struct FbSession {
     /// Event sequence numbers stamped for publishers that send none, per fb and port.
     // B-tree maps: no allocation and 24 bytes while empty; every connection holds one.
     seq: BTreeMap<String, BTreeMap<String, u64>>,
-    logged: BTreeSet<(String, Refusal)>,
+    /// (topic, reason label) pairs already logged.
+    logged: BTreeSet<(String, &'static str)>,
     diag_budget: f64,
     diag_refill: std::time::Instant,
     /// Diagnostics for the device, published by the connection once the packets read
@@ -324,7 +332,8 @@ impl FbSession {
                 ),
             };
         };
-        let mut message = match codec::decode(typed.encoding, payload, typed.port, &port) {
+        let decoded = codec::decode(typed.encoding, payload, typed.port, &port, fb.fbdk_unit);
+        let mut message = match decoded {
             Ok(m) => m,
             Err(e) => {
                 return refuse(
@@ -347,19 +356,62 @@ impl FbSession {
         if json_as_is && mirrors.peek().is_none() {
             return Check::Pass;
         }
-        let routes = std::iter::once(Encoding::Json)
-            .chain(mirrors)
-            .map(|e| {
-                let as_is = e == typed.encoding && (e != Encoding::Json || json_as_is);
-                let bytes = if as_is {
-                    payload.clone()
-                } else {
-                    Bytes::from(codec::encode(e, &message, typed.port, &port))
-                };
-                (typed.in_encoding(e), bytes)
-            })
-            .collect();
+        let mut routes = Vec::with_capacity(Encoding::ALL.len());
+        for e in std::iter::once(Encoding::Json).chain(mirrors) {
+            let as_is = e == typed.encoding && (e != Encoding::Json || json_as_is);
+            let bytes = if as_is {
+                payload.clone()
+            } else {
+                // Only `fbdk` can fail (a date its time unit cannot carry), never `fb/`,
+                // so the publication's own route is always the first.
+                match codec::encode(e, &message, typed.port, &port, fb.fbdk_unit) {
+                    Ok(bytes) => Bytes::from(bytes),
+                    Err(error) => {
+                        self.not_reencoded(fb, &typed, e, &error);
+                        continue;
+                    }
+                }
+            };
+            routes.push((typed.in_encoding(e), bytes));
+        }
         Check::Route(routes)
+    }
+
+    /// An accepted message `encoding` cannot carry (a DATE_AND_TIME after 2554 in `fbdk`
+    /// nanoseconds): its subscribers do not get it, which is counted, logged once per topic
+    /// and described to the publisher on `fbbus/diag/<device>`, as a refusal is.
+    fn not_reencoded(
+        &mut self,
+        fb: &FbTopics,
+        typed: &TypedTopic<'_>,
+        encoding: Encoding,
+        error: &CodecError,
+    ) {
+        let topic = typed.in_encoding(encoding);
+        let detail = format!("{}.{}: {error}", typed.fb, typed.port);
+        fb.metrics
+            .typed_not_reencoded
+            .with_label_values(&[
+                &self.device,
+                &format!("{}.{}", typed.fb, typed.port),
+                encoding.namespace(),
+            ])
+            .inc();
+        if self.logged.len() < 1024 && self.logged.insert((topic.clone(), "not_reencoded")) {
+            tracing::warn!(
+                device = self.device,
+                topic,
+                detail,
+                "typed publication not delivered in this encoding, which cannot carry it \
+                 (logged once per topic)"
+            );
+        }
+        self.diag(json!({
+            "kind": "not_reencoded",
+            "topic": topic,
+            "namespace": encoding.namespace(),
+            "detail": detail,
+        }));
     }
 
     /// Gives an event the sequence number and timestamp its publisher left out.
@@ -465,7 +517,11 @@ impl FbSession {
             .typed_rejected
             .with_label_values(&[device, &port, rejection.refusal.label()])
             .inc();
-        if self.logged.len() < 1024 && self.logged.insert((topic.to_owned(), rejection.refusal)) {
+        if self.logged.len() < 1024
+            && self
+                .logged
+                .insert((topic.to_owned(), rejection.refusal.label()))
+        {
             tracing::warn!(
                 device = self.device,
                 topic,
@@ -474,6 +530,17 @@ impl FbSession {
                 "typed publication refused (logged once per topic and reason)"
             );
         }
+        self.diag(json!({
+            "kind": "rejected",
+            "topic": topic,
+            "reason": rejection.refusal.label(),
+            "code": rejection.refusal.code(),
+            "detail": rejection.detail,
+        }));
+    }
+
+    /// Queues a diagnostic for `fbbus/diag/<device>`, within the connection's budget.
+    fn diag(&mut self, body: serde_json::Value) {
         let now = std::time::Instant::now();
         self.diag_budget = (self.diag_budget
             + now.duration_since(self.diag_refill).as_secs_f64() * DIAG_PER_SECOND)
@@ -483,14 +550,7 @@ impl FbSession {
             self.diag_budget -= 1.0;
             self.outbox.push(BrokerMessage::broker(
                 topic::diag(&self.device),
-                json!({
-                    "kind": "rejected",
-                    "topic": topic,
-                    "reason": rejection.refusal.label(),
-                    "code": rejection.refusal.code(),
-                    "detail": rejection.detail,
-                })
-                .to_string(),
+                body.to_string(),
                 false,
             ));
         }

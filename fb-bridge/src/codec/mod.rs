@@ -94,30 +94,37 @@ pub enum CodecError {
     Trailing(usize),
 }
 
-/// Decodes `payload` in `encoding` as a message on `port` (named `port_name`).
+/// Decodes `payload` in `encoding` as a message on `port` (named `port_name`);
+/// `fbdk_unit` is the unit of `fbdk` dates and times ([`fbdk::TimeUnit`]).
 pub fn decode(
     encoding: Encoding,
     payload: &[u8],
     port_name: &str,
     port: &OutputPort<'_>,
+    fbdk_unit: fbdk::TimeUnit,
 ) -> Result<Message, CodecError> {
     match encoding {
         Encoding::Json => json::decode_named(payload, port_name, port),
         Encoding::Dinasore => dinasore::decode(payload, port_name, port),
-        Encoding::Fbdk => fbdk::decode(payload, port),
+        Encoding::Fbdk => fbdk::decode(payload, port, fbdk_unit),
     }
 }
 
-/// Encodes a message that [`decode`] accepted for `port` (named `port_name`).
+/// Encodes a message that [`decode`] accepted for `port` (named `port_name`);
+/// `fbdk_unit` is the unit of `fbdk` dates and times ([`fbdk::TimeUnit`]).
+///
+/// JSON and DINASORE encode every such message. `fbdk` in nanoseconds refuses a DATE or
+/// DATE_AND_TIME later than 64-bit nanoseconds reach (2554-07-21), as [`CodecError::Type`].
 pub fn encode(
     encoding: Encoding,
     message: &Message,
     port_name: &str,
     port: &OutputPort<'_>,
-) -> Vec<u8> {
+    fbdk_unit: fbdk::TimeUnit,
+) -> Result<Vec<u8>, CodecError> {
     match encoding {
-        Encoding::Json => json::encode(message, port),
-        Encoding::Dinasore => dinasore::encode(message, port_name, port),
-        Encoding::Fbdk => fbdk::encode(message),
+        Encoding::Json => Ok(json::encode(message, port)),
+        Encoding::Dinasore => Ok(dinasore::encode(message, port_name, port)),
+        Encoding::Fbdk => fbdk::encode(message, port, fbdk_unit),
     }
 }
