@@ -98,7 +98,8 @@ struct Common {
     #[arg(long, global = true)]
     allow_remote: bool,
     /// Directory for report.json, batches.csv, batches.jtl and the SVG charts (compare:
-    /// compare.txt). Default: target/loadtest/<scenario>, outside the source tree.
+    /// compare.txt; compare bridge: bridge.txt). Default: target/loadtest/<scenario>,
+    /// outside the source tree.
     #[arg(long, global = true, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -247,7 +248,8 @@ enum Command {
     /// 1M messages, connection rate, auth storm) on brokers this command starts itself on
     /// loopback, with ratios. Two builds: `--brokers fbbus --fbbus old=PATH --fbbus
     /// new=PATH --rounds 3` (alternating, ratio new/old). `compare fb` and `compare
-    /// bridge`: fbbus's typed topics, registry and bridge.
+    /// bridge`: fbbus's typed topics, registry and bridge (`--bus tcp,mtls`: plain TCP
+    /// vs mutual TLS with access control).
     Compare(compare::CompareArgs),
     /// Internal (`compare`): run raw rumqttd 0.20 on 127.0.0.1:PORT until killed.
     #[command(hide = true)]

@@ -2,7 +2,7 @@
 //! sizes against the real `fbbus` binary of this target directory (built once if
 //! missing), Mosquitto where installed (CI installs it) and raw rumqttd: a numeric figure
 //! per broker and the ratios, two fbbus binaries alternating round by round, and the
-//! fbbus-only `compare bridge`.
+//! fbbus-only `compare bridge`, over plain TCP and over mutual TLS.
 
 mod common;
 
@@ -212,9 +212,104 @@ fn quick_bridge_scenario_reports_the_hop() {
         .lines()
         .find(|l| l.starts_with("A -> B"))
         .unwrap_or_else(|| panic!("no A -> B row\n{}", run.context()));
+    let cells: Vec<&str> = across.split_whitespace().collect();
     assert!(
-        across.ends_with("2000/2000"),
+        cells.contains(&"2000/2000"),
         "every burst message crossed: {across}"
     );
     assert!(run.stdout.contains("hop adds"), "{}", run.context());
+    assert_eq!(run.file("bridge.txt"), run.stdout);
+}
+
+/// `compare bridge --bus tcp,mtls --rounds 2`: two pairs of lines per round, one linked
+/// by plain TCP, one by mutual TLS with access control (certificates made by the run),
+/// alternating round by round, every burst message across both, and the mtls/tcp ratios.
+#[test]
+fn quick_bridge_over_tcp_and_mutual_tls_alternates_and_reports_the_ratio() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let run = loadtest(
+        &[
+            "compare",
+            "bridge",
+            "--quick",
+            "--fbbus",
+            fbbus,
+            "--bus",
+            "tcp,mtls",
+            "--rounds",
+            "2",
+            "--samples",
+            "50",
+        ],
+        &[],
+    );
+    assert!(run.success, "compare bridge failed\n{}", run.context());
+    assert!(
+        run.stdout
+            .contains("bus mtls: line-a listens on tls/127.0.0.1"),
+        "{}",
+        run.context()
+    );
+    // Each round: one broker, line A local (first bus), A -> B over each bus.
+    let rows: Vec<(&str, Vec<&str>)> = run
+        .stdout
+        .lines()
+        .filter_map(|l| {
+            let (name, rest) = l.split_once(" #")?;
+            Some((name, rest.split_whitespace().collect()))
+        })
+        .collect();
+    let names: Vec<String> = rows
+        .iter()
+        .map(|(name, cells)| format!("{name} #{}", cells[0]))
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "one broker #1",
+            "line A, local #1",
+            "A -> B tcp #1",
+            "A -> B mtls #1",
+            "one broker #2",
+            "line A, local #2",
+            "A -> B tcp #2",
+            "A -> B mtls #2"
+        ],
+        "{}",
+        run.context()
+    );
+    for (name, cells) in &rows {
+        assert!(
+            cells.contains(&"2000/2000"),
+            "{name}: every burst message arrived: {cells:?}"
+        );
+    }
+    let summary = run
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("mtls/tcp"))
+        .unwrap_or_else(|| panic!("no mtls/tcp line\n{}", run.context()));
+    let ratio_after = |what: &str| -> f64 {
+        let rest = summary
+            .split_once(what)
+            .unwrap_or_else(|| panic!("no {what} in {summary}"))
+            .1;
+        rest.split_whitespace()
+            .next()
+            .and_then(|t| t.strip_suffix('x'))
+            .and_then(|t| t.parse().ok())
+            .unwrap_or_else(|| panic!("{what} is not a ratio in {summary}"))
+    };
+    for what in ["p50 ", "p99 ", "burst msg/s "] {
+        assert!(ratio_after(what) > 0.0, "{summary}");
+    }
+    for bus in ["tcp:", "mtls:"] {
+        assert!(
+            run.stdout.lines().any(|l| l.starts_with(bus)
+                && l.contains("hop adds")
+                && l.contains("lost 0 of 4000")),
+            "{bus} hop line\n{}",
+            run.context()
+        );
+    }
 }

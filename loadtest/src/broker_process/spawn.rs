@@ -109,7 +109,13 @@ impl Running {
         }
     }
 
-    fn log_tail(&self) -> String {
+    /// Its log file (stdout and stderr); removed with the process's directory on drop.
+    pub fn log_path(&self) -> &Path {
+        &self.log
+    }
+
+    /// The last lines of its log (stdout and stderr), joined with ` | `.
+    pub fn log_tail(&self) -> String {
         let text = std::fs::read_to_string(&self.log).unwrap_or_default();
         let lines: Vec<&str> = text.lines().collect();
         let tail = lines[lines.len().saturating_sub(5)..].join(" | ");

@@ -56,7 +56,8 @@ enum FbbusOnly {
         fbbus: Option<PathBuf>,
     },
     /// fbbus only: the zenoh bridge between two lines: latency p50/p99 and burst
-    /// throughput line A -> line B, next to the same on one broker.
+    /// throughput line A -> line B, next to the same on one broker; with `--bus tcp,mtls`
+    /// over plain TCP and over mutual TLS with access control, side by side.
     Bridge {
         /// Small sizes (a smoke test, not a measurement).
         #[arg(long)]
@@ -64,6 +65,24 @@ enum FbbusOnly {
         /// The fbbus binary. Default: `fbbus` next to this binary.
         #[arg(long, value_name = "PATH")]
         fbbus: Option<PathBuf>,
+        /// The bus between the two lines, comma-separated: `tcp` (plain TCP on loopback,
+        /// no access control), `tls` (zenoh TLS, `mutual = false`, no access control:
+        /// the encryption alone) and `mtls` (zenoh TLS with a certificate on both sides,
+        /// CN = the line's name, from a CA made for the run, and `[bridge.peers]` access
+        /// control). Each is measured on its own pair of lines; every later one as a ratio
+        /// to each earlier one (`mtls/tcp`). Default: tcp.
+        #[arg(long, value_delimiter = ',', value_name = "LIST")]
+        bus: Vec<String>,
+        /// Runs of every setup, alternating setups round by round (one broker, A -> B tcp,
+        /// A -> B mtls, one broker, ...); the summary uses each setup's median.
+        #[arg(long, default_value_t = 1, value_name = "N")]
+        rounds: u32,
+        /// Latency samples per setup and round (default 5000; --quick 200).
+        #[arg(long, value_name = "N")]
+        samples: Option<usize>,
+        /// Messages in each burst (default 40000; --quick 2000).
+        #[arg(long, value_name = "N")]
+        burst: Option<usize>,
     },
 }
 
@@ -119,7 +138,8 @@ pub struct Contender {
     pub program: PathBuf,
 }
 
-/// Runs `compare`; the main comparison's output also goes to `<out>/compare.txt`.
+/// Runs `compare`; the main comparison's output also goes to `<out>/compare.txt`, `compare
+/// bridge`'s to `<out>/bridge.txt`.
 pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
     let harness = std::env::current_exe().context("locating this binary")?;
     let default_fbbus = harness.with_file_name("fbbus");
@@ -140,14 +160,30 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
             }
             fb::run(&fbbus, &params).await
         }
-        Some(FbbusOnly::Bridge { quick, fbbus }) => {
+        Some(FbbusOnly::Bridge {
+            quick,
+            fbbus,
+            bus,
+            rounds,
+            samples,
+            burst,
+        }) => {
+            let buses = bridge::Bus::parse_list(&bus)?;
             let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
-            let params = if quick {
+            let mut params = if quick {
                 bridge::BridgeParams::quick()
             } else {
                 bridge::BridgeParams::full()
             };
-            bridge::run(&fbbus, &params).await
+            params.buses = buses;
+            params.rounds = rounds.max(1);
+            if let Some(n) = samples {
+                params.samples = n.max(1);
+            }
+            if let Some(n) = burst {
+                params.burst = n.max(1);
+            }
+            bridge::run(&fbbus, &params, out).await
         }
         None => compare(args.run, &harness, &default_fbbus, out).await,
     }
