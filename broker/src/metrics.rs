@@ -234,8 +234,9 @@ impl Metrics {
             typed_not_reencoded: counter_vec(
                 "fbbus_typed_messages_not_reencoded_total",
                 "Accepted typed publications not delivered in one encoding because it cannot \
-                 carry a value (fbdk nanoseconds end in 2554), by device, port and namespace",
-                &["device", "port", "namespace"],
+                 carry a value (fbdk nanoseconds end in 2554), by namespace (the device and port \
+                 are in its fbbus/diag message: client-chosen names make no labels)",
+                &["namespace"],
             ),
             declarations: counter_vec(
                 "fbbus_declarations_total",

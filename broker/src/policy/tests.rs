@@ -533,7 +533,7 @@ fn fbdk_dates_are_in_the_configured_unit_and_one_it_cannot_carry_is_not_sent_the
         let not_reencoded = line
             .metrics
             .typed_not_reencoded
-            .with_label_values(&["plc-1", "CONV.AT", "fbdk"])
+            .with_label_values(&["fbdk"])
             .get();
         let diags: Vec<String> = device
             .take_outbox()

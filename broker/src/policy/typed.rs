@@ -391,11 +391,7 @@ impl FbSession {
         let detail = format!("{}.{}: {error}", typed.fb, typed.port);
         fb.metrics
             .typed_not_reencoded
-            .with_label_values(&[
-                &self.device,
-                &format!("{}.{}", typed.fb, typed.port),
-                encoding.namespace(),
-            ])
+            .with_label_values(&[encoding.namespace()])
             .inc();
         if self.logged.len() < 1024 && self.logged.insert((topic.clone(), "not_reencoded")) {
             tracing::warn!(
