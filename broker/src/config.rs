@@ -89,6 +89,21 @@ pub struct FbSection {
     /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). One for the whole broker
     /// until devices have profiles (issue 16).
     pub fbdk_time_unit: fb_bridge::codec::fbdk::TimeUnit,
+    /// An online device is `silent` when none of its periodic outputs published for
+    /// `silence_factor` times its period (observed), and at least `silence_min_s`
+    /// seconds. 0 turns the judgement off.
+    pub silence_factor: f64,
+    pub silence_min_s: f64,
+}
+
+impl FbSection {
+    /// How long a periodic output may be quiet.
+    pub fn silence_bound(&self) -> crate::silence::Bound {
+        crate::silence::Bound {
+            factor: self.silence_factor,
+            floor: std::time::Duration::from_secs_f64(self.silence_min_s),
+        }
+    }
 }
 
 impl Default for FbSection {
@@ -97,6 +112,8 @@ impl Default for FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
             undeclared: Default::default(),
             fbdk_time_unit: Default::default(),
+            silence_factor: 3.0,
+            silence_min_s: 5.0,
         }
     }
 }
@@ -380,6 +397,16 @@ impl Config {
         }
         if b.max_inflight == 0 {
             return Err(invalid(file, "broker.max_inflight", "must be at least 1"));
+        }
+        // A day bounds both: beyond it the judgement means nothing, and the durations
+        // they make cannot overflow.
+        for (key, value) in [
+            ("fb.silence_factor", self.fb.silence_factor),
+            ("fb.silence_min_s", self.fb.silence_min_s),
+        ] {
+            if !(0.0..=86_400.0).contains(&value) {
+                return Err(invalid(file, key, "must be between 0 and 86400"));
+            }
         }
         if b.connect_timeout_ms == 0 {
             return Err(invalid(
