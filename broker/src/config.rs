@@ -715,6 +715,35 @@ mod tests {
         assert!(err.contains("`ns` or `ms`"), "{err}");
     }
 
+    /// The silence keys become durations: a value no duration can hold (negative, NaN,
+    /// huge) is refused here, never reaches `Duration::from_secs_f64`.
+    #[test]
+    fn silence_keys_default_to_3_and_5_s_and_are_bounded() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let bound = |fb: &str| {
+            Config::parse(&format!("[fb]\n{fb}\n{listener}"), "f")
+                .map(|c| c.fb.silence_bound())
+                .map_err(|e| e.to_string())
+        };
+        let default = bound("").unwrap();
+        assert_eq!(default.factor, 3.0);
+        assert_eq!(default.floor, std::time::Duration::from_secs(5));
+        assert!(!bound("silence_factor = 0").unwrap().enabled());
+        assert_eq!(
+            bound("silence_min_s = 0.5").unwrap().floor,
+            std::time::Duration::from_millis(500)
+        );
+        for bad in [
+            "silence_factor = -1",
+            "silence_factor = nan",
+            "silence_min_s = 1e300",
+            "silence_min_s = -0.1",
+        ] {
+            let err = bound(bad).unwrap_err();
+            assert!(err.contains("fb.silence_"), "{bad}: {err}");
+        }
+    }
+
     /// Regression (broker/fuzz/regressions/config_load): a max_connections the broker
     /// cannot start with is refused when the file is read.
     #[test]

@@ -430,8 +430,7 @@ impl Registry {
                 devices.activity.insert(id.to_owned(), Arc::new(activity));
             }
         }
-        let record = &record;
-        self.announce(record);
+        self.announce(&record);
         self.announce_count(&devices);
         self.dirty.notify_one();
         Some(interface)

@@ -6,6 +6,8 @@
 
 mod common;
 
+use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -108,4 +110,57 @@ async fn a_connected_device_whose_publishers_stopped_is_online_silent() {
         assert!(Instant::now() < deadline, "{series} stayed at 1");
         tokio::time::sleep(Duration::from_millis(25)).await;
     }
+}
+
+/// Stops the broker with SIGTERM (it writes its registry) and starts a new one on the same
+/// config, directory and ports.
+fn restart(mut broker: Broker) -> Broker {
+    broker.signal("TERM");
+    let status = common::wait_until(&mut broker.child, Duration::from_secs(15));
+    assert!(
+        status.is_some_and(|s| s.success()),
+        "broker exited with {status:?} after SIGTERM\n{}",
+        broker.log_text()
+    );
+    let dir = std::mem::replace(&mut broker.dir, tempfile::tempdir().unwrap());
+    let (config, mqtt, admin): (PathBuf, SocketAddr, SocketAddr) =
+        (broker.config.clone(), broker.mqtt, broker.admin);
+    drop(broker);
+    Broker::spawn(dir, config, mqtt, admin)
+}
+
+/// FORTE after a broker restart: it reconnects (without declaring again) but its
+/// publishers stay dead, so the new broker never sees a publication. The period observed
+/// before the restart is kept with the registry, so the device still turns silent, one
+/// bound after its connection.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_that_reconnects_after_a_restart_and_never_publishes_is_silent() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nsilence_min_s = 1\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/#"]).await;
+    let mut forte = Dev::connect(broker.port(), 4, "forte");
+    declare_ok(&mut forte, CONV, &mut diag_sub, &broker).await;
+    for i in 0..12 {
+        forte.publish_qos0("fb/forte/CONV/POSITION", i.to_string().as_bytes());
+        tokio::time::sleep(PERIOD).await;
+    }
+    drop(diag_sub);
+    let broker = tokio::task::block_in_place(|| restart(broker));
+    drop(forte);
+
+    let _forte = Dev::connect(broker.port(), 4, "forte");
+    let connected = Instant::now();
+    wait_record(&broker, "forte", "came back", |r| r["status"] == "online").await;
+    let r = wait_record(&broker, "forte", "turned silent", silent).await;
+    let took = connected.elapsed();
+    assert!(
+        took <= BOUND + SLACK,
+        "silent {took:?} after connecting, bound {BOUND:?}: {r}"
+    );
+    assert_metric(&broker, "fbbus_registry_silent_devices", 1.0);
 }
