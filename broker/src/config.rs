@@ -89,6 +89,21 @@ pub struct FbSection {
     /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). One for the whole broker
     /// until devices have profiles (issue 16).
     pub fbdk_time_unit: fb_bridge::codec::fbdk::TimeUnit,
+    /// An online device is `silent` when none of its periodic outputs published for
+    /// `silence_factor` times its period (observed), and at least `silence_min_s`
+    /// seconds. 0 turns the judgement off.
+    pub silence_factor: f64,
+    pub silence_min_s: f64,
+}
+
+impl FbSection {
+    /// How long a periodic output may be quiet.
+    pub fn silence_bound(&self) -> crate::silence::Bound {
+        crate::silence::Bound {
+            factor: self.silence_factor,
+            floor: std::time::Duration::from_secs_f64(self.silence_min_s),
+        }
+    }
 }
 
 impl Default for FbSection {
@@ -97,6 +112,8 @@ impl Default for FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
             undeclared: Default::default(),
             fbdk_time_unit: Default::default(),
+            silence_factor: 3.0,
+            silence_min_s: 5.0,
         }
     }
 }
@@ -380,6 +397,16 @@ impl Config {
         }
         if b.max_inflight == 0 {
             return Err(invalid(file, "broker.max_inflight", "must be at least 1"));
+        }
+        // A day bounds both: beyond it the judgement means nothing, and the durations
+        // they make cannot overflow.
+        for (key, value) in [
+            ("fb.silence_factor", self.fb.silence_factor),
+            ("fb.silence_min_s", self.fb.silence_min_s),
+        ] {
+            if !(0.0..=86_400.0).contains(&value) {
+                return Err(invalid(file, key, "must be between 0 and 86400"));
+            }
         }
         if b.connect_timeout_ms == 0 {
             return Err(invalid(
@@ -686,6 +713,35 @@ mod tests {
         let err = unit("fbdk_time_unit = \"us\"").unwrap_err();
         assert!(err.contains("fb.fbdk_time_unit"), "{err}");
         assert!(err.contains("`ns` or `ms`"), "{err}");
+    }
+
+    /// The silence keys become durations: a value no duration can hold (negative, NaN,
+    /// huge) is refused here, never reaches `Duration::from_secs_f64`.
+    #[test]
+    fn silence_keys_default_to_3_and_5_s_and_are_bounded() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let bound = |fb: &str| {
+            Config::parse(&format!("[fb]\n{fb}\n{listener}"), "f")
+                .map(|c| c.fb.silence_bound())
+                .map_err(|e| e.to_string())
+        };
+        let default = bound("").unwrap();
+        assert_eq!(default.factor, 3.0);
+        assert_eq!(default.floor, std::time::Duration::from_secs(5));
+        assert!(!bound("silence_factor = 0").unwrap().enabled());
+        assert_eq!(
+            bound("silence_min_s = 0.5").unwrap().floor,
+            std::time::Duration::from_millis(500)
+        );
+        for bad in [
+            "silence_factor = -1",
+            "silence_factor = nan",
+            "silence_min_s = 1e300",
+            "silence_min_s = -0.1",
+        ] {
+            let err = bound(bad).unwrap_err();
+            assert!(err.contains("fb.silence_"), "{bad}: {err}");
+        }
     }
 
     /// Regression (broker/fuzz/regressions/config_load): a max_connections the broker

@@ -70,10 +70,15 @@ fn table(body: &Value) -> String {
             .pointer("/interface/fbs")
             .and_then(Value::as_object)
             .map_or(0, |m| m.len());
+        // Online and silent: connected, but its periodic outputs stopped.
+        let mut status = text("status");
+        if d.get("silent") == Some(&Value::Bool(true)) {
+            status.push_str(", silent");
+        }
         rows.push([
             text("id"),
             text("line"),
-            text("status"),
+            status,
             text("session"),
             text("since"),
             fbs.to_string(),
@@ -97,7 +102,15 @@ fn table(body: &Value) -> String {
         .iter()
         .filter(|d| d.get("status").and_then(Value::as_str) == Some("online"))
         .count();
-    out.push_str(&format!("{} devices, {online} online\n", devices.len()));
+    let silent = devices
+        .iter()
+        .filter(|d| d.get("silent") == Some(&Value::Bool(true)))
+        .count();
+    out.push_str(&format!("{} devices, {online} online", devices.len()));
+    if silent > 0 {
+        out.push_str(&format!(" ({silent} silent)"));
+    }
+    out.push('\n');
     out
 }
 
@@ -152,9 +165,21 @@ mod tests {
         let t = table(&body);
         let lines: Vec<&str> = t.lines().collect();
         assert_eq!(lines.len(), 4, "{t}");
+        assert!(!t.contains("silent"), "{t}");
         assert!(lines[0].starts_with("ID"));
         assert!(lines[1].contains("conv-a") && lines[1].contains("online"));
         assert!(lines[2].contains("keep-alive expired"));
         assert_eq!(lines[3], "2 devices, 1 online");
+    }
+
+    #[test]
+    fn a_silent_device_is_online_silent() {
+        let body = serde_json::json!({"line": "line-1", "devices": [
+            {"id": "forte-1", "line": "line-1", "status": "online", "session": 3, "since": "2026-11-22T08:00:00.000Z", "last_will_reason": null, "silent": true, "silent_since": "2026-11-22T08:05:00.000Z", "interface": {"fbs": {}}},
+        ]});
+        let t = table(&body);
+        let lines: Vec<&str> = t.lines().collect();
+        assert!(lines[1].contains("online, silent"), "{t}");
+        assert_eq!(lines[2], "1 devices, 1 online (1 silent)");
     }
 }

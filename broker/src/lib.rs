@@ -49,6 +49,7 @@ mod registry;
 mod router;
 mod server;
 mod session;
+mod silence;
 mod supervisor;
 mod tls;
 mod watched_file;

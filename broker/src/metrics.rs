@@ -109,6 +109,9 @@ pub struct Metrics {
     pub typed_not_reencoded: IntCounterVec,
     pub declarations: IntCounterVec,
     pub registry_devices: IntGaugeVec,
+    /// Online devices whose periodic outputs stopped (`silence`), included in
+    /// `registry_devices{status="online"}`.
+    pub registry_silent_devices: IntGauge,
     pub registry_stale_ends: IntCounter,
     /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
     pub bridge_messages: IntCounterVec,
@@ -244,6 +247,10 @@ impl Metrics {
                 &["result"],
             ),
             registry_devices,
+            registry_silent_devices: gauge(
+                "fbbus_registry_silent_devices",
+                "Online devices whose periodic outputs stopped publishing (also counted as online)",
+            ),
             registry_stale_ends: counter(
                 "fbbus_registry_stale_ends_total",
                 "Connection ends ignored by the registry because the device is on a newer session",

@@ -16,6 +16,12 @@
 //! (so a device needs no NUM_DEV block: it subscribes to the count); the admin endpoint
 //! serves `/api/v1/devices`; `fbbus devices` prints it.
 //!
+//! **Online but silent.** A local online device whose periodic outputs stopped publishing
+//! is `silent` (see `silence` for the rule): its connection times each accepted
+//! publication on a declared output in the device's [`Activity`], without this lock, and a
+//! task judges every device each [`SILENCE_CHECK`], republishing a record only when it
+//! turns silent or speaks again. Remote devices are judged by their own line.
+//!
 //! **Persisted, never half-written.** Changes mark the registry dirty; a task writes the
 //! whole registry at most every [`PERSIST_INTERVAL`] to a temporary file, syncs it and
 //! renames it over the old one, so a crash leaves either the old or the new file. After a
@@ -29,10 +35,10 @@
 //! learned again from the bus after a restart. Local changes are handed to the bridge
 //! through [`Registry::observe`].
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use fb_bridge::topic;
 use fb_bridge::Interface;
@@ -41,9 +47,18 @@ use tokio::sync::Notify;
 
 use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::metrics::Metrics;
+use crate::silence::{Activity, Bound, Periods, Verdict};
 
 /// The longest a change waits before it is on disk.
 pub const PERSIST_INTERVAL: Duration = Duration::from_millis(200);
+
+/// How often local devices are judged for silence: a silent device is shown within its
+/// bound plus this.
+pub const SILENCE_CHECK: Duration = Duration::from_secs(1);
+
+/// How often the observed output periods are written, when nothing else changes: a
+/// crash loses at most this much of what was learned.
+const PERIODS_PERSIST: u32 = 60;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -76,6 +91,13 @@ pub struct Record {
     pub since: String,
     /// Why the device went offline last; null while online.
     pub last_will_reason: Option<String>,
+    /// Online, but its periodic outputs stopped publishing (`silence`); false otherwise.
+    #[serde(default)]
+    pub silent: bool,
+    /// While silent: the last publication of its periodic outputs, or the start of its
+    /// connection if later. Null otherwise.
+    #[serde(default)]
+    pub silent_since: Option<String>,
     pub interface: Arc<Interface>,
 }
 
@@ -83,6 +105,10 @@ pub struct Record {
 struct File {
     version: u32,
     devices: Vec<Record>,
+    /// The observed output periods of the local devices, by device (`silence`): a
+    /// device whose publishers died at a restart is still judged.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    periods: BTreeMap<String, Periods>,
 }
 
 /// The records, with their counts kept up to date by every change: announcing the
@@ -93,6 +119,10 @@ struct Devices {
     /// This line's name (`Counts::online_here`).
     line: String,
     counts: Counts,
+    /// The output activity of the local devices declared or connected since start-up.
+    activity: HashMap<String, Arc<Activity>>,
+    /// Periods read from the registry file, for devices not connected since.
+    remembered: HashMap<String, Periods>,
 }
 
 /// Devices by status (every line), and this line's online devices.
@@ -100,6 +130,8 @@ struct Devices {
 struct Counts {
     by_status: [i64; 3],
     online_here: i64,
+    /// Online and silent, every line.
+    silent: i64,
 }
 
 impl Counts {
@@ -108,6 +140,9 @@ impl Counts {
         self.by_status[record.status as usize] += sign;
         if record.status == Status::Online && record.line == line {
             self.online_here += sign;
+        }
+        if record.status == Status::Online && record.silent {
+            self.silent += sign;
         }
     }
 }
@@ -122,6 +157,8 @@ impl Devices {
             records,
             line: line.to_owned(),
             counts,
+            activity: HashMap::new(),
+            remembered: HashMap::new(),
         }
     }
 
@@ -145,6 +182,14 @@ impl Devices {
         change(record);
         self.counts.tally(record, &self.line, 1);
         Some(record)
+    }
+
+    /// The output periods of `id`, observed in this run or read from the file.
+    fn periods(&self, id: &str) -> Periods {
+        match self.activity.get(id) {
+            Some(activity) => activity.periods(),
+            None => self.remembered.get(id).cloned().unwrap_or_default(),
+        }
     }
 
     /// Changes every record `which` selects with `change`.
@@ -171,6 +216,8 @@ pub struct Registry {
     devices: Mutex<Devices>,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
+    /// How long a periodic output may be quiet (`[fb] silence_*`).
+    bound: Bound,
     file: Option<PathBuf>,
     dirty: Notify,
     /// Held while the file is written: the writer task's write (on a blocking thread,
@@ -240,24 +287,34 @@ impl Registry {
         file: Option<&Path>,
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
+        bound: Bound,
         tasks: &crate::supervisor::Tasks,
     ) -> Result<Arc<Registry>, LoadError> {
         let mut devices = HashMap::new();
+        let mut remembered = HashMap::new();
         if let Some(path) = file {
-            for mut record in load(path)? {
+            let (records, periods) = load(path)?;
+            remembered.extend(periods);
+            for mut record in records {
                 if record.status == Status::Online {
                     record.status = Status::Offline;
                     record.last_will_reason = Some("broker restart".into());
                     record.since = now();
                 }
+                record.silent = false;
+                record.silent_since = None;
                 devices.insert(record.id.clone(), record);
             }
         }
         let registry = Arc::new(Registry {
             line: line.to_owned(),
-            devices: Mutex::new(Devices::new(line, devices)),
+            devices: Mutex::new(Devices {
+                remembered,
+                ..Devices::new(line, devices)
+            }),
             publisher,
             metrics,
+            bound,
             file: file.map(Path::to_owned),
             dirty: Notify::new(),
             writing: Mutex::new(()),
@@ -287,6 +344,17 @@ impl Registry {
         &self.line
     }
 
+    /// How long a periodic output may be quiet.
+    pub fn silence_bound(&self) -> &Bound {
+        &self.bound
+    }
+
+    /// The output activity of the local device `id`, which its connection updates.
+    pub fn activity(&self, id: &str) -> Option<Arc<Activity>> {
+        let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        devices.activity.get(id).cloned()
+    }
+
     /// Each known device's latest session number, to seed the session table.
     pub fn sessions(&self) -> Vec<(String, u64)> {
         let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
@@ -307,8 +375,15 @@ impl Registry {
             session,
             since: now(),
             last_will_reason: None,
+            silent: false,
+            silent_since: None,
             interface: Arc::clone(&interface),
         };
+        // A new interface may have other ports: their timing starts afresh, with the
+        // periods its ports had under the old one.
+        let activity = Activity::new(&interface, Instant::now());
+        activity.remember(&devices.periods(id));
+        devices.activity.insert(id.to_owned(), Arc::new(activity));
         self.announce(&record);
         devices.insert(record);
         self.announce_count(&devices);
@@ -340,10 +415,22 @@ impl Registry {
                 record.session = session;
                 record.since = now();
                 record.last_will_reason = None;
+                record.silent = false;
+                record.silent_since = None;
             },
         )?;
         let interface = Arc::clone(&record.interface);
-        self.announce(record);
+        let record = record.clone();
+        let at = Instant::now();
+        match devices.activity.get(id) {
+            Some(activity) => activity.reconnected(at),
+            None => {
+                let activity = Activity::new(&interface, at);
+                activity.remember(&devices.periods(id));
+                devices.activity.insert(id.to_owned(), Arc::new(activity));
+            }
+        }
+        self.announce(&record);
         self.announce_count(&devices);
         self.dirty.notify_one();
         Some(interface)
@@ -374,6 +461,8 @@ impl Registry {
                 record.status = Status::Offline;
                 record.since = now();
                 record.last_will_reason = Some(reason.to_owned());
+                record.silent = false;
+                record.silent_since = None;
             },
         );
         if let Some(record) = record {
@@ -531,7 +620,9 @@ impl Registry {
         let Counts {
             by_status,
             online_here,
+            silent,
         } = devices.counts;
+        self.metrics.registry_silent_devices.set(silent);
         for (status, count) in [Status::Online, Status::Offline, Status::Unreachable]
             .into_iter()
             .zip(by_status)
@@ -546,6 +637,76 @@ impl Registry {
             online_here.to_string(),
             true,
         ));
+    }
+
+    /// Starts judging the local devices' silence every [`SILENCE_CHECK`], unless the
+    /// judgement is off (`silence_factor = 0`).
+    pub fn start_silence_check(self: &Arc<Self>, tasks: &crate::supervisor::Tasks) {
+        if self.bound.enabled() {
+            tasks.core("registry silence check", Arc::clone(self).silence_loop());
+        }
+    }
+
+    async fn silence_loop(self: Arc<Self>) {
+        let mut tick = tokio::time::interval(SILENCE_CHECK);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        for n in 1u32.. {
+            tick.tick().await;
+            self.judge_silence(Instant::now());
+            if n % PERIODS_PERSIST == 0 {
+                self.dirty.notify_one();
+            }
+        }
+    }
+
+    /// Judges every local online device at `now` and announces those that turned silent
+    /// or spoke again.
+    fn judge_silence(&self, now: Instant) {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut turned = Vec::new();
+        for (id, activity) in &devices.activity {
+            let Some(record) = devices.get(id) else {
+                continue;
+            };
+            if record.line != self.line || record.status != Status::Online {
+                continue;
+            }
+            let since = match activity.judge(now, &self.bound) {
+                Verdict::Silent { since } => Some(since),
+                Verdict::Speaking | Verdict::NoPeriod => None,
+            };
+            if since.is_some() != record.silent {
+                turned.push((id.clone(), since));
+            }
+        }
+        if turned.is_empty() {
+            return;
+        }
+        let wall = SystemTime::now();
+        for (id, since) in turned {
+            let since = since.map(|s| {
+                let ago = now.saturating_duration_since(s);
+                humantime::format_rfc3339_millis(wall.checked_sub(ago).unwrap_or(wall)).to_string()
+            });
+            let changed = devices.update(
+                &id,
+                |_| true,
+                |record| {
+                    record.silent = since.is_some();
+                    record.silent_since = since;
+                },
+            );
+            if let Some(record) = changed {
+                tracing::info!(
+                    device = record.id,
+                    silent = record.silent,
+                    since = record.silent_since,
+                    "device output activity changed"
+                );
+                self.announce(record);
+            }
+        }
+        self.announce_count(&devices);
     }
 
     async fn persist_loop(self: Arc<Self>) {
@@ -565,9 +726,19 @@ impl Registry {
     /// Writes a snapshot atomically: temporary file, fsync, rename, fsync of the directory.
     fn write(&self, path: &Path) -> std::io::Result<()> {
         let _one_writer = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
+        let devices = self.local();
+        let periods = {
+            let held = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+            devices
+                .iter()
+                .map(|r| (r.id.clone(), held.periods(&r.id)))
+                .filter(|(_, p)| !p.is_empty())
+                .collect()
+        };
         let snapshot = File {
             version: 1,
-            devices: self.local(),
+            devices,
+            periods,
         };
         let bytes = serde_json::to_vec_pretty(&snapshot).expect("the registry serializes");
         let tmp = path.with_extension("tmp");
@@ -585,14 +756,14 @@ impl Registry {
     }
 }
 
-fn load(path: &Path) -> Result<Vec<Record>, LoadError> {
+fn load(path: &Path) -> Result<(Vec<Record>, BTreeMap<String, Periods>), LoadError> {
     let error = |message: String| LoadError {
         path: path.display().to_string(),
         message,
     };
     let text = match std::fs::read(path) {
         Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Default::default()),
         Err(e) => return Err(error(e.to_string())),
     };
     let file: File = serde_json::from_slice(&text)
@@ -600,7 +771,7 @@ fn load(path: &Path) -> Result<Vec<Record>, LoadError> {
     if file.version != 1 {
         return Err(error(format!("version {} is not supported", file.version)));
     }
-    Ok(file.devices)
+    Ok((file.devices, file.periods))
 }
 
 /// The current time, RFC 3339 with milliseconds.
@@ -626,8 +797,123 @@ mod tests {
             session: 1,
             since: now(),
             last_will_reason: None,
+            silent: false,
+            silent_since: None,
             interface: Arc::new(interface()),
         }
+    }
+
+    fn registry(
+        metrics: &Arc<Metrics>,
+    ) -> (Arc<Registry>, tokio::sync::mpsc::UnboundedReceiver<Message>) {
+        let (publisher, published) = BrokerPublisher::detached();
+        let bound = Bound {
+            factor: 3.0,
+            floor: Duration::from_secs(1),
+        };
+        let health = crate::health::Health::new();
+        let tasks = crate::supervisor::Tasks::new(&health);
+        let registry = Registry::open("a", None, publisher, Arc::clone(metrics), bound, &tasks);
+        (registry.unwrap(), published)
+    }
+
+    /// The observed periods survive a restart: a device that reconnects and never
+    /// publishes (a FORTE whose publishers died) is still judged.
+    #[tokio::test]
+    async fn periods_are_persisted_and_given_back_on_connect() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("registry.json");
+        let open = || {
+            let (publisher, _) = BrokerPublisher::detached();
+            let health = crate::health::Health::new();
+            let bound = crate::config::FbSection::default().silence_bound();
+            let tasks = crate::supervisor::Tasks::new(&health);
+            let metrics = Arc::new(Metrics::new());
+            Registry::open("a", Some(&path), publisher, metrics, bound, &tasks).unwrap()
+        };
+        let speed: Interface = serde_json::from_value(serde_json::json!({"fbs": {"CONV": {
+            "data_out": {"SPEED": "REAL"},
+        }}}))
+        .unwrap();
+        let first = open();
+        first.declare("d1", 1, speed);
+        let activity = first.activity("d1").unwrap();
+        let t0 = Instant::now();
+        for i in 0..10 {
+            let at = t0 + Duration::from_millis(200) * i;
+            activity.published("CONV", "SPEED", at, first.silence_bound());
+        }
+        first.flush();
+        drop(first);
+
+        let second = open();
+        assert!(second.activity("d1").is_none());
+        assert!(second.connected("d1", 2).is_some());
+        let periods = second.activity("d1").unwrap().periods();
+        assert!(
+            (periods["CONV"]["SPEED"] - 0.2).abs() < 0.001,
+            "{periods:?}"
+        );
+    }
+
+    /// A local device whose periodic output stops turns silent once, is counted, and
+    /// speaks again once; going offline ends the silence.
+    #[test]
+    fn silence_is_announced_once_each_way() {
+        let metrics = Arc::new(Metrics::new());
+        let (registry, mut published) = registry(&metrics);
+        let speed: Interface = serde_json::from_value(serde_json::json!({"fbs": {"CONV": {
+            "data_out": {"SPEED": "REAL"},
+        }}}))
+        .unwrap();
+        registry.declare("d1", 1, speed);
+        registry.declare("quiet", 2, interface());
+        let activity = registry.activity("d1").unwrap();
+        let bound = *registry.silence_bound();
+        let t0 = Instant::now();
+        let mut last = t0;
+        for i in 0..20 {
+            last = t0 + Duration::from_millis(200) * i;
+            activity.published("CONV", "SPEED", last, &bound);
+        }
+        let mut records = || {
+            let mut out = Vec::new();
+            while let Ok(m) = published.try_recv() {
+                if m.topic == topic::device_record("d1") {
+                    out.push(serde_json::from_slice::<Record>(&m.payload).unwrap());
+                }
+            }
+            out
+        };
+        records();
+        let silent = || metrics.registry_silent_devices.get();
+
+        registry.judge_silence(last + Duration::from_millis(1000));
+        assert!(records().is_empty(), "within the bound");
+        registry.judge_silence(last + Duration::from_millis(1001));
+        let turned = records();
+        assert_eq!(turned.len(), 1);
+        assert!(turned[0].silent && turned[0].silent_since.is_some());
+        assert_eq!(turned[0].status, Status::Online);
+        assert_eq!(silent(), 1);
+        registry.judge_silence(last + Duration::from_millis(5000));
+        assert!(records().is_empty(), "announced once");
+        assert!(!registry.get("quiet").unwrap().silent, "no periodic port");
+
+        let back = last + Duration::from_millis(6000);
+        activity.published("CONV", "SPEED", back, &bound);
+        registry.judge_silence(back);
+        let turned = records();
+        assert_eq!(turned.len(), 1);
+        assert!(!turned[0].silent && turned[0].silent_since.is_none());
+        assert_eq!(silent(), 0);
+
+        registry.judge_silence(back + Duration::from_millis(1001));
+        assert_eq!(silent(), 1);
+        assert!(registry.disconnected("d1", 1, "keep-alive"));
+        let record = registry.get("d1").unwrap();
+        assert!(!record.silent && record.status == Status::Offline);
+        assert_eq!(silent(), 0);
     }
 
     /// The counts announced after every change (gauges and the line's online count) are
@@ -643,6 +929,7 @@ mod tests {
             None,
             publisher,
             Arc::clone(&metrics),
+            crate::config::FbSection::default().silence_bound(),
             &crate::supervisor::Tasks::new(&health),
         )
         .unwrap();

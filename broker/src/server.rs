@@ -113,6 +113,7 @@ impl Broker {
             (!registry_file.as_os_str().is_empty()).then_some(registry_file.as_path()),
             Arc::clone(&publisher),
             Arc::clone(&metrics),
+            config.fb.silence_bound(),
             &tasks,
         )
         .map_err(|e| StartError::File {
@@ -120,6 +121,7 @@ impl Broker {
             path: e.path.clone(),
             message: e.to_string(),
         })?;
+        registry.start_silence_check(&tasks);
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
         let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker))

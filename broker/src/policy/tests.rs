@@ -43,6 +43,7 @@ fn line(acl: Option<&str>) -> Line {
         None,
         Arc::clone(&publisher),
         Arc::clone(&metrics),
+        crate::config::FbSection::default().silence_bound(),
         &Tasks::new(&Health::new()),
     )
     .expect("a registry without a file always opens");

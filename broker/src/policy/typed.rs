@@ -36,6 +36,7 @@ use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
 use crate::registry::Registry;
 use crate::session::SubscriptionObserver;
+use crate::silence::Activity;
 
 /// What to do with typed-namespace topics no device declared.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
@@ -191,6 +192,9 @@ pub struct FbSession {
     session: u64,
     /// The device's declared interface, once it has one.
     interface: Option<Arc<Interface>>,
+    /// Where accepted publications on the interface's outputs are timed (`silence`); None
+    /// for a connection that does not speak for a local device (the bus door's).
+    activity: Option<Arc<Activity>>,
     /// Event sequence numbers stamped for publishers that send none, per fb and port.
     // B-tree maps: no allocation and 24 bytes while empty; every connection holds one.
     seq: BTreeMap<String, BTreeMap<String, u64>>,
@@ -213,6 +217,7 @@ impl FbSession {
             username: username.map(str::to_owned),
             session,
             interface: None,
+            activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
             diag_budget: DIAG_BURST,
@@ -235,6 +240,12 @@ impl FbSession {
     /// The interface the registry had for this device when it connected.
     pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
         self.interface = interface;
+    }
+
+    /// Where this connection times the device's accepted publications: set for a local
+    /// device's own connection only.
+    pub fn set_activity(&mut self, activity: Option<Arc<Activity>>) {
+        self.activity = activity;
     }
 
     /// Who publishes, as the access rules see it.
@@ -344,6 +355,14 @@ impl FbSession {
         };
         let stamped = self.stamp(&typed, &mut message);
         fb.metrics.typed_accepted.inc();
+        if let Some(activity) = &self.activity {
+            activity.published(
+                typed.fb,
+                typed.port,
+                std::time::Instant::now(),
+                fb.registry.silence_bound(),
+            );
+        }
         // Subscribers of fb/ always get canonical JSON. JSON that came in complete (nothing
         // stamped) on a port whose types have one JSON form is canonical already and is
         // routed as it came; other accepted forms (`"16#FF"`, `"TIME#1.5s"`, ...) are
@@ -446,6 +465,7 @@ impl FbSession {
             Ok(interface) => {
                 let fbs = interface.fbs.len();
                 self.interface = Some(fb.registry.declare(&self.device, self.session, interface));
+                self.activity = fb.registry.activity(&self.device);
                 fb.metrics
                     .declarations
                     .with_label_values(&["accepted"])

@@ -132,6 +132,7 @@ impl Session {
         let mut fb = FbSession::new(&ctx.fb, &client_id, username.as_deref(), linked.session);
         if fb.identity_verified() {
             fb.set_interface(ctx.fb.registry.connected(&client_id, linked.session));
+            fb.set_activity(ctx.fb.registry.activity(&client_id));
         }
         tracing::info!(
             %peer,
