@@ -89,6 +89,11 @@ pub struct FbSection {
     /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). One for the whole broker
     /// until devices have profiles (issue 16).
     pub fbdk_time_unit: fb_bridge::codec::fbdk::TimeUnit,
+    /// The largest `fbdk/` payload delivered, in bytes: 4diac FORTE's MQTT layer copies a
+    /// received message into a 255-byte buffer per subscription, and a longer one
+    /// corrupts that subscription's stream. 0: no limit. One for the whole broker until
+    /// devices have profiles (issue 16).
+    pub fbdk_max_payload: usize,
     /// An online device is `silent` when none of its periodic outputs published for
     /// `silence_factor` times its period (observed), and at least `silence_min_s`
     /// seconds. 0 turns the judgement off.
@@ -112,6 +117,7 @@ impl Default for FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
             undeclared: Default::default(),
             fbdk_time_unit: Default::default(),
+            fbdk_max_payload: crate::policy::typed::FORTE_RECEIVE_BUFFER,
             silence_factor: 3.0,
             silence_min_s: 5.0,
         }

@@ -134,14 +134,17 @@ impl Broker {
         }
 
         let (shutdown, shutdown_rx) = watch::channel(false);
-        let fb = Arc::new(FbTopics::new(
-            Arc::clone(&registry),
-            config.fb.undeclared,
-            config.auth.password_file.is_none(),
-            config.fb.fbdk_time_unit,
-            publisher,
-            Arc::clone(&metrics),
-        ));
+        let fb = Arc::new(
+            FbTopics::new(
+                Arc::clone(&registry),
+                config.fb.undeclared,
+                config.auth.password_file.is_none(),
+                config.fb.fbdk_time_unit,
+                publisher,
+                Arc::clone(&metrics),
+            )
+            .with_fbdk_max_payload(config.fb.fbdk_max_payload),
+        );
         // Who is told of subscriptions: typed-topic re-encoding, and the bus bridge, whose
         // handle exists before any client connects (it links the bus once started, below).
         let mut observers = Observers::default();

@@ -11,7 +11,7 @@ use security::AclRules;
 use super::*;
 use crate::broker_publisher::BrokerPublisher;
 use crate::health::Health;
-use crate::policy::typed::Undeclared;
+use crate::policy::typed::{Undeclared, FORTE_RECEIVE_BUFFER};
 use crate::registry::Registry;
 use crate::supervisor::Tasks;
 use crate::watched_file::WatchedFile;
@@ -560,6 +560,80 @@ fn fbdk_dates_are_in_the_configured_unit_and_one_it_cannot_carry_is_not_sent_the
                 assert_eq!(not_reencoded, 0);
                 assert!(diags.is_empty(), "{diags:?}");
             }
+        }
+    }
+}
+
+/// `[fb] fbdk_max_payload`: an `fbdk` payload longer than a FORTE subscriber's 255-byte
+/// receive buffer is not delivered on `fbdk/` (it would corrupt that subscription's
+/// stream); `fb/` and `dinasore/` still get it, the publisher is told why, it is counted.
+#[test]
+fn an_fbdk_payload_longer_than_forte_can_take_in_is_not_sent_there() {
+    for (limit, long_reaches_fbdk) in [(FORTE_RECEIVE_BUFFER, false), (0, true)] {
+        let mut line = line(None);
+        let (publisher, _) = BrokerPublisher::detached();
+        line.fb = Arc::new(
+            FbTopics::new(
+                Arc::clone(&line.fb.registry),
+                Undeclared::Reject,
+                false,
+                Default::default(),
+                publisher,
+                Arc::clone(&line.metrics),
+            )
+            .with_fbdk_max_payload(limit),
+        );
+        line.policy = PublishPolicy::new(
+            Access::AllowAll,
+            Arc::clone(&line.fb),
+            Arc::clone(&line.metrics),
+        );
+        line.fb.subscribed("#");
+        let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
+        let interface = Declaration::from_json(br#"{"fbs":{"CONV":{"data_out":{"ID":"STRING"}}}}"#)
+            .unwrap()
+            .validate()
+            .unwrap();
+        device.set_interface(Some(line.fb.registry.declare("plc-1", 1, interface)));
+        let namespaces = |got: &[(String, Vec<u8>)]| -> Vec<String> {
+            got.iter()
+                .map(|(t, _)| t.split('/').next().unwrap_or_default().to_owned())
+                .collect()
+        };
+        // 252 characters: 255 bytes in fbdk (tag, 16-bit length, the characters).
+        let fits = format!("\"{}\"", "x".repeat(252));
+        let got = routes(line.admit(Door::Client, &mut device, "fb/plc-1/CONV/ID", &fits));
+        assert_eq!(
+            namespaces(&got),
+            ["fb", "dinasore", "fbdk"],
+            "limit {limit}"
+        );
+        assert_eq!(got[2].1.len(), 255);
+        drop(device.take_outbox());
+        let long = format!("\"{}\"", "x".repeat(253));
+        let got = routes(line.admit(Door::Client, &mut device, "fb/plc-1/CONV/ID", &long));
+        let diags: Vec<String> = device
+            .take_outbox()
+            .into_iter()
+            .map(|m| String::from_utf8_lossy(&m.payload).into_owned())
+            .collect();
+        let counted = line
+            .metrics
+            .typed_not_reencoded
+            .with_label_values(&["fbdk"])
+            .get();
+        if long_reaches_fbdk {
+            assert_eq!(namespaces(&got), ["fb", "dinasore", "fbdk"]);
+            assert_eq!((counted, diags.len()), (0, 0), "{diags:?}");
+        } else {
+            assert_eq!(namespaces(&got), ["fb", "dinasore"]);
+            assert_eq!(counted, 1);
+            assert!(
+                diags.len() == 1
+                    && diags[0].contains("not_reencoded")
+                    && diags[0].contains("256 bytes in fbdk"),
+                "{diags:?}"
+            );
         }
     }
 }

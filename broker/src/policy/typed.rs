@@ -26,7 +26,7 @@ use std::sync::Arc;
 use std::time::SystemTime;
 
 use bytes::Bytes;
-use fb_bridge::codec::{self, fbdk, CodecError, Encoding};
+use fb_bridge::codec::{self, fbdk, Encoding};
 use fb_bridge::topic::{self, TypedTopic};
 use fb_bridge::{Declaration, Interface, Message};
 use serde::Deserialize;
@@ -98,6 +98,10 @@ pub enum Check {
 }
 
 /// Shared by all connections.
+/// The receive buffer of 4diac FORTE's MQTT layer, per subscription, in bytes: a longer
+/// message corrupts that subscription's stream. The default `[fb] fbdk_max_payload`.
+pub const FORTE_RECEIVE_BUFFER: usize = 255;
+
 pub struct FbTopics {
     pub registry: Arc<Registry>,
     pub undeclared: Undeclared,
@@ -106,6 +110,8 @@ pub struct FbTopics {
     pub anonymous_devices: bool,
     /// The unit of DATE, TIME_OF_DAY and DATE_AND_TIME in `fbdk/` payloads.
     pub fbdk_unit: fbdk::TimeUnit,
+    /// The largest `fbdk/` payload delivered (0: no limit); see [`FORTE_RECEIVE_BUFFER`].
+    fbdk_max_payload: usize,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
     /// Per encoding: someone subscribed to a filter that can match its namespace, so
@@ -134,10 +140,18 @@ impl FbTopics {
             undeclared,
             anonymous_devices,
             fbdk_unit,
+            fbdk_max_payload: FORTE_RECEIVE_BUFFER,
             publisher,
             metrics,
             mirrors: Default::default(),
         }
+    }
+
+    /// `[fb] fbdk_max_payload`: `fbdk/` payloads longer than `bytes` are not delivered
+    /// (0: no limit).
+    pub fn with_fbdk_max_payload(mut self, bytes: usize) -> FbTopics {
+        self.fbdk_max_payload = bytes;
+        self
     }
 
     /// A subscription was granted: start re-encoding into the namespaces it can match.
@@ -386,28 +400,40 @@ impl FbSession {
                 match codec::encode(e, &message, typed.port, &port, fb.fbdk_unit) {
                     Ok(bytes) => Bytes::from(bytes),
                     Err(error) => {
-                        self.not_reencoded(fb, &typed, e, &error);
+                        self.not_reencoded(fb, &typed, e, &error.to_string());
                         continue;
                     }
                 }
             };
+            // A FORTE device's stream is never broken by a message it cannot take in.
+            if e == Encoding::Fbdk && fb.fbdk_max_payload > 0 && bytes.len() > fb.fbdk_max_payload {
+                let why = format!(
+                    "{} bytes in fbdk, more than [fb] fbdk_max_payload ({}): a 4diac FORTE \
+                     subscriber's MQTT layer would corrupt its stream",
+                    bytes.len(),
+                    fb.fbdk_max_payload
+                );
+                self.not_reencoded(fb, &typed, e, &why);
+                continue;
+            }
             routes.push((typed.in_encoding(e), bytes));
         }
         Check::Route(routes)
     }
 
     /// An accepted message `encoding` cannot carry (a DATE_AND_TIME after 2554 in `fbdk`
-    /// nanoseconds): its subscribers do not get it, which is counted, logged once per topic
-    /// and described to the publisher on `fbbus/diag/<device>`, as a refusal is.
+    /// nanoseconds, or an `fbdk` payload longer than its subscribers can take in): its
+    /// subscribers do not get it, which is counted, logged once per topic and described to
+    /// the publisher on `fbbus/diag/<device>`, as a refusal is.
     fn not_reencoded(
         &mut self,
         fb: &FbTopics,
         typed: &TypedTopic<'_>,
         encoding: Encoding,
-        error: &CodecError,
+        why: &str,
     ) {
         let topic = typed.in_encoding(encoding);
-        let detail = format!("{}.{}: {error}", typed.fb, typed.port);
+        let detail = format!("{}.{}: {why}", typed.fb, typed.port);
         fb.metrics
             .typed_not_reencoded
             .with_label_values(&[encoding.namespace()])
