@@ -463,16 +463,33 @@ fn in_strict_mode_the_own_namespace_still_needs_the_typed_shape() {
 /// plc-1 with one DATE_AND_TIME output, on a line whose `fbdk/` dates are in `unit` and
 /// that re-encodes into every namespace.
 fn dated_line(unit: fb_bridge::codec::fbdk::TimeUnit) -> (Line, FbSession) {
+    typed_line(
+        unit,
+        FORTE_RECEIVE_BUFFER,
+        br#"{"fbs":{"CONV":{"data_out":{"AT":"DT"}}}}"#,
+    )
+}
+
+/// A line re-encoding into every namespace with these fbdk settings, and its device
+/// `plc-1` with `declaration`.
+fn typed_line(
+    unit: fb_bridge::codec::fbdk::TimeUnit,
+    fbdk_max_payload: usize,
+    declaration: &[u8],
+) -> (Line, FbSession) {
     let mut line = line(None);
     let (publisher, _) = BrokerPublisher::detached();
-    line.fb = Arc::new(FbTopics::new(
-        Arc::clone(&line.fb.registry),
-        Undeclared::Reject,
-        false,
-        unit,
-        publisher,
-        Arc::clone(&line.metrics),
-    ));
+    line.fb = Arc::new(
+        FbTopics::new(
+            Arc::clone(&line.fb.registry),
+            Undeclared::Reject,
+            false,
+            unit,
+            publisher,
+            Arc::clone(&line.metrics),
+        )
+        .with_fbdk_max_payload(fbdk_max_payload),
+    );
     line.policy = PublishPolicy::new(
         Access::AllowAll,
         Arc::clone(&line.fb),
@@ -480,7 +497,7 @@ fn dated_line(unit: fb_bridge::codec::fbdk::TimeUnit) -> (Line, FbSession) {
     );
     line.fb.subscribed("#");
     let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
-    let interface = Declaration::from_json(br#"{"fbs":{"CONV":{"data_out":{"AT":"DT"}}}}"#)
+    let interface = Declaration::from_json(declaration)
         .unwrap()
         .validate()
         .unwrap();
@@ -570,31 +587,11 @@ fn fbdk_dates_are_in_the_configured_unit_and_one_it_cannot_carry_is_not_sent_the
 #[test]
 fn an_fbdk_payload_longer_than_forte_can_take_in_is_not_sent_there() {
     for (limit, long_reaches_fbdk) in [(FORTE_RECEIVE_BUFFER, false), (0, true)] {
-        let mut line = line(None);
-        let (publisher, _) = BrokerPublisher::detached();
-        line.fb = Arc::new(
-            FbTopics::new(
-                Arc::clone(&line.fb.registry),
-                Undeclared::Reject,
-                false,
-                Default::default(),
-                publisher,
-                Arc::clone(&line.metrics),
-            )
-            .with_fbdk_max_payload(limit),
+        let (line, mut device) = typed_line(
+            Default::default(),
+            limit,
+            br#"{"fbs":{"CONV":{"data_out":{"ID":"STRING"}}}}"#,
         );
-        line.policy = PublishPolicy::new(
-            Access::AllowAll,
-            Arc::clone(&line.fb),
-            Arc::clone(&line.metrics),
-        );
-        line.fb.subscribed("#");
-        let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
-        let interface = Declaration::from_json(br#"{"fbs":{"CONV":{"data_out":{"ID":"STRING"}}}}"#)
-            .unwrap()
-            .validate()
-            .unwrap();
-        device.set_interface(Some(line.fb.registry.declare("plc-1", 1, interface)));
         let namespaces = |got: &[(String, Vec<u8>)]| -> Vec<String> {
             got.iter()
                 .map(|(t, _)| t.split('/').next().unwrap_or_default().to_owned())
