@@ -53,7 +53,11 @@ fn line_broker() -> Broker {
 
 /// Rewrites the ACL file and waits until the broker has loaded it `reloads` times.
 fn rewrite_acl(broker: &Broker, text: &str, reloads: f64) {
-    std::fs::write(broker.path("acl"), text).unwrap();
+    // Whole or not at all, as an editor saves (write, then rename): `fs::write` truncates
+    // first, and the 100 ms poll once reloaded the empty file in between (deny all).
+    let staged = broker.path("acl.new");
+    std::fs::write(&staged, text).unwrap();
+    std::fs::rename(&staged, broker.path("acl")).unwrap();
     let series = "fbbus_file_reloads_total{file=\"acl_file\",result=\"ok\"}";
     assert_eq!(
         broker.wait_metric(series, reloads),
