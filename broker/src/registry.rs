@@ -123,6 +123,12 @@ struct Devices {
     activity: HashMap<String, Arc<Activity>>,
     /// Periods read from the registry file, for devices not connected since.
     remembered: HashMap<String, Periods>,
+    /// Live records taken from other lines, counted; and for each remote device the
+    /// count when its last live record came. A query's answer was made before the live
+    /// records that came after it was sent, so it must not replace them
+    /// (`Registry::queried_record`). One entry per remote record: the records' bound.
+    live_taken: u64,
+    live: HashMap<String, u64>,
 }
 
 /// Devices by status (every line), and this line's online devices.
@@ -159,6 +165,8 @@ impl Devices {
             counts,
             activity: HashMap::new(),
             remembered: HashMap::new(),
+            live_taken: 0,
+            live: HashMap::new(),
         }
     }
 
@@ -533,6 +541,37 @@ impl Registry {
     /// wins, and a device online on another line is not taken over (a device that moved
     /// is taken once its old line has it offline or unreachable).
     pub fn remote_record(&self, from: &str, record: Record) -> Result<(), RecordRefused> {
+        self.take_remote(from, record, None)
+    }
+
+    /// Where live records stand now: pass it to [`Registry::queried_record`] for the
+    /// answers of a query sent after this.
+    pub fn live_mark(&self) -> u64 {
+        self.devices
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .live_taken
+    }
+
+    /// A record from the answer to a query of line `from`'s registry, sent at `mark`
+    /// ([`Registry::live_mark`]). The answer is older than any live record of the device
+    /// that came after the query was sent: such a record is kept, and the answer dropped
+    /// (that is not a refusal). Else taken as [`Registry::remote_record`] takes it.
+    pub fn queried_record(
+        &self,
+        from: &str,
+        record: Record,
+        mark: u64,
+    ) -> Result<(), RecordRefused> {
+        self.take_remote(from, record, Some(mark))
+    }
+
+    fn take_remote(
+        &self,
+        from: &str,
+        record: Record,
+        queried_at: Option<u64>,
+    ) -> Result<(), RecordRefused> {
         if record.line != from || from == self.line {
             return Err(RecordRefused::ForgedLine);
         }
@@ -542,8 +581,21 @@ impl Registry {
             Some(held) if held.line != record.line && held.status == Status::Online => {
                 return Err(RecordRefused::HeldByAnotherLine)
             }
-            Some(held) if *held == record => return Ok(()),
             _ => {}
+        }
+        match queried_at {
+            Some(mark) if devices.live.get(&record.id).is_some_and(|&at| at > mark) => {
+                return Ok(());
+            }
+            Some(_) => {}
+            None => {
+                devices.live_taken += 1;
+                let at = devices.live_taken;
+                devices.live.insert(record.id.clone(), at);
+            }
+        }
+        if devices.get(&record.id).is_some_and(|held| *held == record) {
+            return Ok(());
         }
         self.announce(&record);
         devices.insert(record);
@@ -1017,6 +1069,23 @@ mod tests {
             Ok(())
         );
         check("r1 moved and back");
+        // A query answered before a live record came does not undo it.
+        let mark = registry.live_mark();
+        let mut newer = remote("r2", "b", Status::Online);
+        newer.session = 2;
+        assert_eq!(registry.remote_record("b", newer.clone()), Ok(()));
+        assert_eq!(
+            registry.queried_record("b", remote("r2", "b", Status::Offline), mark),
+            Ok(())
+        );
+        assert_eq!(registry.get("r2"), Some(newer));
+        let mark = registry.live_mark();
+        assert_eq!(
+            registry.queried_record("b", remote("r2", "b", Status::Offline), mark),
+            Ok(())
+        );
+        assert_eq!(registry.get("r2").unwrap().status, Status::Offline);
+        check("queried records");
         registry.line_unreachable("b");
         check("line b unreachable");
         assert!(registry.disconnected("d3", 3, "keep-alive"));

@@ -38,11 +38,12 @@ pub(super) async fn bus_events(
                 // Every record of the line, online or not, in the background: the
                 // events keep flowing meanwhile.
                 let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
+                let asked = Some(registry.live_mark());
                 tokio::spawn(async move {
                     match link.query_records(&line).await {
                         Ok(records) => {
                             for (from, device, json) in records {
-                                apply_record(&ctx, &from, &device, &json);
+                                apply_record(&ctx, &from, &device, &json, asked);
                             }
                         }
                         Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
@@ -60,11 +61,12 @@ pub(super) async fn bus_events(
                     registry.remote_status(&line, &device, Status::Online);
                 } else {
                     let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
+                    let asked = Some(registry.live_mark());
                     tokio::spawn(async move {
                         if let Ok(records) = link.query_records(&line).await {
                             for (from, d, json) in records {
                                 if d == device {
-                                    apply_record(&ctx, &from, &d, &json);
+                                    apply_record(&ctx, &from, &d, &json, asked);
                                 }
                             }
                         }
@@ -82,23 +84,33 @@ pub(super) async fn bus_events(
                     registry.remote_status(&line, &device, Status::Unreachable);
                 }
             }
-            Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json),
+            Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json, None),
         }
     }
 }
 
-/// Takes a record line `from` put (or served) on `fbbus/@/record/<from>/<device>`: only
-/// for its own device, under the key's id; refusals counted like refused messages.
-pub(super) fn apply_record(ctx: &Context, from: &str, device: &str, json: &[u8]) {
+/// Takes a record line `from` put (live, `asked` None) or served (to a query sent at
+/// registry mark `asked`) on `fbbus/@/record/<from>/<device>`: only for its own device,
+/// under the key's id; refusals counted like refused messages. The query runs beside the
+/// live records, so its answer can come after a newer one: the registry keeps the newer.
+pub(super) fn apply_record(
+    ctx: &Context,
+    from: &str,
+    device: &str,
+    json: &[u8],
+    asked: Option<u64>,
+) {
     let record = match serde_json::from_slice::<Record>(json) {
         Ok(record) => record,
         Err(e) => {
             return tracing::warn!(line = from, error = %e, "unreadable registry record from another line")
         }
     };
-    let taken = match record.id == device {
-        true => ctx.fb.registry.remote_record(from, record),
-        false => Err(RecordRefused::ForgedLine),
+    let registry = &ctx.fb.registry;
+    let taken = match (record.id == device, asked) {
+        (false, _) => Err(RecordRefused::ForgedLine),
+        (true, None) => registry.remote_record(from, record),
+        (true, Some(mark)) => registry.queried_record(from, record, mark),
     };
     if let Err(refused) = taken {
         ctx.metrics.bus_refused(from, refused.as_str());
