@@ -244,6 +244,23 @@ impl Interface {
         ))
     }
 
+    /// The input port `fb.port`, if the interface declares one, resolved like an output:
+    /// what the device reads there has this shape.
+    pub fn input(&self, fb: &str, port: &str) -> Option<OutputPort<'_>> {
+        let fb = self.fbs.get(fb)?;
+        if let Some(ty) = fb.data_in.get(port) {
+            return Some(OutputPort::Data(*ty));
+        }
+        let event = fb.events_in.get(port)?;
+        Some(OutputPort::Event(
+            event
+                .with
+                .iter()
+                .filter_map(|w| fb.data_in.get(w).map(|t| (w.as_str(), *t)))
+                .collect(),
+        ))
+    }
+
     /// Every output port as (fb, port), for registries and bridges.
     pub fn outputs(&self) -> impl Iterator<Item = (&str, &str)> {
         self.fbs.iter().flat_map(|(fb, i)| {

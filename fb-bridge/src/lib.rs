@@ -15,6 +15,8 @@
 //! - [`topic`]: the typed topics (`fb/<device>/<fb>/<port>`) and fbbus's control topics,
 //!   and [`topic::filter`], the one MQTT topic/filter grammar (validity, `$share/`,
 //!   matching, coverage) that the ACL, the bus and the broker all use;
+//! - [`profile`]: device profiles, the declaration the broker holds for a runtime that
+//!   cannot send one (4diac FORTE, DINASORE), with its own topics mapped onto its ports;
 //! - [`codec`]: canonical JSON, DINASORE JSON and 4diac's `fbdk` bytes, all decoded to
 //!   and encoded from one [`codec::Message`].
 //!
@@ -45,6 +47,7 @@ pub mod bus;
 pub mod client;
 pub mod codec;
 pub mod interface;
+pub mod profile;
 pub mod topic;
 pub mod types;
 pub mod value;

@@ -125,7 +125,9 @@ pub const DATA_PORT_NAME: &str = "value";
 /// nanoseconds end at 2554-07-21 23:34:33.709 UTC, and a later `DATE` or `DATE_AND_TIME`
 /// (the IEC range goes to 9999) is refused with [`CodecError::Type`], since no FORTE 3.x
 /// device can hold it. Every `TIME_OF_DAY` fits.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Deserialize, serde::Serialize,
+)]
 pub enum TimeUnit {
     /// FORTE 3.x; the name `ns` in configuration.
     #[default]

@@ -73,6 +73,18 @@ pub fn is_typed_namespace(topic: &str) -> bool {
         .is_some_and(|(ns, _)| Encoding::from_namespace(ns).is_some())
 }
 
+/// Longest device id, in bytes.
+pub const MAX_DEVICE_ID: usize = 256;
+
+/// Whether `id` can name a device: a client id fbbus accepts (not empty, none of
+/// `/ + # $`, no control characters), at most [`MAX_DEVICE_ID`] bytes.
+pub fn is_device_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= MAX_DEVICE_ID
+        && !id.contains(['+', '#', '/', '$'])
+        && !id.chars().any(char::is_control)
+}
+
 /// The device whose namespace `topic` is in: the second level of any topic in a typed
 /// namespace, at any depth (`fb/<device>`, `fbdk/<device>/a/b/c`, ...), None outside the
 /// typed namespaces. Only that device may publish there, whatever shape the topic has:

@@ -1,0 +1,449 @@
+//! Device profiles: a typed, registered device that never declares anything.
+//!
+//! A 4diac FORTE or DINASORE runtime as it is published cannot send the declaration of
+//! the device contract, sets no will and publishes on whatever topic its application
+//! names. A profile, held by the broker, says instead of the device:
+//!
+//! - **who it is**: the registry id, and how its connection is recognised (its client
+//!   id, a client-id prefix, or its verified username);
+//! - **its FB interface**, as a declaration gives it;
+//! - **how it speaks**: the encoding of each of its own topics, the unit of its `fbdk`
+//!   dates and times, the largest message it can receive, whether its numbers arrive as
+//!   JSON strings, the QoS of what it is sent;
+//! - **its own topics**, each mapped onto one of its ports: an output topic is where the
+//!   device publishes that port; an input topic is where it reads a port, fed from
+//!   another device's typed output (`from`);
+//! - **its broker-side will**: values the broker publishes on its typed output ports when
+//!   it goes offline, for runtimes that cannot set a will.
+//!
+//! [`ProfileFile`] is the text as written (TOML on disk, JSON on the admin API);
+//! [`ProfileFile::validate`] resolves it into a [`Profile`] or lists every mistake, each
+//! located, as [`Declaration::validate`] does for a declaration.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::codec::fbdk::TimeUnit;
+use crate::codec::Encoding;
+use crate::interface::{is_identifier, Declaration, Interface, OutputPort};
+use crate::topic::{self, filter};
+use crate::types::{DataType, ElementaryType};
+
+/// Most own topics one profile maps: bounds the broker's topic index per profile.
+pub const MAX_TOPICS: usize = 1024;
+
+/// A profile as written. Unknown keys are errors, so a misspelt key is not ignored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProfileFile {
+    /// The registry id: typed topics are `fb/<device>/...`.
+    pub device: String,
+    /// Informative: `forte`, `dinasore`, or anything the line uses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runtime: Option<String>,
+    #[serde(default)]
+    pub identity: IdentityFile,
+    #[serde(default)]
+    pub speaks: Speaks,
+    pub interface: Declaration,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub topics: Vec<TopicFile>,
+    /// Port (`FB.PORT`) → value, published by the broker when the device goes offline.
+    /// A data port takes its value; an event port takes a table of its WITH values.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub will: BTreeMap<String, serde_json::Value>,
+}
+
+/// How the device's connection is recognised. With none given, its client id is the
+/// device id.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IdentityFile {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id: Option<String>,
+    /// Any client id that starts with this (a runtime that adds a random suffix).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id_prefix: Option<String>,
+    /// The verified username (for a client id chosen at random, or left empty).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub username: Option<String>,
+}
+
+/// How the device speaks on its own topics.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Speaks {
+    /// The encoding of its own topics unless a topic says otherwise: `fbdk`, `dinasore`,
+    /// `fb`.
+    #[serde(default = "Speaks::default_encoding")]
+    pub encoding: String,
+    /// The unit of DATE, TIME_OF_DAY, DATE_AND_TIME in its `fbdk`: `ns` (FORTE 3.x) or
+    /// `ms` (FORTE 2.x).
+    #[serde(default)]
+    pub fbdk_time_unit: TimeUnit,
+    /// The largest message it can receive on its own topics, in bytes; 0: no limit.
+    #[serde(default)]
+    pub max_payload: usize,
+    /// Its JSON values arrive as strings (`{"SPEED": "3"}`): DINASORE's publisher FB.
+    #[serde(default)]
+    pub string_numbers: bool,
+    /// QoS of what the broker sends it on its own input topics.
+    #[serde(default)]
+    pub qos: u8,
+}
+
+impl Speaks {
+    fn default_encoding() -> String {
+        "fb".into()
+    }
+}
+
+impl Default for Speaks {
+    fn default() -> Speaks {
+        Speaks {
+            encoding: Speaks::default_encoding(),
+            fbdk_time_unit: TimeUnit::default(),
+            max_payload: 0,
+            string_numbers: false,
+            qos: 0,
+        }
+    }
+}
+
+/// One of the device's own topics.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TopicFile {
+    pub topic: String,
+    /// `FB.PORT` of this device: an output (it publishes here) or an input (it reads here).
+    pub port: String,
+    /// For an input: the typed output that feeds it, `<device>/<FB>/<PORT>`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub from: Option<String>,
+    /// This topic's encoding, if not the profile's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoding: Option<String>,
+}
+
+/// A resolved profile.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Profile {
+    pub device: String,
+    pub identity: Identity,
+    pub interface: Interface,
+    pub fbdk_time_unit: TimeUnit,
+    pub max_payload: usize,
+    pub string_numbers: bool,
+    pub qos: u8,
+    pub outputs: Vec<OwnTopic>,
+    pub inputs: Vec<InputTopic>,
+    /// (FB, port, payload in canonical JSON) for each broker-side will value.
+    pub will: Vec<(String, String, String)>,
+}
+
+/// How a connection is recognised as the device.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Identity {
+    ClientId(String),
+    ClientIdPrefix(String),
+    Username(String),
+}
+
+impl Identity {
+    /// Whether a connection with this client id and verified username is the device.
+    pub fn matches(&self, client_id: &str, username: Option<&str>) -> bool {
+        match self {
+            Identity::ClientId(id) => client_id == id,
+            Identity::ClientIdPrefix(prefix) => client_id.starts_with(prefix.as_str()),
+            Identity::Username(user) => username == Some(user.as_str()),
+        }
+    }
+}
+
+/// An output topic: the device publishes `fb.port` on `topic` in `encoding`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OwnTopic {
+    pub topic: String,
+    pub fb: String,
+    pub port: String,
+    pub encoding: Encoding,
+}
+
+/// An input topic: the device reads `fb.port` on `topic`, in `encoding`, fed by the typed
+/// output `from`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct InputTopic {
+    pub own: OwnTopic,
+    pub from: Source,
+}
+
+/// A typed output port of some device.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Source {
+    pub device: String,
+    pub fb: String,
+    pub port: String,
+}
+
+/// One mistake in a profile, with where it is.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, thiserror::Error)]
+#[error("{at}: {error}")]
+pub struct ProfileError {
+    /// The key or section (`topics[2].port`, `interface: FB CONV: port X`).
+    pub at: String,
+    pub error: String,
+}
+
+fn err(at: impl Into<String>, error: impl Into<String>) -> ProfileError {
+    ProfileError {
+        at: at.into(),
+        error: error.into(),
+    }
+}
+
+fn encoding(name: &str, at: &str) -> Result<Encoding, ProfileError> {
+    Encoding::from_namespace(name).ok_or_else(|| {
+        err(
+            at,
+            format!("unknown encoding {name:?}: one of \"fb\", \"dinasore\", \"fbdk\""),
+        )
+    })
+}
+
+/// `FB.PORT`, both identifiers.
+fn fb_port(text: &str) -> Option<(&str, &str)> {
+    let (fb, port) = text.split_once('.')?;
+    (is_identifier(fb) && is_identifier(port)).then_some((fb, port))
+}
+
+impl ProfileFile {
+    /// Checks every key and returns the resolved profile, or every mistake found.
+    pub fn validate(self) -> Result<Profile, Vec<ProfileError>> {
+        let mut errors = Vec::new();
+        if !topic::is_device_id(&self.device) {
+            errors.push(err(
+                "device",
+                "not a usable device id (1-128 characters, none of / + # $, no control characters)",
+            ));
+        }
+        let identity = match (
+            self.identity.client_id,
+            self.identity.client_id_prefix,
+            self.identity.username,
+        ) {
+            (None, None, None) => Identity::ClientId(self.device.clone()),
+            (Some(id), None, None) => Identity::ClientId(id),
+            (None, Some(prefix), None) if !prefix.is_empty() => Identity::ClientIdPrefix(prefix),
+            (None, None, Some(user)) if !user.is_empty() => Identity::Username(user),
+            _ => {
+                errors.push(err(
+                    "identity",
+                    "give one of client_id, client_id_prefix (not empty) or username (not empty)",
+                ));
+                Identity::ClientId(self.device.clone())
+            }
+        };
+        let default_encoding = match encoding(&self.speaks.encoding, "speaks.encoding") {
+            Ok(e) => e,
+            Err(e) => {
+                errors.push(e);
+                Encoding::Json
+            }
+        };
+        if self.speaks.qos > 2 {
+            errors.push(err("speaks.qos", "0, 1 or 2"));
+        }
+        let interface = match self.interface.validate() {
+            Ok(interface) => interface,
+            Err(found) => {
+                errors.extend(found.into_iter().map(|e| err("interface", e.to_string())));
+                return Err(errors);
+            }
+        };
+
+        if self.topics.len() > MAX_TOPICS {
+            errors.push(err(
+                "topics",
+                format!("{} topics; at most {MAX_TOPICS}", self.topics.len()),
+            ));
+        }
+        let mut outputs = Vec::new();
+        let mut inputs = Vec::new();
+        let mut seen = std::collections::BTreeSet::new();
+        for (i, t) in self.topics.iter().enumerate().take(MAX_TOPICS) {
+            let at = |key: &str| format!("topics[{i}].{key}");
+            if !filter::valid_topic(&t.topic) || t.topic.starts_with('$') {
+                errors.push(err(
+                    at("topic"),
+                    "not a topic name (no wildcards, not $...)",
+                ));
+                continue;
+            }
+            if topic::is_typed_namespace(&t.topic) || t.topic.starts_with(topic::BROKER_NAMESPACE) {
+                errors.push(err(
+                    at("topic"),
+                    "fb/, dinasore/, fbdk/ and fbbus/ are fbbus's own: a device's own topic is outside them",
+                ));
+                continue;
+            }
+            if !seen.insert(t.topic.as_str()) {
+                errors.push(err(at("topic"), "mapped twice"));
+                continue;
+            }
+            let enc = match t.encoding.as_deref().map(|e| encoding(e, &at("encoding"))) {
+                None => default_encoding,
+                Some(Ok(e)) => e,
+                Some(Err(e)) => {
+                    errors.push(e);
+                    continue;
+                }
+            };
+            let Some((fb, port)) = fb_port(&t.port) else {
+                errors.push(err(at("port"), "FB.PORT, both IEC 61131-3 identifiers"));
+                continue;
+            };
+            let own = OwnTopic {
+                topic: t.topic.clone(),
+                fb: fb.to_owned(),
+                port: port.to_owned(),
+                encoding: enc,
+            };
+            let is_output = interface.output(fb, port).is_some();
+            let is_input = interface.input(fb, port).is_some();
+            match (&t.from, is_output, is_input) {
+                (None, true, _) => outputs.push(own),
+                (None, false, true) => errors.push(err(
+                    at("from"),
+                    format!("{fb}.{port} is an input: name the typed output that feeds it, <device>/<FB>/<PORT>"),
+                )),
+                (Some(_), true, _) => errors.push(err(
+                    at("from"),
+                    format!("{fb}.{port} is an output: only an input topic has a from"),
+                )),
+                (Some(from), false, true) => match parse_source(from) {
+                    Some(from) => inputs.push(InputTopic { own, from }),
+                    None => errors.push(err(at("from"), "<device>/<FB>/<PORT>")),
+                },
+                (_, false, false) => errors.push(err(
+                    at("port"),
+                    format!("{fb}.{port} is not a port of the profile's interface"),
+                )),
+            }
+        }
+
+        let mut will = Vec::new();
+        for (port_text, value) in &self.will {
+            let at = format!("will.{port_text}");
+            let Some((fb, port)) = fb_port(port_text) else {
+                errors.push(err(at, "FB.PORT, both IEC 61131-3 identifiers"));
+                continue;
+            };
+            let Some(out) = interface.output(fb, port) else {
+                errors.push(err(
+                    at,
+                    format!("{fb}.{port} is not an output of the interface"),
+                ));
+                continue;
+            };
+            let payload = match (&out, value) {
+                (OutputPort::Data(_), v) => v.clone(),
+                (OutputPort::Event(_), v @ serde_json::Value::Object(_)) => {
+                    serde_json::json!({ "data": v })
+                }
+                (OutputPort::Event(_), _) => {
+                    errors.push(err(
+                        at,
+                        "an event port's will is a table of its WITH values",
+                    ));
+                    continue;
+                }
+            };
+            let payload = payload.to_string();
+            match crate::codec::json::decode_named(payload.as_bytes(), port, &out) {
+                Ok(_) => will.push((fb.to_owned(), port.to_owned(), payload)),
+                Err(e) => errors.push(err(at, e.to_string())),
+            }
+        }
+
+        if !errors.is_empty() {
+            return Err(errors);
+        }
+        Ok(Profile {
+            device: self.device,
+            identity,
+            interface,
+            fbdk_time_unit: self.speaks.fbdk_time_unit,
+            max_payload: self.speaks.max_payload,
+            string_numbers: self.speaks.string_numbers,
+            qos: self.speaks.qos,
+            outputs,
+            inputs,
+            will,
+        })
+    }
+}
+
+/// `<device>/<FB>/<PORT>`.
+fn parse_source(text: &str) -> Option<Source> {
+    let mut levels = text.split('/');
+    let (device, fb, port) = (levels.next()?, levels.next()?, levels.next()?);
+    (levels.next().is_none()
+        && topic::is_device_id(device)
+        && is_identifier(fb)
+        && is_identifier(port))
+    .then(|| Source {
+        device: device.to_owned(),
+        fb: fb.to_owned(),
+        port: port.to_owned(),
+    })
+}
+
+/// A DINASORE payload whose values were written as strings, the way DINASORE's
+/// publisher FB writes them (`{"SPEED": "3"}`, `str(value)`, so `"True"` for a BOOL),
+/// with each value of a numeric or BOOL port turned back into a JSON number or boolean
+/// where its string reads as one, so the ordinary decoder checks it. Values of other types
+/// (STRING, TIME, dates) and strings that read as no number are left as they are, for the
+/// decoder to accept or refuse. None if the payload is not a JSON object.
+pub fn unstring_numbers(payload: &[u8], port_name: &str, port: &OutputPort<'_>) -> Option<Vec<u8>> {
+    use serde_json::Value as J;
+    let J::Object(mut object) = serde_json::from_slice::<J>(payload).ok()? else {
+        return None;
+    };
+    let types: Vec<(&str, DataType)> = match port {
+        OutputPort::Data(t) => vec![(port_name, *t)],
+        OutputPort::Event(with) => with.clone(),
+    };
+    for (name, ty) in types {
+        let DataType::Elementary(t) = ty else {
+            continue;
+        };
+        let numeric = !matches!(
+            t,
+            ElementaryType::String
+                | ElementaryType::WString
+                | ElementaryType::Time
+                | ElementaryType::Date
+                | ElementaryType::TimeOfDay
+                | ElementaryType::DateAndTime
+        );
+        let Some(J::String(text)) = object.get(name) else {
+            continue;
+        };
+        let number = match text.trim() {
+            "True" | "TRUE" | "true" if t == ElementaryType::Bool => Some(J::Bool(true)),
+            "False" | "FALSE" | "false" if t == ElementaryType::Bool => Some(J::Bool(false)),
+            trimmed if numeric => serde_json::from_str::<serde_json::Number>(trimmed)
+                .ok()
+                .map(J::Number),
+            _ => None,
+        };
+        if let Some(number) = number {
+            object.insert(name.to_owned(), number);
+        }
+    }
+    serde_json::to_vec(&J::Object(object)).ok()
+}
+
+#[cfg(test)]
+mod tests;
