@@ -85,14 +85,18 @@ pub struct FbSection {
     /// (MQTT 5: 0x90), or "pass" them unchecked while migrating an untyped line.
     /// Declared ports are checked in both modes.
     pub undeclared: crate::policy::typed::Undeclared,
+    /// A directory of device profiles (`*.toml`, one per device): the declaration the
+    /// broker holds for a runtime that cannot send one (`profiles`). Relative to the
+    /// config file's directory. Empty: none. Reloaded when it changes.
+    pub profiles_dir: PathBuf,
     /// The unit of DATE, TIME_OF_DAY and DATE_AND_TIME in `fbdk/` payloads, read and
-    /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). One for the whole broker
-    /// until devices have profiles (issue 16).
+    /// written: "ns" (4diac FORTE 3.x) or "ms" (FORTE 2.0.x). A device's profile sets its
+    /// own unit on its own topics.
     pub fbdk_time_unit: fb_bridge::codec::fbdk::TimeUnit,
     /// The largest `fbdk/` payload delivered, in bytes: 4diac FORTE's MQTT layer copies a
     /// received message into a 255-byte buffer per subscription, and a longer one
-    /// corrupts that subscription's stream. 0: no limit. One for the whole broker until
-    /// devices have profiles (issue 16).
+    /// corrupts that subscription's stream. 0: no limit. A device's profile sets its
+    /// own limit on its own input topics (`speaks.max_payload`).
     pub fbdk_max_payload: usize,
     /// An online device is `silent` when none of its periodic outputs published for
     /// `silence_factor` times its period (observed), and at least `silence_min_s`
@@ -115,6 +119,7 @@ impl Default for FbSection {
     fn default() -> Self {
         FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
+            profiles_dir: PathBuf::new(),
             undeclared: Default::default(),
             fbdk_time_unit: Default::default(),
             fbdk_max_payload: crate::policy::typed::FORTE_RECEIVE_BUFFER,
@@ -361,6 +366,9 @@ impl Config {
         }
         if !self.fb.registry_file.as_os_str().is_empty() {
             fix(&mut self.fb.registry_file);
+        }
+        if !self.fb.profiles_dir.as_os_str().is_empty() {
+            fix(&mut self.fb.profiles_dir);
         }
         if let Some(tls) = self.bridge.as_mut().and_then(|b| b.tls.as_mut()) {
             fix(&mut tls.root_ca);

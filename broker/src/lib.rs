@@ -45,6 +45,7 @@ mod logging;
 mod memory;
 mod metrics;
 mod policy;
+pub mod profiles;
 mod registry;
 mod router;
 mod server;

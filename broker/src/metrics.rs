@@ -344,7 +344,7 @@ impl Metrics {
             ),
             reloads: counter_vec(
                 "fbbus_file_reloads_total",
-                "Password and ACL file reloads, by file and result",
+                "Password file, ACL file and profiles directory reloads, by file and result",
                 &["file", "result"],
             ),
             router_sessions: Arc::default(),

@@ -23,6 +23,7 @@ use crate::metrics::Metrics;
 use crate::policy::access::Access;
 use crate::policy::typed::FbTopics;
 use crate::policy::PublishPolicy;
+use crate::profiles::Profiles;
 use crate::registry::Registry;
 use crate::router::RouterHandle;
 use crate::session::lifetime::purge_evicted;
@@ -89,6 +90,7 @@ impl Broker {
             passwords,
             acl,
             mut tls,
+            profiles,
         } = Files::load(&config)?;
         let authenticator = Arc::new(
             Authenticator::new(&config.auth, passwords.clone(), Arc::clone(&metrics))
@@ -143,7 +145,8 @@ impl Broker {
                 publisher,
                 Arc::clone(&metrics),
             )
-            .with_fbdk_max_payload(config.fb.fbdk_max_payload),
+            .with_fbdk_max_payload(config.fb.fbdk_max_payload)
+            .with_profiles(Arc::clone(&profiles)),
         );
         // Who is told of subscriptions: typed-topic re-encoding, and the bus bridge, whose
         // handle exists before any client connects (it links the bus once started, below).
@@ -251,6 +254,7 @@ impl Broker {
             watch_files(
                 passwords,
                 acl,
+                profiles,
                 Duration::from_millis(config.auth.reload_poll_ms),
                 Arc::clone(&metrics),
                 shutdown_rx,
@@ -338,6 +342,7 @@ struct Files {
     acl: Option<Arc<WatchedFile<AclRules>>>,
     /// One entry per listener, in config order.
     tls: Vec<Option<TlsAcceptor>>,
+    profiles: Arc<Profiles>,
 }
 
 impl Files {
@@ -369,10 +374,20 @@ impl Files {
                     .transpose()
             })
             .collect::<Result<_, _>>()?;
+        let dir = &config.fb.profiles_dir;
+        let profiles = match dir.as_os_str().is_empty() {
+            true => Profiles::none(),
+            false => Profiles::load(dir).map_err(|message| StartError::File {
+                kind: "device profiles directory",
+                path: dir.display().to_string(),
+                message,
+            })?,
+        };
         Ok(Files {
             passwords,
             acl,
             tls,
+            profiles: Arc::new(profiles),
         })
     }
 }
@@ -404,10 +419,11 @@ fn load_watched<T>(
     })
 }
 
-/// Reloads the password and ACL files when they change, and at once on SIGHUP.
+/// Reloads the password and ACL files and the profiles directory when they change, and at once on SIGHUP.
 async fn watch_files(
     passwords: Option<Arc<WatchedFile<PasswordFile>>>,
     acl: Option<Arc<WatchedFile<AclRules>>>,
+    profiles: Arc<Profiles>,
     poll: Duration,
     metrics: Arc<Metrics>,
     mut shutdown: watch::Receiver<bool>,
@@ -435,5 +451,6 @@ async fn watch_files(
         if let Some(a) = &acl {
             a.reload(force, &metrics);
         }
+        profiles.reload(force, &metrics);
     }
 }

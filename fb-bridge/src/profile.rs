@@ -68,6 +68,12 @@ pub struct IdentityFile {
     /// The verified username (for a client id chosen at random, or left empty).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub username: Option<String>,
+    /// Recognised by its own output topics only: a runtime with a random or empty client
+    /// id and no username (DINASORE's MQTT FBs). A publication on one of its output topics
+    /// is the device's when the access rules let the client publish there and the client
+    /// is not recognised as another device.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub topics_only: bool,
 }
 
 /// How the device speaks on its own topics.
@@ -148,6 +154,8 @@ pub enum Identity {
     ClientId(String),
     ClientIdPrefix(String),
     Username(String),
+    /// See [`IdentityFile::topics_only`]: no connection is the device.
+    TopicsOnly,
 }
 
 impl Identity {
@@ -157,6 +165,7 @@ impl Identity {
             Identity::ClientId(id) => client_id == id,
             Identity::ClientIdPrefix(prefix) => client_id.starts_with(prefix.as_str()),
             Identity::Username(user) => username == Some(user.as_str()),
+            Identity::TopicsOnly => false,
         }
     }
 }
@@ -231,15 +240,20 @@ impl ProfileFile {
             self.identity.client_id,
             self.identity.client_id_prefix,
             self.identity.username,
+            self.identity.topics_only,
         ) {
-            (None, None, None) => Identity::ClientId(self.device.clone()),
-            (Some(id), None, None) => Identity::ClientId(id),
-            (None, Some(prefix), None) if !prefix.is_empty() => Identity::ClientIdPrefix(prefix),
-            (None, None, Some(user)) if !user.is_empty() => Identity::Username(user),
+            (None, None, None, false) => Identity::ClientId(self.device.clone()),
+            (Some(id), None, None, false) => Identity::ClientId(id),
+            (None, Some(prefix), None, false) if !prefix.is_empty() => {
+                Identity::ClientIdPrefix(prefix)
+            }
+            (None, None, Some(user), false) if !user.is_empty() => Identity::Username(user),
+            (None, None, None, true) => Identity::TopicsOnly,
             _ => {
                 errors.push(err(
                     "identity",
-                    "give one of client_id, client_id_prefix (not empty) or username (not empty)",
+                    "give one of client_id, client_id_prefix (not empty), username (not empty) \
+                     or topics_only = true",
                 ));
                 Identity::ClientId(self.device.clone())
             }

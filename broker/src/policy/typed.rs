@@ -27,13 +27,15 @@ use std::time::SystemTime;
 
 use bytes::Bytes;
 use fb_bridge::codec::{self, fbdk, Encoding};
+use fb_bridge::profile::{self as profile_file, Identity, Profile, Source};
 use fb_bridge::topic::{self, TypedTopic};
-use fb_bridge::{Declaration, Interface, Message};
+use fb_bridge::{Declaration, DeclarationError, Interface, Message, OutputPort};
 use serde::Deserialize;
 use serde_json::json;
 
 use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
+use crate::profiles::{ProfileSet, Profiles};
 use crate::registry::Registry;
 use crate::session::SubscriptionObserver;
 use crate::silence::Activity;
@@ -112,6 +114,8 @@ pub struct FbTopics {
     pub fbdk_unit: fbdk::TimeUnit,
     /// The largest `fbdk/` payload delivered (0: no limit); see [`FORTE_RECEIVE_BUFFER`].
     fbdk_max_payload: usize,
+    /// The device profiles (`[fb] profiles_dir`).
+    pub profiles: Arc<Profiles>,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
     /// Per encoding: someone subscribed to a filter that can match its namespace, so
@@ -141,6 +145,7 @@ impl FbTopics {
             anonymous_devices,
             fbdk_unit,
             fbdk_max_payload: FORTE_RECEIVE_BUFFER,
+            profiles: Arc::new(Profiles::none()),
             publisher,
             metrics,
             mirrors: Default::default(),
@@ -151,6 +156,12 @@ impl FbTopics {
     /// (0: no limit).
     pub fn with_fbdk_max_payload(mut self, bytes: usize) -> FbTopics {
         self.fbdk_max_payload = bytes;
+        self
+    }
+
+    /// The device profiles the typed check and CONNECT consult.
+    pub fn with_profiles(mut self, profiles: Arc<Profiles>) -> FbTopics {
+        self.profiles = profiles;
         self
     }
 
@@ -199,13 +210,19 @@ const DIAG_BURST: f64 = 20.0;
 
 /// One connection's typed-topic state.
 pub struct FbSession {
+    /// The device it speaks for: its client id, or its profile's device id.
     device: String,
+    /// The connection's client id, which the access rules see.
+    client_id: String,
     /// No password file is configured: a client id alone identifies a device.
     anonymous_devices: bool,
     username: Option<String>,
     session: u64,
     /// The device's declared interface, once it has one.
     interface: Option<Arc<Interface>>,
+    /// The device's profile, when its connection was recognised by one at CONNECT: the
+    /// device id and interface are the profile's.
+    profile: Option<Arc<Profile>>,
     /// Where accepted publications on the interface's outputs are timed (`silence`); None
     /// for a connection that does not speak for a local device (the bus door's).
     activity: Option<Arc<Activity>>,
@@ -227,10 +244,12 @@ impl FbSession {
     pub fn new(fb: &FbTopics, device: &str, username: Option<&str>, session: u64) -> FbSession {
         FbSession {
             device: device.to_owned(),
+            client_id: device.to_owned(),
             anonymous_devices: fb.anonymous_devices,
             username: username.map(str::to_owned),
             session,
             interface: None,
+            profile: None,
             activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
@@ -251,6 +270,24 @@ impl FbSession {
         self.interface.as_ref()
     }
 
+    /// The device this connection speaks for: its client id, or its profile's device.
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+
+    /// The profile that recognised this connection, if any.
+    pub fn profile(&self) -> Option<&Arc<Profile>> {
+        self.profile.as_ref()
+    }
+
+    /// At CONNECT: the profile `profile` recognised this connection, so it is that device,
+    /// with the profile's interface (`interface`, as the registry now holds it).
+    pub fn set_profile(&mut self, profile: Arc<Profile>, interface: Arc<Interface>) {
+        self.device.clone_from(&profile.device);
+        self.profile = Some(profile);
+        self.interface = Some(interface);
+    }
+
     /// The interface the registry had for this device when it connected.
     pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
         self.interface = interface;
@@ -266,7 +303,7 @@ impl FbSession {
     pub fn identity(&self) -> security::Identity<'_> {
         security::Identity {
             username: self.username.as_deref(),
-            client_id: &self.device,
+            client_id: &self.client_id,
         }
     }
 
@@ -276,6 +313,10 @@ impl FbSession {
     /// broker with no password file at all (a loopback test line): once passwords exist,
     /// an anonymous client (a loopback listener with `allow_anonymous`) speaks for no device.
     pub fn identity_verified(&self) -> bool {
+        if self.profile.is_some() {
+            // `ProfileSet::identify` matched it, username included.
+            return true;
+        }
         match self.username.as_deref() {
             Some(user) => user == self.device,
             None => self.anonymous_devices,
@@ -323,6 +364,18 @@ impl FbSession {
                 "fbbus/ topics are published by the broker, except fbbus/declare/<your client id>",
             );
         }
+        let profiles = fb.profiles.get();
+        if profiles.maps_topics() {
+            if let Some((profile, i)) = profiles.output(topic) {
+                return self.own_topic(fb, &profiles, profile, i, payload);
+            }
+            if profiles.is_input_topic(topic) {
+                return refuse(
+                    Refusal::NotAuthorized,
+                    "an input topic of a device profile: the broker publishes it",
+                );
+            }
+        }
         let Some(typed) = TypedTopic::parse(topic) else {
             if topic::is_typed_namespace(topic) && fb.undeclared == Undeclared::Reject {
                 return refuse(
@@ -358,7 +411,7 @@ impl FbSession {
             };
         };
         let decoded = codec::decode(typed.encoding, payload, typed.port, &port, fb.fbdk_unit);
-        let mut message = match decoded {
+        let message = match decoded {
             Ok(m) => m,
             Err(e) => {
                 return refuse(
@@ -367,7 +420,99 @@ impl FbSession {
                 )
             }
         };
-        let stamped = self.stamp(&typed, &mut message);
+        self.accepted(fb, &profiles, &typed, &port, message, payload, None)
+    }
+
+    /// A publication on `profile`'s own output topic number `i`: the device's, decoded
+    /// the way it speaks, then routed like a typed publication of that port, on its own
+    /// topic (first, as it came) and on the typed topics.
+    fn own_topic(
+        &mut self,
+        fb: &FbTopics,
+        profiles: &ProfileSet,
+        profile: &Arc<Profile>,
+        i: usize,
+        payload: &Bytes,
+    ) -> Check {
+        let Some(own) = profile.outputs.get(i) else {
+            return Check::Pass;
+        };
+        // Whose it is: the device the profile recognised, or, for a device recognised by
+        // its topics only (a random client id), a client the ACL let publish here that
+        // is not recognised as another device. Never a known other device: the stolen-
+        // topic rule.
+        let mine = match &self.profile {
+            Some(p) => p.device == profile.device,
+            None => {
+                profile.identity == Identity::TopicsOnly
+                    && self.username.as_deref().is_none_or(|u| u == profile.device)
+            }
+        };
+        if !mine {
+            return refuse(
+                Refusal::NotAuthorized,
+                format!(
+                    "{} is device {}'s own topic (its profile): only that device publishes it",
+                    own.topic, profile.device
+                ),
+            );
+        }
+        let Some(port) = profile.interface.output(&own.fb, &own.port) else {
+            return Check::Pass;
+        };
+        let unstrung;
+        let bytes = match profile.string_numbers && own.encoding != Encoding::Fbdk {
+            true => match profile_file::unstring_numbers(payload, &own.port, &port) {
+                Some(b) => {
+                    unstrung = b;
+                    &unstrung[..]
+                }
+                None => &payload[..],
+            },
+            false => &payload[..],
+        };
+        let decoded = codec::decode(
+            own.encoding,
+            bytes,
+            &own.port,
+            &port,
+            profile.fbdk_time_unit,
+        );
+        let message = match decoded {
+            Ok(m) => m,
+            Err(e) => {
+                return refuse(
+                    Refusal::PayloadFormatInvalid,
+                    format!("{} ({}.{}): {e}", own.topic, own.fb, own.port),
+                )
+            }
+        };
+        let typed = TypedTopic {
+            encoding: Encoding::Json,
+            device: &profile.device,
+            fb: &own.fb,
+            port: &own.port,
+        };
+        let first = (own.topic.clone(), payload.clone());
+        self.accepted(fb, profiles, &typed, &port, message, payload, Some(first))
+    }
+
+    /// An accepted typed message on `typed` (port shape `port`): stamped, timed, and
+    /// routed on `fb/` (canonical JSON), on the other typed namespaces someone reads, and
+    /// on the profile input topics it feeds. `own`: it came on a device's own topic,
+    /// routed first as it came.
+    #[allow(clippy::too_many_arguments)]
+    fn accepted(
+        &mut self,
+        fb: &FbTopics,
+        profiles: &ProfileSet,
+        typed: &TypedTopic<'_>,
+        port: &OutputPort<'_>,
+        mut message: Message,
+        payload: &Bytes,
+        own: Option<(String, Bytes)>,
+    ) -> Check {
+        let stamped = self.stamp(typed, &mut message);
         fb.metrics.typed_accepted.inc();
         if let Some(activity) = &self.activity {
             activity.published(
@@ -377,30 +522,49 @@ impl FbSession {
                 fb.registry.silence_bound(),
             );
         }
+        let source = Source {
+            device: typed.device.to_owned(),
+            fb: typed.fb.to_owned(),
+            port: typed.port.to_owned(),
+        };
+        let feeds = match profiles.maps_topics() {
+            true => profiles.feeds(&source),
+            false => &[],
+        };
         // Subscribers of fb/ always get canonical JSON. JSON that came in complete (nothing
         // stamped) on a port whose types have one JSON form is canonical already and is
         // routed as it came; other accepted forms (`"16#FF"`, `"TIME#1.5s"`, ...) are
         // re-encoded. The other encodings have one form each: their bytes pass through.
-        let json_as_is = typed.encoding == Encoding::Json && !stamped && port.has_one_json_form();
+        let json_as_is = own.is_none()
+            && typed.encoding == Encoding::Json
+            && !stamped
+            && port.has_one_json_form();
         let mut mirrors = Encoding::ALL
             .into_iter()
             .filter(|e| *e != Encoding::Json && fb.mirrored(*e))
             .peekable();
-        if json_as_is && mirrors.peek().is_none() {
+        if json_as_is && mirrors.peek().is_none() && feeds.is_empty() {
             return Check::Pass;
         }
-        let mut routes = Vec::with_capacity(Encoding::ALL.len());
+        let mut routes = Vec::with_capacity(Encoding::ALL.len() + 1 + feeds.len());
+        routes.extend(own.clone());
         for e in std::iter::once(Encoding::Json).chain(mirrors) {
-            let as_is = e == typed.encoding && (e != Encoding::Json || json_as_is);
+            let as_is = own.is_none() && e == typed.encoding && (e != Encoding::Json || json_as_is);
             let bytes = if as_is {
                 payload.clone()
             } else {
                 // Only `fbdk` can fail (a date its time unit cannot carry), never `fb/`,
                 // so the publication's own route is always the first.
-                match codec::encode(e, &message, typed.port, &port, fb.fbdk_unit) {
+                match codec::encode(e, &message, typed.port, port, fb.fbdk_unit) {
                     Ok(bytes) => Bytes::from(bytes),
                     Err(error) => {
-                        self.not_reencoded(fb, &typed, e, &error.to_string());
+                        self.not_reencoded(
+                            fb,
+                            &typed.in_encoding(e),
+                            e.namespace(),
+                            typed,
+                            &error.to_string(),
+                        );
                         continue;
                     }
                 }
@@ -413,44 +577,108 @@ impl FbSession {
                     bytes.len(),
                     fb.fbdk_max_payload
                 );
-                self.not_reencoded(fb, &typed, e, &why);
+                self.not_reencoded(fb, &typed.in_encoding(e), e.namespace(), typed, &why);
                 continue;
             }
             routes.push((typed.in_encoding(e), bytes));
         }
+        for (profile, i) in feeds {
+            if let Some(route) = self.feed(fb, profile, *i, typed, port, &message) {
+                routes.push(route);
+            }
+        }
         Check::Route(routes)
     }
 
-    /// An accepted message `encoding` cannot carry (a DATE_AND_TIME after 2554 in `fbdk`
-    /// nanoseconds, or an `fbdk` payload longer than its subscribers can take in): its
+    /// The message of `typed` (shape `port`) encoded for `profile`'s input topic number
+    /// `i`, the way that device reads it; None, with a diagnostic for the publisher, when
+    /// the input's types differ from the output's or the message is larger than the
+    /// device can take in.
+    fn feed(
+        &mut self,
+        fb: &FbTopics,
+        profile: &Profile,
+        i: usize,
+        typed: &TypedTopic<'_>,
+        port: &OutputPort<'_>,
+        message: &Message,
+    ) -> Option<(String, Bytes)> {
+        let input = profile.inputs.get(i)?;
+        let own = &input.own;
+        let shape = profile.interface.input(&own.fb, &own.port)?;
+        let types = |p: &OutputPort<'_>| match p {
+            OutputPort::Data(t) => vec![*t],
+            OutputPort::Event(with) => with.iter().map(|(_, t)| *t).collect(),
+        };
+        let fits = matches!(
+            (port, &shape),
+            (OutputPort::Data(_), OutputPort::Data(_))
+                | (OutputPort::Event(_), OutputPort::Event(_))
+        ) && types(port) == types(&shape);
+        let bytes = match fits {
+            false => Err(format!(
+                "feeds {}.{} of device {} ({}), whose types differ: not delivered there",
+                own.fb, own.port, profile.device, own.topic
+            )),
+            true => codec::encode(
+                own.encoding,
+                message,
+                &own.port,
+                &shape,
+                profile.fbdk_time_unit,
+            )
+            .map_err(|e| e.to_string()),
+        };
+        let bytes = match bytes {
+            Ok(b) if profile.max_payload > 0 && b.len() > profile.max_payload => Err(format!(
+                "{} bytes for {} ({}), more than its profile's max_payload ({})",
+                b.len(),
+                own.topic,
+                profile.device,
+                profile.max_payload
+            )),
+            other => other,
+        };
+        match bytes {
+            Ok(b) => Some((own.topic.clone(), Bytes::from(b))),
+            Err(why) => {
+                self.not_reencoded(fb, &own.topic, "profile", typed, &why);
+                None
+            }
+        }
+    }
+
+    /// An accepted message a topic cannot carry (a DATE_AND_TIME after 2554 in `fbdk`
+    /// nanoseconds, an `fbdk` payload longer than its subscribers can take in, a profile
+    /// input topic whose device reads other types or smaller messages): its
     /// subscribers do not get it, which is counted, logged once per topic and described to
     /// the publisher on `fbbus/diag/<device>`, as a refusal is.
     fn not_reencoded(
         &mut self,
         fb: &FbTopics,
+        topic: &str,
+        namespace: &'static str,
         typed: &TypedTopic<'_>,
-        encoding: Encoding,
         why: &str,
     ) {
-        let topic = typed.in_encoding(encoding);
         let detail = format!("{}.{}: {why}", typed.fb, typed.port);
         fb.metrics
             .typed_not_reencoded
-            .with_label_values(&[encoding.namespace()])
+            .with_label_values(&[namespace])
             .inc();
-        if self.logged.len() < 1024 && self.logged.insert((topic.clone(), "not_reencoded")) {
+        if self.logged.len() < 1024 && self.logged.insert((topic.to_owned(), "not_reencoded")) {
             tracing::warn!(
                 device = self.device,
                 topic,
                 detail,
-                "typed publication not delivered in this encoding, which cannot carry it \
+                "typed publication not delivered on this topic, which cannot carry it \
                  (logged once per topic)"
             );
         }
         self.diag(json!({
             "kind": "not_reencoded",
             "topic": topic,
-            "namespace": encoding.namespace(),
+            "namespace": namespace,
             "detail": detail,
         }));
     }
@@ -486,7 +714,19 @@ impl FbSession {
         }
         let validated = Declaration::from_json(payload)
             .map_err(|e| vec![e])
-            .and_then(Declaration::validate);
+            .and_then(Declaration::validate)
+            .and_then(|interface| match &self.profile {
+                // A profiled device declares what its profile says, or nothing.
+                Some(profile) if profile.interface != interface => Err(vec![DeclarationError {
+                    fb: None,
+                    port: None,
+                    error: format!(
+                        "differs from the interface of device {}'s profile, which stays in force",
+                        profile.device
+                    ),
+                }]),
+                _ => Ok(interface),
+            });
         match validated {
             Ok(interface) => {
                 let fbs = interface.fbs.len();

@@ -10,9 +10,12 @@ use tokio::time::timeout;
 use super::lifetime::end_idle_session;
 use super::packet_ids::Resume;
 use super::Session;
+use crate::context::Context;
 use crate::metrics::DisconnectReason;
+use crate::policy::typed::FbSession;
 use crate::policy::{Admission, Door, Publication};
 use crate::router::unlink;
+use crate::wills::Will;
 use crate::wire::codec::Version;
 
 /// Why a session ended.
@@ -135,44 +138,11 @@ impl Session {
             let _ = unlink(self.link_tx).await;
         }
         let will = self.will.take().filter(|_| end.fires_will());
+        let own_will = will.is_some();
+        let (ctx, session) = (&self.ctx, self.session);
+        let (client_id, username) = (&*self.client_id, self.username.as_deref());
         if let Some(will) = will.map(|w| *w) {
-            let owner = self.ctx.identity.owner(self.username.as_deref());
-            // A will on a typed topic is a publication like any other: checked against
-            // the declaration now, and re-encoded like one (the reference line's CONNECT
-            // FB sets a BOOL output to FALSE this way).
-            let topic = String::from_utf8_lossy(&will.topic).into_owned();
-            let publication = Publication {
-                topic: &topic,
-                payload: &will.payload,
-                qos: will.qos,
-                retain: will.retain,
-            };
-            let admission =
-                self.ctx
-                    .policy
-                    .admit(Door::Will, &mut self.fb, &self.client_id, publication);
-            match admission {
-                Admission::Route { routes: None, .. } => {
-                    self.ctx
-                        .wills
-                        .fire(&self.client_id, self.session, &owner, will)
-                }
-                Admission::Route {
-                    routes: Some(routes),
-                    ..
-                } => {
-                    for (topic, payload) in routes {
-                        let mut copy = will.clone();
-                        copy.topic = topic.into();
-                        copy.payload = payload;
-                        self.ctx
-                            .wills
-                            .fire(&self.client_id, self.session, &owner, copy);
-                    }
-                }
-                Admission::Consumed | Admission::Refused { .. } => {}
-            }
-            self.ctx.fb.publish(self.fb.take_outbox());
+            fire_will(ctx, &mut self.fb, client_id, session, username, will);
         }
         // A clean session's subscriptions end with it; a persistent session's stay (the
         // router keeps queueing for it), and so does the bridge's import of them.
@@ -181,11 +151,40 @@ impl Session {
                 self.ctx.observers.unsubscribed(f);
             }
         }
-        self.ctx.fb.registry.disconnected(
-            &self.client_id,
+        let offline = self.ctx.fb.registry.disconnected(
+            self.fb.device(),
             self.session,
             end.reason().description(),
         );
+        // A profile's broker-side will, for a runtime that cannot set one: when the device
+        // is offline (not when a newer connection of it took over), and not besides a
+        // will the device did set.
+        if offline && !own_will {
+            let values = self
+                .fb
+                .profile()
+                .map(|p| (p.device.clone(), p.will.clone()));
+            for (device, (fb, port, payload)) in values
+                .into_iter()
+                .flat_map(|(device, will)| will.into_iter().map(move |w| (device.clone(), w)))
+            {
+                fire_will(
+                    ctx,
+                    &mut self.fb,
+                    client_id,
+                    session,
+                    username,
+                    Will {
+                        topic: format!("fb/{device}/{fb}/{port}").into(),
+                        payload: payload.into(),
+                        qos: 1,
+                        retain: false,
+                        properties: None,
+                        delay: Duration::ZERO,
+                    },
+                );
+            }
+        }
         // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0); later
         // ones are the expiry task's (`lifetime::expire_sessions`).
         if self.lifetime.expires_after == Some(Duration::ZERO) {
@@ -200,4 +199,42 @@ impl Session {
             "client disconnected"
         );
     }
+}
+
+/// Publishes `will`, the client's or its profile's, as the publication it is: checked
+/// against the access rules and the interface in force now, and re-encoded like one (the
+/// reference line's CONNECT FB sets a BOOL output to FALSE this way).
+fn fire_will(
+    ctx: &Context,
+    fb: &mut FbSession,
+    client_id: &str,
+    session: u64,
+    username: Option<&str>,
+    will: Will,
+) {
+    let owner = ctx.identity.owner(username);
+    let topic = String::from_utf8_lossy(&will.topic).into_owned();
+    let publication = Publication {
+        topic: &topic,
+        payload: &will.payload,
+        qos: will.qos,
+        retain: will.retain,
+    };
+    let origin: std::sync::Arc<str> = client_id.into();
+    match ctx.policy.admit(Door::Will, fb, &origin, publication) {
+        Admission::Route { routes: None, .. } => ctx.wills.fire(client_id, session, &owner, will),
+        Admission::Route {
+            routes: Some(routes),
+            ..
+        } => {
+            for (topic, payload) in routes {
+                let mut copy = will.clone();
+                copy.topic = topic.into();
+                copy.payload = payload;
+                ctx.wills.fire(client_id, session, &owner, copy);
+            }
+        }
+        Admission::Consumed | Admission::Refused { .. } => {}
+    }
+    ctx.fb.publish(fb.take_outbox());
 }

@@ -130,7 +130,16 @@ impl Session {
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
         let mut fb = FbSession::new(&ctx.fb, &client_id, username.as_deref(), linked.session);
-        if fb.identity_verified() {
+        let profiles = ctx.fb.profiles.get();
+        if let Some(profile) = profiles.identify(&client_id, username.as_deref()) {
+            // A device its profile recognises is online with the profile's interface, as
+            // if it had declared it.
+            let registry = &ctx.fb.registry;
+            let interface =
+                registry.declare(&profile.device, linked.session, profile.interface.clone());
+            fb.set_profile(std::sync::Arc::clone(profile), interface);
+            fb.set_activity(registry.activity(&profile.device));
+        } else if fb.identity_verified() {
             fb.set_interface(ctx.fb.registry.connected(&client_id, linked.session));
             fb.set_activity(ctx.fb.registry.activity(&client_id));
         }
@@ -141,6 +150,7 @@ impl Session {
             username = username.as_deref().unwrap_or(""),
             version = ?version,
             keep_alive = keep_alive_s,
+            profile = fb.profile().map(|p| p.device.as_str()),
             "client connected"
         );
         let ids = resume(ctx, &client_id, &linked, lifetime).await;

@@ -1,0 +1,420 @@
+//! The device profiles the broker holds: `[fb] profiles_dir`, one TOML file per device.
+//!
+//! A profile ([`fb_bridge::profile`]) stands in for the declaration a 4diac FORTE or
+//! DINASORE runtime cannot send. The broker uses it at three points of the packet path:
+//!
+//! - **CONNECT** (`session::connect`): a connection its identity matches *is* the device:
+//!   typed topics under the profile's device id, the profile's interface, registry online.
+//!   A declaration the device sends anyway must equal its profile's interface.
+//! - **the typed check** (`policy::typed`): a publication on one of the profile's own
+//!   output topics is decoded the way the device speaks, checked against the port, and
+//!   routed on its own topic and on the typed topics; an accepted message on a typed
+//!   output that feeds a profile's input topic is also sent there, encoded for that device.
+//! - **the end of the connection** (`session::close`): the profile's broker-side will.
+//!
+//! **Loading.** Every `*.toml` in the directory is read and validated at start (an error
+//! stops the broker, naming the file and the key) and again whenever the directory's
+//! listing or a file's size, time or inode changes, polled like the password file; a
+//! reload that fails keeps the last good set, with the error logged and counted
+//! (`fbbus_file_reloads_total{file="profiles_dir"}`), because one half-written file must
+//! not untype a whole line. Profiles apply to connections from their next CONNECT.
+//!
+//! **Bounds.** At most [`MAX_PROFILES`] files of at most [`MAX_FILE_BYTES`] each, and
+//! [`fb_bridge::profile::MAX_TOPICS`] topics per profile: the operator fills this table,
+//! not clients, but a stray directory must not exhaust the broker either.
+//!
+//! **One owner per topic and per device.** Two profiles with the same device id or the
+//! same own topic refuse the whole set: a topic that two devices could publish would let
+//! one speak for the other (the stolen-topic rule, `docs/runtimes.md`).
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, PoisonError, RwLock};
+use std::time::SystemTime;
+
+use fb_bridge::profile::{Profile, ProfileFile, Source};
+
+use crate::metrics::Metrics;
+
+/// Most profile files read from the directory.
+pub const MAX_PROFILES: usize = 10_000;
+/// Largest profile file read, in bytes.
+pub const MAX_FILE_BYTES: u64 = 1 << 20;
+
+/// The profiles in force, indexed the ways the packet path asks.
+#[derive(Debug, Default)]
+pub struct ProfileSet {
+    by_device: HashMap<String, Arc<Profile>>,
+    /// Own output topic → (profile, index in `outputs`).
+    outputs: HashMap<String, (Arc<Profile>, usize)>,
+    /// Typed output → the input topics it feeds, as (profile, index in `inputs`).
+    feeds: HashMap<Source, Vec<(Arc<Profile>, usize)>>,
+    /// Every input topic.
+    inputs: std::collections::HashSet<String>,
+}
+
+impl ProfileSet {
+    /// Indexes `profiles` (by file name, for errors); refuses duplicates.
+    pub fn new(profiles: Vec<(String, Profile)>) -> Result<ProfileSet, String> {
+        let mut set = ProfileSet::default();
+        let mut files: HashMap<String, String> = HashMap::new();
+        for (file, profile) in profiles {
+            let profile = Arc::new(profile);
+            if let Some(other) = files.insert(profile.device.clone(), file.clone()) {
+                return Err(format!(
+                    "{file}: device {} already has a profile in {other}",
+                    profile.device
+                ));
+            }
+            for (i, out) in profile.outputs.iter().enumerate() {
+                let owner = (Arc::clone(&profile), i);
+                if let Some((other, _)) = set.outputs.insert(out.topic.clone(), owner) {
+                    return Err(format!(
+                        "{file}: topic {} is already device {}'s: one device per topic",
+                        out.topic, other.device
+                    ));
+                }
+            }
+            for (i, input) in profile.inputs.iter().enumerate() {
+                set.inputs.insert(input.own.topic.clone());
+                set.feeds
+                    .entry(input.from.clone())
+                    .or_default()
+                    .push((Arc::clone(&profile), i));
+            }
+            set.by_device.insert(profile.device.clone(), profile);
+        }
+        // An input topic is the broker's to publish: no device may also publish it.
+        for feeds in set.feeds.values() {
+            for (profile, i) in feeds {
+                let topic = &profile.inputs[*i].own.topic;
+                if let Some((other, _)) = set.outputs.get(topic) {
+                    return Err(format!(
+                        "topic {topic} is an input of device {} and an output of device {}",
+                        profile.device, other.device
+                    ));
+                }
+            }
+        }
+        Ok(set)
+    }
+
+    pub fn len(&self) -> usize {
+        self.by_device.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.by_device.is_empty()
+    }
+
+    pub fn get(&self, device: &str) -> Option<&Arc<Profile>> {
+        self.by_device.get(device)
+    }
+
+    /// The profile a connection with this client id and verified username is, if any.
+    ///
+    /// A client-id identity is as strong as the listener that let the client in; a
+    /// client logged in as another device's username is that device, never this one.
+    pub fn identify(&self, client_id: &str, username: Option<&str>) -> Option<&Arc<Profile>> {
+        use fb_bridge::profile::Identity;
+        // The common case, a FORTE device whose client id is its device id, in O(1).
+        let exact = self
+            .by_device
+            .get(client_id)
+            .filter(|p| p.identity == Identity::ClientId(client_id.to_owned()));
+        let profile = exact.or_else(|| {
+            self.by_device
+                .values()
+                .find(|p| p.identity.matches(client_id, username))
+        })?;
+        let claimed = match &profile.identity {
+            Identity::Username(_) => true,
+            Identity::ClientId(_) | Identity::ClientIdPrefix(_) => {
+                username.is_none_or(|u| u == profile.device)
+            }
+            Identity::TopicsOnly => false,
+        };
+        claimed.then_some(profile)
+    }
+
+    /// The device and port whose own output topic `topic` is.
+    pub fn output(&self, topic: &str) -> Option<(&Arc<Profile>, usize)> {
+        self.outputs.get(topic).map(|(p, i)| (p, *i))
+    }
+
+    /// The input topics fed by the typed output `device/fb/port`.
+    pub fn feeds(&self, source: &Source) -> &[(Arc<Profile>, usize)] {
+        self.feeds.get(source).map_or(&[], Vec::as_slice)
+    }
+
+    /// Whether `topic` is some profile's input topic (the broker publishes it).
+    pub fn is_input_topic(&self, topic: &str) -> bool {
+        self.inputs.contains(topic)
+    }
+
+    /// Whether any profile maps own topics (the typed check looks them up only then).
+    pub fn maps_topics(&self) -> bool {
+        !self.outputs.is_empty() || !self.feeds.is_empty()
+    }
+}
+
+/// Reads and validates one profile file.
+pub fn read_file(path: &Path) -> Result<Profile, String> {
+    let name = path.display();
+    let len = std::fs::metadata(path)
+        .map_err(|e| format!("{name}: {e}"))?
+        .len();
+    if len > MAX_FILE_BYTES {
+        return Err(format!(
+            "{name}: {len} bytes; a profile is at most {MAX_FILE_BYTES}"
+        ));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{name}: {e}"))?;
+    parse(&text).map_err(|e| format!("{name}: {e}"))
+}
+
+/// Parses and validates a profile written in TOML; the error lists every mistake.
+pub fn parse(text: &str) -> Result<Profile, String> {
+    let file: ProfileFile = toml::from_str(text).map_err(|e| e.to_string())?;
+    file.validate().map_err(|errors| {
+        errors
+            .iter()
+            .map(ToString::to_string)
+            .collect::<Vec<_>>()
+            .join("; ")
+    })
+}
+
+/// Reads every `*.toml` of `dir`, in name order.
+pub fn read_dir(dir: &Path) -> Result<ProfileSet, String> {
+    let mut profiles = Vec::new();
+    for path in profile_files(dir)? {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        profiles.push((name, read_file(&path)?));
+    }
+    ProfileSet::new(profiles)
+}
+
+fn profile_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let entries = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut files = Vec::new();
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let toml = path.extension().is_some_and(|e| e == "toml");
+        // Editors' and `fbbus declare`'s temporary files start with a dot.
+        let hidden = entry.file_name().to_string_lossy().starts_with('.');
+        if toml && !hidden && path.is_file() {
+            files.push(path);
+            if files.len() > MAX_PROFILES {
+                return Err(format!(
+                    "{}: more than {MAX_PROFILES} profile files",
+                    dir.display()
+                ));
+            }
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// What tells a changed directory from an unchanged one without reading its files.
+type DirStamp = BTreeMap<PathBuf, (Option<SystemTime>, u64, u64)>;
+
+fn dir_stamp(dir: &Path) -> Option<DirStamp> {
+    let files = profile_files(dir).ok()?;
+    Some(
+        files
+            .into_iter()
+            .filter_map(|path| {
+                let meta = std::fs::metadata(&path).ok()?;
+                #[cfg(unix)]
+                let inode = std::os::unix::fs::MetadataExt::ino(&meta);
+                #[cfg(not(unix))]
+                let inode = 0;
+                Some((path, (meta.modified().ok(), meta.len(), inode)))
+            })
+            .collect(),
+    )
+}
+
+/// The profiles in force, reloaded from their directory when it changes.
+pub struct Profiles {
+    dir: Option<PathBuf>,
+    current: RwLock<Arc<ProfileSet>>,
+    stamp: Mutex<Option<DirStamp>>,
+}
+
+impl Profiles {
+    /// No profiles: every device declares itself.
+    pub fn none() -> Profiles {
+        Profiles {
+            dir: None,
+            current: RwLock::default(),
+            stamp: Mutex::default(),
+        }
+    }
+
+    /// Loads `dir` once; an error here stops the broker from starting.
+    pub fn load(dir: &Path) -> Result<Profiles, String> {
+        let stamp = dir_stamp(dir);
+        let set = read_dir(dir)?;
+        tracing::info!(dir = %dir.display(), profiles = set.len(), "device profiles loaded");
+        Ok(Profiles {
+            dir: Some(dir.to_owned()),
+            current: RwLock::new(Arc::new(set)),
+            stamp: Mutex::new(stamp),
+        })
+    }
+
+    pub fn dir(&self) -> Option<&Path> {
+        self.dir.as_deref()
+    }
+
+    /// The profiles now.
+    pub fn get(&self) -> Arc<ProfileSet> {
+        self.current
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Reloads if the directory changed (`force`: anyway). Returns whether a new set is
+    /// in force.
+    pub fn reload(&self, force: bool, metrics: &Metrics) -> bool {
+        let Some(dir) = &self.dir else {
+            return false;
+        };
+        let now = dir_stamp(dir);
+        {
+            let mut stamp = self.stamp.lock().unwrap_or_else(PoisonError::into_inner);
+            if !force && *stamp == now {
+                return false;
+            }
+            *stamp = now;
+        }
+        match read_dir(dir) {
+            Ok(set) => {
+                let count = set.len();
+                *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(set);
+                metrics
+                    .reloads
+                    .with_label_values(&["profiles_dir", "ok"])
+                    .inc();
+                tracing::info!(dir = %dir.display(), profiles = count, "device profiles reloaded");
+                true
+            }
+            Err(e) => {
+                metrics
+                    .reloads
+                    .with_label_values(&["profiles_dir", "error"])
+                    .inc();
+                tracing::error!(
+                    dir = %dir.display(),
+                    error = %e,
+                    "device profiles not reloaded; keeping the previous set"
+                );
+                false
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FORTE: &str = r#"
+device = "conv2"
+runtime = "forte"
+[speaks]
+encoding = "fbdk"
+max_payload = 255
+[interface.fbs.CONV.data_out]
+POSITION = "INT"
+CONNECT = "BOOL"
+[interface.fbs.CONV.data_in]
+SPEED = "REAL"
+[[topics]]
+topic = "line1/conv2/position"
+port = "CONV.POSITION"
+[[topics]]
+topic = "line1/conv2/speed"
+port = "CONV.SPEED"
+from = "conv1/CONV/SPEED"
+[will]
+"CONV.CONNECT" = false
+"#;
+
+    fn write(dir: &Path, name: &str, text: &str) {
+        let tmp = dir.join(format!(".{name}"));
+        std::fs::write(&tmp, text).unwrap();
+        std::fs::rename(tmp, dir.join(name)).unwrap();
+    }
+
+    #[test]
+    fn a_directory_loads_indexes_and_reloads() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "conv2.toml", FORTE);
+        std::fs::write(dir.path().join("notes.txt"), "not a profile").unwrap();
+        let profiles = Profiles::load(dir.path()).expect("loads");
+        let set = profiles.get();
+        assert_eq!(set.len(), 1);
+        assert_eq!(set.identify("conv2", None).unwrap().device, "conv2");
+        assert_eq!(
+            set.identify("conv2", Some("conv2")).unwrap().device,
+            "conv2"
+        );
+        // Logged in as another device: not this one.
+        assert!(set.identify("conv2", Some("conv3")).is_none());
+        assert!(set.identify("conv3", None).is_none());
+        assert_eq!(set.output("line1/conv2/position").unwrap().1, 0);
+        let source = Source {
+            device: "conv1".into(),
+            fb: "CONV".into(),
+            port: "SPEED".into(),
+        };
+        assert_eq!(set.feeds(&source).len(), 1);
+
+        let metrics = Metrics::new();
+        assert!(!profiles.reload(false, &metrics), "unchanged");
+        // A second device mapping the same topic: refused, the first set stays.
+        write(
+            dir.path(),
+            "thief.toml",
+            &FORTE.replace("\"conv2\"", "\"thief\""),
+        );
+        assert!(!profiles.reload(false, &metrics));
+        assert_eq!(profiles.get().len(), 1);
+        // Fixed: taken.
+        write(
+            dir.path(),
+            "thief.toml",
+            &FORTE
+                .replace("\"conv2\"", "\"conv3\"")
+                .replace("line1/conv2/", "line1/conv3/"),
+        );
+        assert!(profiles.reload(false, &metrics));
+        assert_eq!(profiles.get().len(), 2);
+    }
+
+    #[test]
+    fn a_bad_file_names_itself_and_its_key() {
+        let dir = tempfile::tempdir().unwrap();
+        write(
+            dir.path(),
+            "bad.toml",
+            &FORTE.replace("\"INT\"", "\"INTEGER\""),
+        );
+        let error = Profiles::load(dir.path()).err().expect("refused");
+        assert!(
+            error.contains("bad.toml") && error.contains("INTEGER"),
+            "{error}"
+        );
+        write(dir.path(), "bad.toml", "device = ");
+        let error = Profiles::load(dir.path()).err().expect("refused");
+        assert!(error.contains("bad.toml"), "{error}");
+    }
+}

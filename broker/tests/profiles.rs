@@ -1,0 +1,252 @@
+//! Device profiles end to end against the real `fbbus` binary (issue 16): devices that
+//! never declare, publish on their own topics in their own encoding, and read their
+//! inputs on their own topics.
+//!
+//! - `conv2` is FORTE-like: recognised by its client id, `fbdk` on its own topics, a
+//!   255-byte receive limit, and a broker-side will (`CONV.CONNECT = FALSE`).
+//! - `conv3` is DINASORE-like: a random client id, so recognised by its topics only;
+//!   DINASORE JSON with its values written as strings (`{"SPEED": "3.5"}`).
+//!
+//! Each feeds the other: conv3's SPEED reaches conv2 as `fbdk` REAL on conv2's own input
+//! topic; conv2's POSITION reaches conv3 as DINASORE JSON on conv3's.
+//!
+//! The clients here speak raw MQTT 5 so each refusal's reason code is checked;
+//! `runtime_emulators.rs` drives the same profiles with clients that reproduce each
+//! runtime's exact wire behaviour.
+
+mod common;
+
+use std::time::Duration;
+
+use serde_json::json;
+
+use common::fb::*;
+use common::{Broker, Options};
+
+const CONV2: &str = r#"
+device = "conv2"
+runtime = "forte"
+[speaks]
+encoding = "fbdk"
+max_payload = 255
+[interface.fbs.CONV.events_out]
+CNF = { with = ["POSITION"] }
+[interface.fbs.CONV.data_out]
+POSITION = "INT"
+CONNECT = "BOOL"
+[interface.fbs.CONV.data_in]
+SPEED = "REAL"
+NOTE = "STRING"
+[[topics]]
+topic = "line1/conv2/position"
+port = "CONV.POSITION"
+[[topics]]
+topic = "line1/conv2/speed"
+port = "CONV.SPEED"
+from = "conv3/CONV/SPEED"
+[[topics]]
+topic = "line1/conv2/note"
+port = "CONV.NOTE"
+from = "conv3/CONV/NOTE"
+[will]
+"CONV.CONNECT" = false
+"#;
+
+const CONV3: &str = r#"
+device = "conv3"
+runtime = "dinasore"
+identity = { topics_only = true }
+[speaks]
+encoding = "dinasore"
+string_numbers = true
+[interface.fbs.CONV.data_out]
+SPEED = "REAL"
+NOTE = "STRING"
+[interface.fbs.CONV.data_in]
+POSITION = "INT"
+[[topics]]
+topic = "line1/conv3/speed"
+port = "CONV.SPEED"
+[[topics]]
+topic = "line1/conv3/note"
+port = "CONV.NOTE"
+[[topics]]
+topic = "line1/conv3/position"
+port = "CONV.POSITION"
+from = "conv2/CONV/POSITION"
+"#;
+
+fn line() -> Broker {
+    Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\n".into(),
+            ..Default::default()
+        },
+        |dir| {
+            let profiles = dir.join("profiles");
+            std::fs::create_dir(&profiles).unwrap();
+            std::fs::write(profiles.join("conv2.toml"), CONV2).unwrap();
+            std::fs::write(profiles.join("conv3.toml"), CONV3).unwrap();
+        },
+    )
+}
+
+/// `fbdk` INT.
+fn fbdk_int(v: i16) -> Vec<u8> {
+    let mut b = vec![0x43];
+    b.extend(v.to_be_bytes());
+    b
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn profiled_devices_are_typed_registered_and_fed_without_declaring() {
+    let broker = line();
+    let mut sub = observer(
+        &broker,
+        "watch",
+        &["fb/#", "dinasore/#", "fbdk/#", "line1/#", "fbbus/diag/#"],
+    )
+    .await;
+
+    // conv2 connects and never declares: online with its profile's interface.
+    let mut conv2 = Dev::connect(broker.port(), 5, "conv2");
+    let record = wait_record(&broker, "conv2", "online", |r| r["status"] == "online").await;
+    assert_eq!(
+        record["interface"]["fbs"]["CONV"]["data_out"]["POSITION"],
+        "INT"
+    );
+
+    // Its fbdk INT on its own topic: delivered there as it came, on every typed
+    // namespace, and to conv3's input topic the way DINASORE reads it.
+    assert_eq!(conv2.publish("line1/conv2/position", &fbdk_int(5)), 0);
+    let got = one_each(
+        &mut sub,
+        &[
+            "line1/conv2/position",
+            "fb/conv2/CONV/POSITION",
+            "dinasore/conv2/CONV/POSITION",
+            "fbdk/conv2/CONV/POSITION",
+            "line1/conv3/position",
+        ],
+        &broker,
+    )
+    .await;
+    assert_eq!(got[0], fbdk_int(5));
+    assert_eq!(parse(&got[1]), json!(5));
+    assert_eq!(parse(&got[2]), json!({"POSITION": 5}));
+    assert_eq!(got[3], fbdk_int(5));
+    assert_eq!(parse(&got[4]), json!({"POSITION": 5}));
+
+    // Ill-typed on its own topic: a REAL where an INT is.
+    assert_eq!(
+        conv2.publish("line1/conv2/position", &[0x4A, 0x40, 0x60, 0, 0]),
+        0x99
+    );
+    let rejected = diag(&mut sub, "conv2", "rejected", &broker).await;
+    assert_eq!(rejected["topic"], "line1/conv2/position");
+    // An input topic is the broker's to write.
+    assert_eq!(
+        conv2.publish("line1/conv2/speed", &[0x4A, 0, 0, 0, 0]),
+        0x87
+    );
+
+    // A stranger on conv2's topic: refused, whatever it sends.
+    let mut intruder = Dev::connect(broker.port(), 5, "intruder");
+    assert_eq!(intruder.publish("line1/conv2/position", &fbdk_int(9)), 0x87);
+    // Nor is a device recognised by its client id another device's topics-only topic.
+    assert_eq!(
+        conv2.publish("line1/conv3/speed", br#"{"SPEED": "1"}"#),
+        0x87
+    );
+
+    // conv3, DINASORE-like: a random client id, its number as a string.
+    let mut conv3 = Dev::connect(broker.port(), 5, "paho-8f2c1d");
+    assert_eq!(
+        conv3.publish("line1/conv3/speed", br#"{"SPEED": "3.5"}"#),
+        0
+    );
+    let got = one_each(
+        &mut sub,
+        &["fb/conv3/CONV/SPEED", "line1/conv2/speed"],
+        &broker,
+    )
+    .await;
+    assert_eq!(parse(&got[0]), json!(3.5));
+    // REAL 3.5 in fbdk for conv2, big-endian IEEE 754.
+    assert_eq!(got[1], [0x4A, 0x40, 0x60, 0x00, 0x00]);
+    // Not a number at all: refused, told to the publisher.
+    assert_eq!(
+        conv3.publish("line1/conv3/speed", br#"{"SPEED": "fast"}"#),
+        0x99
+    );
+    // A STRING stays a string, even one that reads as a number.
+    assert_eq!(conv3.publish("line1/conv3/note", br#"{"NOTE": "42"}"#), 0);
+    let got = one_each(&mut sub, &["line1/conv2/note"], &broker).await;
+    assert_eq!(got[0], [&[0x50, 0x00, 0x02][..], b"42"].concat());
+    // Longer than conv2 can take in (255 bytes in fbdk): not delivered to it, and the
+    // publisher is told why.
+    let long = format!(r#"{{"NOTE": "{}"}}"#, "x".repeat(300));
+    assert_eq!(conv3.publish("line1/conv3/note", long.as_bytes()), 0);
+    // (The fbdk/ copy is over the line's own limit too: two diagnostics.)
+    let mut topics = Vec::new();
+    for _ in 0..2 {
+        let skipped = diag(&mut sub, "paho-8f2c1d", "not_reencoded", &broker).await;
+        topics.push(skipped["topic"].as_str().unwrap_or_default().to_owned());
+    }
+    topics.sort();
+    assert_eq!(topics, ["fbdk/conv3/CONV/NOTE", "line1/conv2/note"]);
+    assert!(
+        next_on(&mut sub, "line1/conv2/note", Duration::from_millis(500))
+            .await
+            .is_none(),
+        "a message over conv2's limit reached it"
+    );
+
+    // A declaration from a profiled device must equal its profile.
+    assert_eq!(
+        conv2.declare(r#"{"fbs": {"CONV": {"data_out": {"POSITION": "REAL"}}}}"#),
+        0x99
+    );
+    let answer = diag(&mut sub, "conv2", "declaration", &broker).await;
+    assert_eq!(answer["ok"], false, "{answer}");
+
+    // conv2's connection dies without a will of its own: offline, and the broker
+    // publishes its profile's will on its typed port.
+    drop(conv2);
+    wait_record(&broker, "conv2", "offline", |r| r["status"] == "offline").await;
+    let got = json_on(&mut sub, "fb/conv2/CONV/CONNECT", &broker).await;
+    assert_eq!(got, json!(false));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_profile_written_later_applies_from_the_next_connect() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\n".into(),
+            ..Default::default()
+        },
+        |dir| std::fs::create_dir(dir.join("profiles")).unwrap(),
+    );
+    let dir = broker.path("profiles");
+    // A broken file is refused, counted, and the broker keeps serving.
+    std::fs::write(
+        dir.join("conv2.toml"),
+        CONV2.replace("\"INT\"", "\"INTEGER\""),
+    )
+    .unwrap();
+    assert_metric(
+        &broker,
+        "fbbus_file_reloads_total{file=\"profiles_dir\",result=\"error\"}",
+        1.0,
+    );
+    std::fs::write(dir.join(".conv2.toml"), CONV2).unwrap();
+    std::fs::rename(dir.join(".conv2.toml"), dir.join("conv2.toml")).unwrap();
+    assert_metric(
+        &broker,
+        "fbbus_file_reloads_total{file=\"profiles_dir\",result=\"ok\"}",
+        1.0,
+    );
+    let mut conv2 = Dev::connect(broker.port(), 5, "conv2");
+    wait_record(&broker, "conv2", "online", |r| r["status"] == "online").await;
+    assert_eq!(conv2.publish("line1/conv2/position", &fbdk_int(1)), 0);
+}
