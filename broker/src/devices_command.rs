@@ -1,14 +1,13 @@
 //! `fbbus devices`: the device registry in a terminal, read from the admin endpoint.
-//!
-//! The admin endpoint is plain HTTP on loopback and fbbus's own, so a dozen lines of
-//! HTTP/1.1 here replace an HTTP client crate and its TLS stack.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::io::Write;
+use std::net::SocketAddr;
 use std::time::Duration;
 
-use anyhow::{bail, Context as _, Result};
+use anyhow::Result;
 use serde_json::Value;
+
+use crate::admin_client::get;
 
 pub struct Options {
     pub admin: SocketAddr,
@@ -112,44 +111,6 @@ fn table(body: &Value) -> String {
     }
     out.push('\n');
     out
-}
-
-/// GETs `path` from the admin endpoint and parses the JSON body.
-fn get(admin: SocketAddr, path: &str) -> Result<Value> {
-    let mut stream = TcpStream::connect_timeout(&admin, Duration::from_secs(3)).with_context(
-        || format!("cannot reach the broker's admin endpoint at {admin} (is fbbus running? use --admin or --config)"),
-    )?;
-    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: {admin}\r\nAccept: application/json\r\nConnection: close\r\n\r\n"
-    )?;
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response)?;
-    let split = response
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .context("the admin endpoint sent no HTTP response")?;
-    let head = String::from_utf8_lossy(&response[..split]);
-    let body = &response[split + 4..];
-    let status = head.split_whitespace().nth(1).unwrap_or("");
-    if head
-        .to_ascii_lowercase()
-        .contains("transfer-encoding: chunked")
-    {
-        bail!("the admin endpoint sent a chunked response, which this command does not read");
-    }
-    let json: Value =
-        serde_json::from_slice(body).context("the admin endpoint sent invalid JSON")?;
-    match status {
-        "200" => Ok(json),
-        _ => bail!(
-            "{}",
-            json.get("error")
-                .and_then(Value::as_str)
-                .unwrap_or("request failed")
-        ),
-    }
 }
 
 #[cfg(test)]

@@ -10,8 +10,10 @@ use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
 #[cfg(feature = "bridge")]
+mod admin_client;
 mod bus_cert;
 mod devices_command;
+mod profile_command;
 #[cfg(feature = "bridge")]
 mod zenohd_command;
 
@@ -68,6 +70,23 @@ enum Command {
         #[arg(long)]
         watch: bool,
     },
+    /// Put a device profile (TOML) into a running broker from its host: checked against
+    /// every other profile, written into its profiles directory, in force at once.
+    Declare {
+        /// The profile file (docs/runtimes.md).
+        file: PathBuf,
+        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+        #[arg(long)]
+        admin: Option<std::net::SocketAddr>,
+        /// Take the admin endpoint from this configuration file.
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+    },
+    /// Device profiles without a broker: check one, or derive them from a 4diac boot file.
+    Profile {
+        #[command(subcommand)]
+        action: ProfileAction,
+    },
     /// Create the plant's bus CA and the certificates of lines, zenoh routers and zenoh
     /// applications, for mutual TLS on the bus (docs/bus-security.md).
     #[cfg(feature = "bridge")]
@@ -79,6 +98,15 @@ enum Command {
     /// the same access control the lines apply (docs/bus-security.md).
     #[cfg(feature = "bridge")]
     ZenohdConfig(zenohd_command::ZenohdArgs),
+}
+
+#[derive(Subcommand)]
+enum ProfileAction {
+    /// Validate a profile file: every mistake, each with its key.
+    Check { file: PathBuf },
+    /// Derive profiles from a 4diac boot file (.fboot) and print them as TOML, with what
+    /// could not be derived.
+    Import { file: PathBuf },
 }
 
 #[derive(Args)]
@@ -133,6 +161,15 @@ fn main() -> std::process::ExitCode {
             json,
             watch,
         } => devices(id, admin, config, json, watch),
+        Command::Declare {
+            file,
+            admin,
+            config,
+        } => admin_address(admin, config).and_then(|a| profile_command::declare(&file, a)),
+        Command::Profile { action } => match action {
+            ProfileAction::Check { file } => profile_command::check(&file),
+            ProfileAction::Import { file } => profile_command::import(&file),
+        },
         #[cfg(feature = "bridge")]
         Command::BusCert { action } => bus_cert::run(action),
     };
@@ -152,11 +189,7 @@ fn devices(
     json: bool,
     watch: bool,
 ) -> Result<()> {
-    let admin = match (admin, config) {
-        (Some(a), _) => a,
-        (None, Some(path)) => Config::load(&path)?.admin.bind,
-        (None, None) => Config::embedded_default().admin.bind,
-    };
+    let admin = admin_address(admin, config)?;
     devices_command::run(devices_command::Options {
         admin,
         json,
@@ -313,4 +346,16 @@ fn read_password(from_stdin: bool) -> Result<String> {
         bail!("empty password refused; nothing changed");
     }
     Ok(password)
+}
+
+/// The admin endpoint: `--admin`, else the one `--config` names, else the default.
+fn admin_address(
+    admin: Option<std::net::SocketAddr>,
+    config: Option<PathBuf>,
+) -> Result<std::net::SocketAddr> {
+    Ok(match (admin, config) {
+        (Some(a), _) => a,
+        (None, Some(path)) => Config::load(&path)?.admin.bind,
+        (None, None) => Config::embedded_default().admin.bind,
+    })
 }

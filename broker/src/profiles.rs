@@ -111,6 +111,11 @@ impl ProfileSet {
         self.by_device.get(device)
     }
 
+    /// Every profile, in no order.
+    pub fn devices(&self) -> impl Iterator<Item = &Arc<Profile>> {
+        self.by_device.values()
+    }
+
     /// The profile a connection with this client id and verified username is, if any.
     ///
     /// A client-id identity is as strong as the listener that let the client in; a
@@ -240,6 +245,17 @@ fn dir_stamp(dir: &Path) -> Option<DirStamp> {
     )
 }
 
+/// Why [`Profiles::put`] did not put a profile.
+#[derive(Debug, thiserror::Error)]
+pub enum PutError {
+    #[error("this broker has no profiles directory: set [fb] profiles_dir")]
+    NoDirectory,
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Io(String),
+}
+
 /// The profiles in force, reloaded from their directory when it changes.
 pub struct Profiles {
     dir: Option<PathBuf>,
@@ -279,6 +295,55 @@ impl Profiles {
             .read()
             .unwrap_or_else(PoisonError::into_inner)
             .clone()
+    }
+
+    /// Puts the profile `text` (TOML) for `device` into the directory: validated alone
+    /// and with every other profile (one owner per topic), then written whole (a
+    /// temporary file renamed over the old one, so no reader sees half of it) and in
+    /// force at once. The admin API's `PUT /api/v1/profiles/{device}`, `fbbus declare`.
+    pub fn put(&self, device: &str, text: &str, metrics: &Metrics) -> Result<(), PutError> {
+        let Some(dir) = &self.dir else {
+            return Err(PutError::NoDirectory);
+        };
+        if text.len() as u64 > MAX_FILE_BYTES {
+            return Err(PutError::Invalid(format!(
+                "{} bytes; a profile is at most {MAX_FILE_BYTES}",
+                text.len()
+            )));
+        }
+        let profile = parse(text).map_err(PutError::Invalid)?;
+        if profile.device != device {
+            return Err(PutError::Invalid(format!(
+                "the profile is device {}'s, not {device}'s",
+                profile.device
+            )));
+        }
+        let name = format!("{device}.toml");
+        let path = dir.join(&name);
+        // The whole set as it would be: this profile in place of the device's file.
+        let mut profiles = vec![(name.clone(), profile)];
+        for other in profile_files(dir).map_err(PutError::Io)? {
+            if other != path {
+                let file = other
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                profiles.push((file, read_file(&other).map_err(PutError::Invalid)?));
+            }
+        }
+        let set = ProfileSet::new(profiles).map_err(PutError::Invalid)?;
+        let tmp = dir.join(format!(".{name}.tmp"));
+        std::fs::write(&tmp, text)
+            .and_then(|()| std::fs::rename(&tmp, &path))
+            .map_err(|e| PutError::Io(format!("{}: {e}", path.display())))?;
+        *self.stamp.lock().unwrap_or_else(PoisonError::into_inner) = dir_stamp(dir);
+        *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(set);
+        metrics
+            .reloads
+            .with_label_values(&["profiles_dir", "ok"])
+            .inc();
+        tracing::info!(device, file = %path.display(), "device profile put");
+        Ok(())
     }
 
     /// Reloads if the directory changed (`force`: anyway). Returns whether a new set is

@@ -241,6 +241,7 @@ impl Broker {
                     metrics: Arc::clone(&metrics),
                     health: Arc::clone(&health),
                     registry: Arc::clone(&registry),
+                    profiles: Arc::clone(&profiles),
                 },
                 async move {
                     let _ = admin_shutdown.changed().await;
@@ -419,7 +420,8 @@ fn load_watched<T>(
     })
 }
 
-/// Reloads the password and ACL files and the profiles directory when they change, and at once on SIGHUP.
+/// Reloads the password and ACL files and the profiles directory when they change, and
+/// at once on SIGHUP.
 async fn watch_files(
     passwords: Option<Arc<WatchedFile<PasswordFile>>>,
     acl: Option<Arc<WatchedFile<AclRules>>>,

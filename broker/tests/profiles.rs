@@ -250,3 +250,71 @@ async fn a_profile_written_later_applies_from_the_next_connect() {
     wait_record(&broker, "conv2", "online", |r| r["status"] == "online").await;
     assert_eq!(conv2.publish("line1/conv2/position", &fbdk_int(1)), 0);
 }
+
+/// `fbbus declare` puts a profile into a running broker, which checks it against the
+/// others before anything is written.
+#[tokio::test(flavor = "multi_thread")]
+async fn fbbus_declare_puts_a_profile_that_the_others_allow() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\n".into(),
+            ..Default::default()
+        },
+        |dir| {
+            let profiles = dir.join("profiles");
+            std::fs::create_dir(&profiles).unwrap();
+            std::fs::write(profiles.join("conv3.toml"), CONV3).unwrap();
+        },
+    );
+    let declare = |text: &str| {
+        let file = broker.path("new.toml");
+        std::fs::write(&file, text).unwrap();
+        common::run(
+            std::process::Command::new(common::fbbus_bin()).args([
+                "declare",
+                file.to_str().unwrap(),
+                "--admin",
+                &broker.admin.to_string(),
+            ]),
+            Duration::from_secs(20),
+        )
+    };
+    // conv2 mapping conv3's output topic: refused, nothing written.
+    let thief = CONV2.replace("line1/conv2/position", "line1/conv3/speed");
+    let (ok, _, err) = declare(&thief);
+    assert!(!ok && err.contains("line1/conv3/speed"), "{err}");
+    assert!(!broker.path("profiles/conv2.toml").exists());
+    // A mistake is named by its key, before the broker is asked.
+    let (ok, _, err) = declare(&CONV2.replace("\"INT\"", "\"INTEGER\""));
+    assert!(!ok && err.contains("INTEGER"), "{err}");
+    // The real one: written, in force at once.
+    let (ok, out, err) = declare(CONV2);
+    assert!(ok, "{out}{err}");
+    assert_eq!(
+        std::fs::read_to_string(broker.path("profiles/conv2.toml")).unwrap(),
+        CONV2
+    );
+    let (code, listed) = http_json(&broker, "/api/v1/profiles");
+    assert_eq!(code, 200);
+    assert_eq!(
+        listed["profiles"]["conv2"]["outputs"][0]["topic"],
+        "line1/conv2/position"
+    );
+    let mut conv2 = Dev::connect(broker.port(), 5, "conv2");
+    assert_eq!(conv2.publish("line1/conv2/position", &fbdk_int(2)), 0);
+
+    // A broker without a profiles directory says what to set.
+    let plain = Broker::start();
+    let file = plain.path("conv2.toml");
+    std::fs::write(&file, CONV2).unwrap();
+    let (ok, _, err) = common::run(
+        std::process::Command::new(common::fbbus_bin()).args([
+            "declare",
+            file.to_str().unwrap(),
+            "--admin",
+            &plain.admin.to_string(),
+        ]),
+        Duration::from_secs(20),
+    );
+    assert!(!ok && err.contains("profiles_dir"), "{err}");
+}
