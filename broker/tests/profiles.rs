@@ -174,6 +174,8 @@ async fn profiled_devices_are_typed_registered_and_fed_without_declaring() {
     assert_eq!(parse(&got[0]), json!(3.5));
     // REAL 3.5 in fbdk for conv2, big-endian IEEE 754.
     assert_eq!(got[1], [0x4A, 0x40, 0x60, 0x00, 0x00]);
+    // That connection now speaks for conv3: online in the registry.
+    wait_record(&broker, "conv3", "online", |r| r["status"] == "online").await;
     // Not a number at all: refused, told to the publisher.
     assert_eq!(
         conv3.publish("line1/conv3/speed", br#"{"SPEED": "fast"}"#),
@@ -190,7 +192,7 @@ async fn profiled_devices_are_typed_registered_and_fed_without_declaring() {
     // (The fbdk/ copy is over the line's own limit too: two diagnostics.)
     let mut topics = Vec::new();
     for _ in 0..2 {
-        let skipped = diag(&mut sub, "paho-8f2c1d", "not_reencoded", &broker).await;
+        let skipped = diag(&mut sub, "conv3", "not_reencoded", &broker).await;
         topics.push(skipped["topic"].as_str().unwrap_or_default().to_owned());
     }
     topics.sort();
@@ -216,6 +218,9 @@ async fn profiled_devices_are_typed_registered_and_fed_without_declaring() {
     wait_record(&broker, "conv2", "offline", |r| r["status"] == "offline").await;
     let got = json_on(&mut sub, "fb/conv2/CONV/CONNECT", &broker).await;
     assert_eq!(got, json!(false));
+    // conv3's connection ends: offline too.
+    drop(conv3);
+    wait_record(&broker, "conv3", "offline", |r| r["status"] == "offline").await;
 }
 
 #[tokio::test(flavor = "multi_thread")]

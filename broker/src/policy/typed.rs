@@ -487,6 +487,22 @@ impl FbSession {
                 )
             }
         };
+        if self.profile.is_none() {
+            // A topics-only device's first accepted publication on this connection: the
+            // connection now speaks for it, so the registry shows it online until the
+            // connection (or a newer one of it) ends, and its broker-side will fires then.
+            let interface =
+                fb.registry
+                    .declare(&profile.device, self.session, profile.interface.clone());
+            self.set_profile(Arc::clone(profile), interface);
+            self.activity = fb.registry.activity(&profile.device);
+            tracing::info!(
+                device = profile.device,
+                client_id = self.client_id,
+                session = self.session,
+                "a client published on a topics-only device's own topic: it is that device"
+            );
+        }
         let typed = TypedTopic {
             encoding: Encoding::Json,
             device: &profile.device,
