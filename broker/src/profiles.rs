@@ -84,10 +84,38 @@ impl ProfileSet {
             }
             set.by_device.insert(profile.device.clone(), profile);
         }
-        // An input topic is the broker's to publish: no device may also publish it.
-        for feeds in set.feeds.values() {
+        // An input topic is the broker's to publish: no device may also publish it. An
+        // input fed by a profiled device's output reads the values that output sends.
+        for (source, feeds) in &set.feeds {
             for (profile, i) in feeds {
-                let topic = &profile.inputs[*i].own.topic;
+                let input = &profile.inputs[*i];
+                let topic = &input.own.topic;
+                if let Some(from) = set.by_device.get(&source.device) {
+                    let types = |p: &Profile, fb: &str, port: &str, output: bool| {
+                        let shape = match output {
+                            true => p.interface.output(fb, port),
+                            false => p.interface.input(fb, port),
+                        };
+                        shape.map(|s| s.value_types())
+                    };
+                    let sent = types(from, &source.fb, &source.port, true);
+                    let read = types(profile, &input.own.fb, &input.own.port, false);
+                    if sent.is_none() || sent != read {
+                        return Err(format!(
+                            "{topic}: input {}.{} of device {} is fed from {}/{}/{}, which {}",
+                            input.own.fb,
+                            input.own.port,
+                            profile.device,
+                            source.device,
+                            source.fb,
+                            source.port,
+                            match sent {
+                                None => "is not an output of that device's profile",
+                                Some(_) => "sends other types",
+                            }
+                        ));
+                    }
+                }
                 if let Some((other, _)) = set.outputs.get(topic) {
                     return Err(format!(
                         "topic {topic} is an input of device {} and an output of device {}",
@@ -463,6 +491,35 @@ from = "conv1/CONV/SPEED"
         );
         assert!(profiles.reload(false, &metrics));
         assert_eq!(profiles.get().len(), 2);
+    }
+
+    #[test]
+    fn the_deploy_examples_load_together() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/profiles");
+        let set = read_dir(&dir).expect("deploy/profiles loads");
+        assert_eq!(set.len(), 2);
+        assert!(set.output("line1/conv3/speed").is_some());
+        assert!(set.is_input_topic("line1/conv2/speed"));
+    }
+
+    #[test]
+    fn an_input_fed_other_types_is_refused() {
+        let feeder = parse(
+            &FORTE
+                .replace("\"conv2\"", "\"conv1\"")
+                .replace("line1/conv2/", "line1/conv1/")
+                .replace("conv1/CONV/SPEED", "conv9/CONV/SPEED"),
+        )
+        .unwrap();
+        // conv2's SPEED (REAL) fed from conv1's POSITION (INT).
+        let fed = parse(&FORTE.replace("conv1/CONV/SPEED", "conv1/CONV/POSITION")).unwrap();
+        let error = ProfileSet::new(vec![
+            ("conv1.toml".into(), feeder),
+            ("conv2.toml".into(), fed),
+        ])
+        .err()
+        .expect("refused");
+        assert!(error.contains("sends other types"), "{error}");
     }
 
     #[test]

@@ -217,6 +217,16 @@ pub enum OutputPort<'a> {
 }
 
 impl OutputPort<'_> {
+    /// The types of the values one message on this port carries, in order: one for a
+    /// data port, the WITH types for an event. A message fits another port with the same
+    /// types (what a PUBLISH_1 sends, a SUBSCRIBE_1 reads, whichever kind each is).
+    pub fn value_types(&self) -> Vec<DataType> {
+        match self {
+            OutputPort::Data(t) => vec![*t],
+            OutputPort::Event(with) => with.iter().map(|(_, t)| *t).collect(),
+        }
+    }
+
     /// Every value on this port has a single JSON form (see
     /// [`ElementaryType::has_one_json_form`](crate::types::ElementaryType::has_one_json_form)).
     pub fn has_one_json_form(&self) -> bool {

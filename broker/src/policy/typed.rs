@@ -29,7 +29,7 @@ use bytes::Bytes;
 use fb_bridge::codec::{self, fbdk, Encoding};
 use fb_bridge::profile::{self as profile_file, Identity, Profile, Source};
 use fb_bridge::topic::{self, TypedTopic};
-use fb_bridge::{Declaration, DeclarationError, Interface, Message, OutputPort};
+use fb_bridge::{Declaration, DeclarationError, EventMessage, Interface, Message, OutputPort};
 use serde::Deserialize;
 use serde_json::json;
 
@@ -622,28 +622,25 @@ impl FbSession {
         let input = profile.inputs.get(i)?;
         let own = &input.own;
         let shape = profile.interface.input(&own.fb, &own.port)?;
-        let types = |p: &OutputPort<'_>| match p {
-            OutputPort::Data(t) => vec![*t],
-            OutputPort::Event(with) => with.iter().map(|(_, t)| *t).collect(),
+        // The same values, whichever kind each port is: a data port's value is an
+        // event's one WITH value and back.
+        let fitted = match (message, &shape) {
+            _ if port.value_types() != shape.value_types() => None,
+            (Message::Data(v), OutputPort::Event(_)) => Some(Message::Event(EventMessage {
+                seq: None,
+                ts_us: None,
+                data: vec![v.clone()],
+            })),
+            (Message::Event(e), OutputPort::Data(_)) => e.data.first().cloned().map(Message::Data),
+            (m, _) => Some(m.clone()),
         };
-        let fits = matches!(
-            (port, &shape),
-            (OutputPort::Data(_), OutputPort::Data(_))
-                | (OutputPort::Event(_), OutputPort::Event(_))
-        ) && types(port) == types(&shape);
-        let bytes = match fits {
-            false => Err(format!(
+        let bytes = match fitted {
+            None => Err(format!(
                 "feeds {}.{} of device {} ({}), whose types differ: not delivered there",
                 own.fb, own.port, profile.device, own.topic
             )),
-            true => codec::encode(
-                own.encoding,
-                message,
-                &own.port,
-                &shape,
-                profile.fbdk_time_unit,
-            )
-            .map_err(|e| e.to_string()),
+            Some(m) => codec::encode(own.encoding, &m, &own.port, &shape, profile.fbdk_time_unit)
+                .map_err(|e| e.to_string()),
         };
         let bytes = match bytes {
             Ok(b) if profile.max_payload > 0 && b.len() > profile.max_payload => Err(format!(
