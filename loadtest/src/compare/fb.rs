@@ -1,10 +1,14 @@
 //! `fbbus-loadtest compare fb`: what fbbus's typed FB topics and device registry cost, on fbbus alone.
 //!
-//! 1. **Validation cost.** Ten devices declare a conveyor interface, then burst the same
-//!    event message into one subscriber, alternately on an untyped topic
-//!    (`plant/<dev>/CONV/STATE`, routed as is) and on the typed topic
-//!    (`fb/<dev>/CONV/STATE`, decoded and checked against the declaration), A B A B in
-//!    one broker process. Reported: each round's msg/s, the medians, typed/untyped.
+//! 1. **Validation and mapping cost.** Ten devices with a conveyor interface burst the
+//!    same event message into one subscriber, in turn on an untyped topic
+//!    (`plant/<dev>/CONV/STATE`, routed as is), on the typed topic
+//!    (`fb/<dev>/CONV/STATE`, decoded and checked against the declaration) and on the
+//!    device's own topic (`line/<dev>/state`, mapped onto `CONV.STATE` by its device
+//!    profile: decoded, checked, routed there as is and re-encoded onto
+//!    `fb/<dev>/CONV/STATE`, which the subscriber reads), A B C A B C in one broker
+//!    process. Reported: each round's msg/s, the medians, typed/untyped and
+//!    mapped/typed.
 //! 2. **Births.** N devices (default 10,000) connect, then all declare at once; reported:
 //!    declarations per second until the registry shows every device online (polled on
 //!    `/metrics`), which includes each record's retained publication.
@@ -73,7 +77,16 @@ const INTERFACE: &str = r#"{"fbs":{"CONV":{"type":"CONVEYOR",
 const EVENT: &str = r#"{"seq":1,"ts":1763800000000000,"data":{"ID":"conveyor-a","CONNECT":true,"SENSOR_IN":false,"SENSOR_OUT":true,"POSITION":2,"SWAP":false}}"#;
 
 pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
-    let broker = start(fbbus, &[], "").await?;
+    // The publishers' profiles: the interface they declare, and their own topic.
+    let profiles = tempfile::tempdir()?;
+    for i in 0..p.publishers {
+        std::fs::write(
+            profiles.path().join(format!("bench-pub-{i}.toml")),
+            profile(&format!("bench-pub-{i}")),
+        )?;
+    }
+    let tables = format!("\n[fb]\nprofiles_dir = \"{}\"\n", profiles.path().display());
+    let broker = start(fbbus, &[], &tables).await?;
     let admin = broker.admin.context("fbbus runs with an admin endpoint")?;
     println!(
         "fbbus {} at {} (admin {admin}); {} publishers x {} messages, {} rounds; {} devices\n",
@@ -101,6 +114,7 @@ pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
 async fn validation_cost(broker: &Running, admin: SocketAddr, p: &FbParams) -> Result<()> {
     let mut sub = mqtt::connect(broker.addr, "bench-sub", None).await?;
     subscribe_all(&mut sub, &["fb/+/CONV/STATE", "plant/+/CONV/STATE"]).await?;
+    // (`line/+/state` is not read: a mapped message reaches the subscriber once, on fb/.)
     let mut reader = PacketReader::new(sub);
     let mut pubs = Vec::new();
     for i in 0..p.publishers {
@@ -116,48 +130,90 @@ async fn validation_cost(broker: &Running, admin: SocketAddr, p: &FbParams) -> R
     wait_online(admin, p.publishers).await?;
     tokio::time::sleep(Duration::from_millis(200)).await;
 
-    println!("1. validation cost: the same STATE event, untyped vs typed topic (QoS 0 burst, 1 subscriber)");
+    println!("1. validation and mapping cost: the same STATE event, untyped vs typed vs the device's own (profile-mapped) topic (QoS 0 burst, 1 subscriber)");
     println!(
-        "   {:<7} {:>14} {:>14}",
-        "round", "untyped msg/s", "typed msg/s"
+        "   {:<7} {:>14} {:>14} {:>14}",
+        "round", "untyped msg/s", "typed msg/s", "mapped msg/s"
     );
-    let (mut untyped, mut typed) = (Vec::new(), Vec::new());
+    let mut rates: [Vec<f64>; 3] = Default::default();
     for round in 1..=p.rounds {
-        let mut rates = [0.0; 2];
-        for (k, namespace) in ["plant", "fb"].into_iter().enumerate() {
-            let (rate, lost) = burst(&mut reader, &mut pubs, namespace, p.messages).await?;
+        let mut this = [0.0; 3];
+        for (k, topic) in [Topic::Untyped, Topic::Typed, Topic::Mapped]
+            .into_iter()
+            .enumerate()
+        {
+            let (rate, lost) = burst(&mut reader, &mut pubs, topic, p.messages).await?;
             if lost > 0 {
-                bail!("{namespace} round {round}: {lost} messages lost");
+                bail!("{topic:?} round {round}: {lost} messages lost");
             }
-            rates[k] = rate;
+            this[k] = rate;
+            rates[k].push(rate);
         }
-        println!("   {round:<7} {:>14.0} {:>14.0}", rates[0], rates[1]);
-        untyped.push(rates[0]);
-        typed.push(rates[1]);
+        println!(
+            "   {round:<7} {:>14.0} {:>14.0} {:>14.0}",
+            this[0], this[1], this[2]
+        );
     }
-    let (u, t) = (median(&mut untyped), median(&mut typed));
+    let [u, t, m] = rates.map(|mut r| median(&mut r));
     println!(
-        "   median  {u:>14.0} {t:>14.0}   typed/untyped = {:.3} (validation costs {:.1} %)\n",
+        "   median  {u:>14.0} {t:>14.0} {m:>14.0}   typed/untyped = {:.3} (validation costs {:.1} %), mapped/typed = {:.3}\n",
         t / u,
-        (1.0 - t / u) * 100.0
+        (1.0 - t / u) * 100.0,
+        m / t
     );
     Ok(())
 }
 
-/// Every publisher sends `messages` PUBLISHes on `<namespace>/<id>/CONV/STATE` at once;
-/// returns the subscriber's receive rate and the messages that never arrived.
+/// Where a burst is published.
+#[derive(Debug, Clone, Copy)]
+enum Topic {
+    /// `plant/<id>/CONV/STATE`: no meaning to fbbus, routed as is.
+    Untyped,
+    /// `fb/<id>/CONV/STATE`: checked against the declared interface.
+    Typed,
+    /// `line/<id>/state`: the device's own topic, mapped by its profile.
+    Mapped,
+}
+
+impl Topic {
+    fn of(self, id: &str) -> String {
+        match self {
+            Topic::Untyped => format!("plant/{id}/CONV/STATE"),
+            Topic::Typed => format!("fb/{id}/CONV/STATE"),
+            Topic::Mapped => format!("line/{id}/state"),
+        }
+    }
+}
+
+/// A publisher's device profile: [`INTERFACE`], and `line/<id>/state` as its own topic
+/// for `CONV.STATE` in canonical JSON.
+fn profile(id: &str) -> String {
+    format!(
+        r#"device = "{id}"
+[interface.fbs.CONV]
+type = "CONVEYOR"
+events_out = {{ STATE = {{ with = ["ID", "CONNECT", "SENSOR_IN", "SENSOR_OUT", "POSITION", "SWAP"] }} }}
+data_out = {{ ID = "STRING", CONNECT = "BOOL", SENSOR_IN = "BOOL", SENSOR_OUT = "BOOL", POSITION = "INT", SWAP = "BOOL" }}
+[[topics]]
+topic = "line/{id}/state"
+port = "CONV.STATE"
+"#
+    )
+}
+
+/// Every publisher sends `messages` PUBLISHes on its `topic` at once; returns the
+/// subscriber's receive rate and the messages that never arrived.
 async fn burst(
     reader: &mut PacketReader,
     pubs: &mut Vec<(String, TcpStream)>,
-    namespace: &str,
+    topic: Topic,
     messages: usize,
 ) -> Result<(f64, u64)> {
     let expected = (pubs.len() * messages) as u64;
     let start = Instant::now();
     let mut tasks = Vec::new();
     for (id, mut stream) in std::mem::take(pubs) {
-        let packet =
-            mqtt::publish_packet(&format!("{namespace}/{id}/CONV/STATE"), EVENT.as_bytes());
+        let packet = mqtt::publish_packet(&topic.of(&id), EVENT.as_bytes());
         // 64 messages per write: the publishers are cheaper than the broker.
         let batch: Vec<u8> = packet.repeat(64);
         tasks.push(tokio::spawn(async move {
