@@ -459,5 +459,6 @@ pub fn unstring_numbers(payload: &[u8], port_name: &str, port: &OutputPort<'_>) 
     serde_json::to_vec(&J::Object(object)).ok()
 }
 
+pub mod fboot;
 #[cfg(test)]
 mod tests;
