@@ -42,7 +42,69 @@ pub fn check(file: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Prints the profiles derived from a 4diac boot file as TOML, one block per device,
+/// each preceded by what was not derived (as TOML comments), so the output can be cut
+/// into files and completed. Fails if nothing could be derived.
 pub fn import(file: &Path) -> Result<()> {
-    let _ = file;
-    bail!("no importer for this file yet")
+    let bytes = std::fs::read(file).with_context(|| format!("cannot read {}", file.display()))?;
+    let text = String::from_utf8_lossy(&bytes);
+    let imported = fb_bridge::profile::fboot::import(&text);
+    print!("{}", render(&imported)?);
+    if imported.profiles.is_empty() {
+        bail!(
+            "{}: no MQTT PUBLISH/SUBSCRIBE FB with an fbdk[].mqtt[...] ID found",
+            file.display()
+        );
+    }
+    Ok(())
+}
+
+/// The import as text: notes first, then each profile, with whether it is complete.
+fn render(imported: &fb_bridge::profile::fboot::FbootImport) -> Result<String> {
+    let mut out = String::new();
+    for note in &imported.notes {
+        out.push_str(&format!("# NOTE: {note}\n"));
+    }
+    for profile in &imported.profiles {
+        let toml = toml::to_string(profile).context("a derived profile did not serialize")?;
+        let file = format!("{}.toml", profile.device);
+        let state = match profile.clone().validate() {
+            Ok(_) => format!("complete: save it as {file}"),
+            Err(errors) => format!(
+                "incomplete ({} to fix, see the notes): save it as {file} once done; `fbbus profile check {file}` lists them",
+                errors.len()
+            ),
+        };
+        out.push_str(&format!(
+            "\n# ---- device {}: {state}\n{toml}",
+            profile.device
+        ));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_conveyor_boot_file_imports_into_profiles_that_read_back() {
+        let fixture =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../fb-bridge/tests/data/conveyor.fboot");
+        let text = std::fs::read_to_string(fixture).unwrap();
+        let imported = fb_bridge::profile::fboot::import(&text);
+        assert!(!imported.profiles.is_empty());
+        let out = render(&imported).unwrap();
+        // Each profile block parses back into the profile it was printed from.
+        for (block, profile) in out
+            .split("\n# ---- device ")
+            .skip(1)
+            .zip(&imported.profiles)
+        {
+            let toml_text = block.split_once('\n').map(|(_, t)| t).unwrap_or_default();
+            let back: fb_bridge::profile::ProfileFile = toml::from_str(toml_text).unwrap();
+            assert_eq!(&back, profile);
+        }
+        assert_eq!(out.matches("# NOTE: ").count(), imported.notes.len());
+    }
 }

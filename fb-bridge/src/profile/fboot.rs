@@ -78,8 +78,10 @@
 //!
 //! An input topic needs `from`, the typed output that feeds it, and which device feeds a
 //! topic is not in one device's boot file: it is left out, so the profile does not pass
-//! [`ProfileFile::validate`] until it is set, and a note says so (naming the publisher
-//! when a PUBLISH of the same import publishes that topic).
+//! [`ProfileFile::validate`] until it is set, and a note says so. When a PUBLISH of the
+//! same import publishes that topic, it is not mapped at all: FORTE reaches FORTE on
+//! that topic through the broker as it always did, and a topic that is one device's
+//! output cannot also be another's input.
 //!
 //! A topic already in a typed namespace (`fbdk/<device>/<FB>/<PORT>`) is not mapped: the
 //! broker types it already. A SUBSCRIBE reading one needs nothing; a PUBLISH writing one
@@ -1164,9 +1166,19 @@ fn build_profiles(
                     topic::MAX_DEVICE_ID
                 )
             };
+            let then = match usable {
+                true => "rename the device if you like",
+                // The broker refuses such a client id at CONNECT (identifier rejected):
+                // a client id becomes topic levels and log fields.
+                false => {
+                    "but fbbus refuses this client id at CONNECT, so change it in the \
+                          FBs' ID parameters (and in identity.client_id) before the device \
+                          can connect"
+                }
+            };
             notes.push(format!(
                 "Client id {client_id:?} {why}: its profile's device is {device:?}, with the \
-                 client id as identity.client_id; rename the device if you like."
+                 client id as identity.client_id; {then}."
             ));
             device
         };
@@ -1231,11 +1243,29 @@ fn build_profiles(
         });
     }
     for PendingFrom { note, topic } in pending {
-        if let (Some(text), Some(source)) = (notes.get_mut(note), published.get(&topic)) {
-            text.push_str(&format!(
-                " In this boot file {source} publishes that topic: from = {source:?} if it \
-                 is the one."
-            ));
+        let (Some(text), Some(source)) = (notes.get_mut(note), published.get(&topic)) else {
+            continue;
+        };
+        // FORTE to FORTE on one topic, both fbdk: the broker routes the publisher's own
+        // topic to the subscriber as it always did. Mapping it as an input too would
+        // make one topic both a device's output and another's input, which a profile
+        // set refuses.
+        *text = format!(
+            "{} reads topic {topic:?}, which {source} publishes in this boot file: \
+             FORTE to FORTE through the broker as before, so the topic is not mapped as \
+             an input (its port stays in the interface).",
+            text.split(" reads topic ").next().unwrap_or_default()
+        );
+        for profile in &mut profiles {
+            let fbs = &profile.interface.fbs;
+            profile.topics.retain(|t| {
+                let input = t.port.split_once('.').is_some_and(|(fb, port)| {
+                    fbs.get(fb).is_some_and(|f| {
+                        f.events_in.contains_key(port) || f.data_in.contains_key(port)
+                    })
+                });
+                !(t.topic == topic && input)
+            });
         }
     }
     profiles

@@ -73,8 +73,7 @@ fn the_conveyor_boot_file_gives_one_profile_per_client_id() {
         "topics": [
             {"topic": "line1/conv1/position", "port": "PUB_POS.REQ"},
             // The ID was &quot;-quoted and its topic had &amp;.
-            {"topic": "line1/conv1/status&mode", "port": "PUB_STATUS.REQ"},
-            {"topic": "line1/hmi/speed", "port": "SUB_SPEED.IND"}
+            {"topic": "line1/conv1/status&mode", "port": "PUB_STATUS.REQ"}
         ]
     }));
     let hmi = profile(json!({
@@ -111,10 +110,10 @@ fn the_conveyor_boot_file_gives_one_profile_per_client_id() {
              derivable from the boot file (it is fed by CTRL.STATE, a port of CONVEYOR_CTRL, \
              whose interface the boot file does not contain); set data_out.SD_2 of FB \
              PUB_STATUS in profile conv1.",
-            "SUBSCRIBE_1 SUB_SPEED in resource EMB_RES reads topic \"line1/hmi/speed\": set \
-             `from` of that topic in profile conv1 to the typed output that feeds it \
-             (<device>/<FB>/<PORT>). In this boot file line1_hmi/PUB_SPEED/REQ publishes that \
-             topic: from = \"line1_hmi/PUB_SPEED/REQ\" if it is the one.",
+            "SUBSCRIBE_1 SUB_SPEED in resource EMB_RES reads topic \"line1/hmi/speed\", which \
+             line1_hmi/PUB_SPEED/REQ publishes in this boot file: FORTE to FORTE through the \
+             broker as before, so the topic is not mapped as an input (its port stays in the \
+             interface).",
             "PUBLISH_1 LOG in resource EMB_RES: it sends raw[] payloads on \"line1/conv1/log\" \
              (the bytes of a STRING, with no type to check), which cannot be typed; skipped: \
              use fbdk[].mqtt[...] to put it on the bus typed.",
@@ -123,7 +122,8 @@ fn the_conveyor_boot_file_gives_one_profile_per_client_id() {
              nothing to map.",
             "Client id \"line1/hmi\" is not a usable device id (1-256 bytes, none of / + # $, no \
              control characters): its profile's device is \"line1_hmi\", with the client id as \
-             identity.client_id; rename the device if you like.",
+             identity.client_id; but fbbus refuses this client id at CONNECT, so change it in \
+             the FBs' ID parameters (and in identity.client_id) before the device can connect.",
             "SUBSCRIBE_2 SUB_CMD in resource HMI_RES reads topic \"line1/hmi/cmd\": set `from` \
              of that topic in profile line1_hmi to the typed output that feeds it \
              (<device>/<FB>/<PORT>).",
@@ -162,11 +162,11 @@ fn derived_profiles_validate_once_the_notes_are_followed() {
     if let Some(fb) = conv1.interface.fbs.get_mut("PUB_STATUS") {
         fb.data_out.insert("SD_2".into(), "INT".into());
     }
-    conv1.topics[2].from = Some("line1_hmi/PUB_SPEED/REQ".into());
     let conv1 = conv1.validate().expect("conv1 valid");
     assert_eq!(conv1.outputs.len(), 2);
-    assert_eq!(conv1.inputs.len(), 1);
-    assert_eq!(conv1.inputs[0].own.encoding, Encoding::Fbdk);
+    // SUB_SPEED reads line1_hmi's own output topic: no input mapping.
+    assert!(conv1.inputs.is_empty());
+    assert!(conv1.outputs.iter().all(|o| o.encoding == Encoding::Fbdk));
     assert_eq!(conv1.max_payload, 255);
     assert_eq!(conv1.identity, Identity::ClientId("conv1".into()));
 
