@@ -59,6 +59,7 @@ identity = { topics_only = true }
 [speaks]
 encoding = "dinasore"
 string_numbers = true
+enforce_keep_alive = false
 [interface.fbs.CONV.data_out]
 SPEED = "REAL"
 NOTE = "STRING"
@@ -322,4 +323,41 @@ async fn fbbus_declare_puts_a_profile_that_the_others_allow() {
         Duration::from_secs(20),
     );
     assert!(!ok && err.contains("profiles_dir"), "{err}");
+}
+
+/// DINASORE's publisher FB asks for a keep-alive and never pings: a profile that says so
+/// keeps its connection past the keep-alive once it speaks for the device, where any
+/// other silent client is cut.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_device_whose_runtime_never_pings_is_not_cut_for_it() {
+    let broker = line();
+    let connect = |id: &str| {
+        Dev::try_connect(
+            broker.port(),
+            &common::raw::Connect {
+                version: 4,
+                client_id: id,
+                keep_alive: 1,
+                ..Default::default()
+            },
+        )
+        .unwrap_or_else(|code| panic!("{id} refused: {code}"))
+    };
+    let mut conv3 = connect("paho-keepalive");
+    let mut other = connect("silent-other");
+    conv3.publish("line1/conv3/speed", br#"{"SPEED": "1"}"#);
+    // Well past 1.5 x the keep-alive of 1 s, without a PINGREQ.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    conv3.publish("line1/conv3/speed", br#"{"SPEED": "2"}"#);
+    assert_eq!(record(&broker, "conv3").unwrap()["status"], "online");
+    // The other client was held to its keep-alive.
+    tokio::task::block_in_place(|| {
+        other
+            .raw
+            .stream
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .unwrap();
+        assert!(other.raw.closed_by_broker());
+    });
+    assert!(broker.metric("fbbus_disconnects_total{reason=\"keep_alive\"}") >= 1.0);
 }

@@ -97,6 +97,20 @@ pub struct Speaks {
     /// QoS of what the broker sends it on its own input topics.
     #[serde(default)]
     pub qos: u8,
+    /// Hold its connections to the MQTT keep-alive they ask for (the default). False for
+    /// a runtime that asks for one and never pings (DINASORE's publisher FB runs no
+    /// network loop): the broker then does not end it for silence; the kernel's dead-link
+    /// probes (`[broker] dead_link_timeout_s`) still end a connection whose peer vanished.
+    #[serde(default = "yes", skip_serializing_if = "is_yes")]
+    pub enforce_keep_alive: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_yes(b: &bool) -> bool {
+    *b
 }
 
 impl Speaks {
@@ -113,6 +127,7 @@ impl Default for Speaks {
             max_payload: 0,
             string_numbers: false,
             qos: 0,
+            enforce_keep_alive: true,
         }
     }
 }
@@ -142,6 +157,7 @@ pub struct Profile {
     pub max_payload: usize,
     pub string_numbers: bool,
     pub qos: u8,
+    pub enforce_keep_alive: bool,
     pub outputs: Vec<OwnTopic>,
     pub inputs: Vec<InputTopic>,
     /// (FB, port, payload in canonical JSON) for each broker-side will value.
@@ -391,6 +407,7 @@ impl ProfileFile {
             max_payload: self.speaks.max_payload,
             string_numbers: self.speaks.string_numbers,
             qos: self.speaks.qos,
+            enforce_keep_alive: self.speaks.enforce_keep_alive,
             outputs,
             inputs,
             will,

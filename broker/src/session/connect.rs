@@ -160,8 +160,9 @@ impl Session {
             client_id: client_id.into(),
             username,
             version,
-            // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off.
-            keep_alive: (keep_alive_s > 0)
+            // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off. So does a profile whose
+            // runtime never pings (`Session::relax_keep_alive`).
+            keep_alive: (keep_alive_s > 0 && fb.profile().is_none_or(|p| p.enforce_keep_alive))
                 .then(|| Duration::from_secs(keep_alive_s as u64).mul_f32(1.5)),
             client_max_packet: properties
                 .as_ref()

@@ -144,6 +144,10 @@ impl Session {
             self.ctx
                 .policy
                 .admit(Door::Client, &mut self.fb, &self.client_id, publication);
+        // A publication may have made this connection a profiled device's (topics-only).
+        if self.keep_alive.is_some() {
+            self.relax_keep_alive();
+        }
         let (origin, routes) = match admission {
             Admission::Route { origin, routes } => (origin, routes),
             Admission::Consumed => {

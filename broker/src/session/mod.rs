@@ -276,8 +276,13 @@ impl Session {
                 }
             }
             // The client may have been heard elsewhere (`write`): one deadline for both.
-            if self.keep_alive.is_some() && deadline.deadline() != self.alive_until {
-                deadline.as_mut().reset(self.alive_until);
+            // None once a profile lifted the keep-alive (`relax_keep_alive`).
+            let due = match self.keep_alive {
+                Some(_) => self.alive_until,
+                None => far_future,
+            };
+            if deadline.deadline() != due {
+                deadline.as_mut().reset(due);
             }
             // Backpressure: while the router has not taken this client's previous packets,
             // stop reading its socket, so a fast publisher is slowed by TCP instead of
@@ -321,6 +326,23 @@ impl Session {
             if let Err(end) = handled {
                 return end;
             }
+        }
+    }
+
+    /// The connection speaks for a profiled device whose runtime never pings
+    /// (`speaks.enforce_keep_alive = false`): its keep-alive is not enforced from now on.
+    /// The kernel's dead-link probes still end it if its peer vanishes.
+    fn relax_keep_alive(&mut self) {
+        let lifted = self
+            .fb
+            .profile()
+            .is_some_and(|p| !p.enforce_keep_alive);
+        if lifted && self.keep_alive.take().is_some() {
+            tracing::info!(
+                client_id = &*self.client_id,
+                device = self.fb.device(),
+                "keep-alive not enforced: the device's profile says its runtime never pings"
+            );
         }
     }
 
