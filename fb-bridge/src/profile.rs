@@ -298,6 +298,7 @@ impl ProfileFile {
                 format!("{} topics; at most {MAX_TOPICS}", self.topics.len()),
             ));
         }
+        let dinasore = self.runtime.as_deref() == Some("dinasore");
         let mut outputs = Vec::new();
         let mut inputs = Vec::new();
         let mut seen = std::collections::BTreeSet::new();
@@ -352,6 +353,16 @@ impl ProfileFile {
                     format!("{fb}.{port} is an output: only an input topic has a from"),
                 )),
                 (Some(from), false, true) => match parse_source(from) {
+                    Some(_) if dinasore && enc == Encoding::Dinasore && !floats(&interface, fb, port) => {
+                        errors.push(err(
+                            at("port"),
+                            format!(
+                                "{fb}.{port}: a DINASORE subscriber FB reads float(value), \
+                                 and a value float() cannot read (STRING, TIME, a date, an \
+                                 array, an event without data) stops that FB for good"
+                            ),
+                        ))
+                    }
                     Some(from) => inputs.push(InputTopic { own, from }),
                     None => errors.push(err(at("from"), "<device>/<FB>/<PORT>")),
                 },
@@ -415,6 +426,28 @@ impl ProfileFile {
     }
 }
 
+/// Whether every value of input `fb.port` is one DINASORE's subscriber FB reads with
+/// `float()`: numbers and BOOL (`float(true)` is 1.0), at least one of them.
+fn floats(interface: &Interface, fb: &str, port: &str) -> bool {
+    let Some(shape) = interface.input(fb, port) else {
+        return false;
+    };
+    let types = shape.value_types();
+    !types.is_empty()
+        && types.iter().all(|t| match t {
+            DataType::Elementary(e) => !matches!(
+                e,
+                ElementaryType::String
+                    | ElementaryType::WString
+                    | ElementaryType::Time
+                    | ElementaryType::Date
+                    | ElementaryType::TimeOfDay
+                    | ElementaryType::DateAndTime
+            ),
+            DataType::Array(..) => false,
+        })
+}
+
 /// `<device>/<FB>/<PORT>`.
 fn parse_source(text: &str) -> Option<Source> {
     let mut levels = text.split('/');
@@ -461,11 +494,19 @@ pub fn unstring_numbers(payload: &[u8], port_name: &str, port: &OutputPort<'_>) 
         let Some(J::String(text)) = object.get(name) else {
             continue;
         };
+        let integer = !matches!(t, ElementaryType::Real | ElementaryType::Lreal);
         let number = match text.trim() {
             "True" | "TRUE" | "true" if t == ElementaryType::Bool => Some(J::Bool(true)),
             "False" | "FALSE" | "false" if t == ElementaryType::Bool => Some(J::Bool(false)),
             trimmed if numeric => serde_json::from_str::<serde_json::Number>(trimmed)
                 .ok()
+                .map(|n| match integer {
+                    // DINASORE's VALUE is a REAL: an integer port's 3 arrives as "3.0".
+                    // A whole number is that integer; anything else stays as it is, for
+                    // the decoder to refuse.
+                    true => whole(&n).unwrap_or(n),
+                    false => n,
+                })
                 .map(J::Number),
             _ => None,
         };
@@ -477,5 +518,24 @@ pub fn unstring_numbers(payload: &[u8], port_name: &str, port: &OutputPort<'_>) 
 }
 
 pub mod fboot;
+/// `n` as an integer when it is a whole number written with a fraction (`3.0`, `-2e0`)
+/// within 64 bits.
+fn whole(n: &serde_json::Number) -> Option<serde_json::Number> {
+    if n.is_i64() || n.is_u64() {
+        return None;
+    }
+    let f = n.as_f64()?;
+    if f.fract() != 0.0 || !f.is_finite() {
+        return None;
+    }
+    if (i64::MIN as f64..=i64::MAX as f64).contains(&f) && f < 9.2e18 {
+        return Some((f as i64).into());
+    }
+    if (0.0..1.8e19).contains(&f) {
+        return Some((f as u64).into());
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests;

@@ -127,6 +127,35 @@ fn dinasore_string_values_read_as_numbers_only_where_the_type_is_one() {
     let data = OutputPort::Data(DataType::Elementary(ElementaryType::Int));
     let out = unstring_numbers(br#"{"SPEED": " 3 "}"#, "SPEED", &data).unwrap();
     assert_eq!(out, br#"{"SPEED":3}"#);
+    // DINASORE's VALUE is a REAL: an integer's 3 arrives as "3.0".
+    let out = unstring_numbers(br#"{"SPEED": "3.0"}"#, "SPEED", &data).unwrap();
+    assert_eq!(out, br#"{"SPEED":3}"#);
+    let out = unstring_numbers(br#"{"SPEED": "3.5"}"#, "SPEED", &data).unwrap();
+    assert_eq!(out, br#"{"SPEED":3.5}"#, "left for the decoder to refuse");
+    let real = OutputPort::Data(DataType::Elementary(ElementaryType::Real));
+    let out = unstring_numbers(br#"{"SPEED": "3.0"}"#, "SPEED", &real).unwrap();
+    assert_eq!(out, br#"{"SPEED":3.0}"#);
     assert_eq!(unstring_numbers(b"[1]", "SPEED", &data), None);
     assert_eq!(unstring_numbers(b"\xff", "SPEED", &data), None);
+}
+
+#[test]
+fn a_dinasore_input_only_takes_what_float_reads() {
+    let profile = |data_in: serde_json::Value| -> ProfileFile {
+        serde_json::from_value(json!({
+            "device": "d",
+            "runtime": "dinasore",
+            "identity": {"topics_only": true},
+            "speaks": {"encoding": "dinasore", "string_numbers": true},
+            "interface": {"fbs": {"SUB": {"data_in": data_in}}},
+            "topics": [{"topic": "line/d/in", "port": "SUB.IN", "from": "x/F/P"}]
+        }))
+        .unwrap()
+    };
+    assert!(profile(json!({"IN": "REAL"})).validate().is_ok());
+    assert!(profile(json!({"IN": "BOOL"})).validate().is_ok());
+    for refused in ["STRING", "TIME", "DT", "ARRAY [2] OF INT"] {
+        let errors = profile(json!({ "IN": refused })).validate().expect_err(refused);
+        assert!(errors[0].error.contains("float(value)"), "{errors:?}");
+    }
 }
