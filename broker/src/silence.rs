@@ -227,8 +227,7 @@ impl Activity {
         }
     }
 
-    /// A profile states the period of `fb.port` (issue 16; no caller yet).
-    #[allow(dead_code)]
+    /// A profile states the period of `fb.port` (`periods` in a device profile).
     pub fn state_period(&self, fb: &str, port: &str, period: Duration) {
         let mut ports = self.lock();
         if let Some(clock) = ports.clocks.get_mut(fb).and_then(|f| f.get_mut(port)) {

@@ -361,3 +361,37 @@ async fn a_device_whose_runtime_never_pings_is_not_cut_for_it() {
     });
     assert!(broker.metric("fbbus_disconnects_total{reason=\"keep_alive\"}") >= 1.0);
 }
+
+/// A profile's stated period: the device is judged silent from its first connection,
+/// with no period to observe first (a FORTE whose publishers died right after a broker
+/// restart publishes nothing to observe).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stated_period_makes_a_quiet_device_silent() {
+    let profile = CONV2.replace(
+        "[will]",
+        "[periods]\n\"CONV.POSITION\" = 200\n[will]",
+    );
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\nsilence_min_s = 0.5\n".into(),
+            ..Default::default()
+        },
+        |dir| {
+            let profiles = dir.join("profiles");
+            std::fs::create_dir(&profiles).unwrap();
+            std::fs::write(profiles.join("conv2.toml"), &profile).unwrap();
+        },
+    );
+    let mut conv2 = Dev::connect(broker.port(), 5, "conv2");
+    // Never publishes: silent once 3 x 200 ms (at least 0.5 s) went by.
+    wait_record(&broker, "conv2", "online and silent", |r| {
+        r["status"] == "online" && r["silent"] == true
+    })
+    .await;
+    // A publication: no longer silent.
+    assert_eq!(conv2.publish("line1/conv2/position", &fbdk_int(3)), 0);
+    wait_record(&broker, "conv2", "online, not silent", |r| {
+        r["status"] == "online" && r["silent"] == false
+    })
+    .await;
+}

@@ -53,6 +53,11 @@ pub struct ProfileFile {
     /// A data port takes its value; an event port takes a table of its WITH values.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub will: BTreeMap<String, serde_json::Value>,
+    /// Output port (`FB.PORT`) → the period it publishes at, in milliseconds: the device
+    /// is `online, silent` once such a port has been quiet for `[fb] silence_factor`
+    /// periods, from its first connection (no period to observe first).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub periods: BTreeMap<String, u64>,
 }
 
 /// How the device's connection is recognised. With none given, its client id is the
@@ -162,6 +167,8 @@ pub struct Profile {
     pub inputs: Vec<InputTopic>,
     /// (FB, port, payload in canonical JSON) for each broker-side will value.
     pub will: Vec<(String, String, String)>,
+    /// (FB, output port, period) for each stated period.
+    pub periods: Vec<(String, String, std::time::Duration)>,
 }
 
 /// How a connection is recognised as the device.
@@ -407,6 +414,25 @@ impl ProfileFile {
             }
         }
 
+        let mut periods = Vec::new();
+        for (port_text, ms) in &self.periods {
+            let at = format!("periods.{port_text}");
+            match fb_port(port_text) {
+                Some((fb, port)) if interface.output(fb, port).is_some() => {
+                    if *ms == 0 || *ms > 86_400_000 {
+                        errors.push(err(at, "a period from 1 ms to one day (86400000)"));
+                    } else {
+                        periods.push((
+                            fb.to_owned(),
+                            port.to_owned(),
+                            std::time::Duration::from_millis(*ms),
+                        ));
+                    }
+                }
+                _ => errors.push(err(at, "FB.PORT of an output of the interface")),
+            }
+        }
+
         if !errors.is_empty() {
             return Err(errors);
         }
@@ -422,6 +448,7 @@ impl ProfileFile {
             outputs,
             inputs,
             will,
+            periods,
         })
     }
 }

@@ -294,8 +294,13 @@ impl FbSession {
     }
 
     /// Where this connection times the device's accepted publications: set for a local
-    /// device's own connection only.
+    /// device's own connection only. A profile's stated periods apply to it.
     pub fn set_activity(&mut self, activity: Option<Arc<Activity>>) {
+        if let (Some(activity), Some(profile)) = (&activity, &self.profile) {
+            for (fb, port, period) in &profile.periods {
+                activity.state_period(fb, port, *period);
+            }
+        }
         self.activity = activity;
     }
 
@@ -457,6 +462,23 @@ impl FbSession {
                 ),
             );
         }
+        if self.profile.is_none() {
+            // A topics-only device's first publication on this connection (the access rules
+            // let it publish here, and it is no other device): the connection now speaks
+            // for it, refusals included, so the registry shows it online until the
+            // connection (or a newer one of it) ends, and its broker-side will fires then.
+            let interface =
+                fb.registry
+                    .declare(&profile.device, self.session, profile.interface.clone());
+            self.set_profile(Arc::clone(profile), interface);
+            self.set_activity(fb.registry.activity(&profile.device));
+            tracing::info!(
+                device = profile.device,
+                client_id = self.client_id,
+                session = self.session,
+                "a client publishes on a topics-only device's own topic: it is that device"
+            );
+        }
         let Some(port) = profile.interface.output(&own.fb, &own.port) else {
             return Check::Pass;
         };
@@ -487,22 +509,6 @@ impl FbSession {
                 )
             }
         };
-        if self.profile.is_none() {
-            // A topics-only device's first accepted publication on this connection: the
-            // connection now speaks for it, so the registry shows it online until the
-            // connection (or a newer one of it) ends, and its broker-side will fires then.
-            let interface =
-                fb.registry
-                    .declare(&profile.device, self.session, profile.interface.clone());
-            self.set_profile(Arc::clone(profile), interface);
-            self.activity = fb.registry.activity(&profile.device);
-            tracing::info!(
-                device = profile.device,
-                client_id = self.client_id,
-                session = self.session,
-                "a client published on a topics-only device's own topic: it is that device"
-            );
-        }
         let typed = TypedTopic {
             encoding: Encoding::Json,
             device: &profile.device,
@@ -792,17 +798,24 @@ impl FbSession {
         if rejection.detail.is_empty() {
             return;
         }
-        // Labels stay bounded: a port only when declared, a device only when registered.
+        // Labels stay bounded: a port only when declared (on its typed topic, or on the
+        // device's own topic its profile maps), a device only when registered.
+        let declared = |fb: &str, port: &str| {
+            self.interface
+                .as_ref()
+                .is_some_and(|i| i.output(fb, port).is_some())
+        };
+        let own = self.profile.as_ref().and_then(|p| {
+            p.outputs
+                .iter()
+                .find(|o| o.topic == topic)
+                .map(|o| format!("{}.{}", o.fb, o.port))
+        });
         let port = TypedTopic::parse(topic)
-            .filter(|t| {
-                self.interface
-                    .as_ref()
-                    .is_some_and(|i| i.output(t.fb, t.port).is_some())
-            })
-            .map_or_else(
-                || "undeclared".to_owned(),
-                |t| format!("{}.{}", t.fb, t.port),
-            );
+            .filter(|t| declared(t.fb, t.port))
+            .map(|t| format!("{}.{}", t.fb, t.port))
+            .or(own)
+            .unwrap_or_else(|| "undeclared".to_owned());
         let device = if self.interface.is_some() {
             self.device.as_str()
         } else {

@@ -16,7 +16,8 @@ fn conveyor(extra: serde_json::Value) -> ProfileFile {
             {"topic": "line1/conv2/position", "port": "CONV.POSITION"},
             {"topic": "line1/conv2/speed", "port": "CONV.SPEED", "from": "conv1/CONV/SPEED_OUT", "encoding": "dinasore"}
         ],
-        "will": {"CONV.CONNECT": false}
+        "will": {"CONV.CONNECT": false},
+        "periods": {"CONV.POSITION": 250}
     });
     if let (Some(file), Some(extra)) = (file.as_object_mut(), extra.as_object()) {
         for (k, v) in extra {
@@ -54,6 +55,10 @@ fn a_forte_profile_resolves() {
         vec![("CONV".into(), "CONNECT".into(), "false".into())]
     );
     assert_eq!(profile.max_payload, 255);
+    assert_eq!(
+        profile.periods,
+        vec![("CONV".into(), "POSITION".into(), std::time::Duration::from_millis(250))]
+    );
 }
 
 #[test]
@@ -71,7 +76,8 @@ fn every_mistake_is_reported_with_where_it_is() {
             {"topic": "line1/d", "port": "CONV.POSITION"},
             {"topic": "line1/d", "port": "CONV.POSITION"}
         ],
-        "will": {"CONV.CONNECT": 7, "CONV.SPEED": 1.0, "CNF": 1}
+        "will": {"CONV.CONNECT": 7, "CONV.SPEED": 1.0, "CNF": 1},
+        "periods": {"CONV.SPEED": 100, "CONV.POSITION": 0}
     }));
     let errors = bad.validate().expect_err("invalid");
     let at: Vec<&str> = errors.iter().map(|e| e.at.as_str()).collect();
@@ -91,6 +97,8 @@ fn every_mistake_is_reported_with_where_it_is() {
             "will.CNF",
             "will.CONV.CONNECT",
             "will.CONV.SPEED",
+            "periods.CONV.POSITION",
+            "periods.CONV.SPEED",
         ],
         "{errors:#?}"
     );
