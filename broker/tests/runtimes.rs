@@ -1038,18 +1038,12 @@ async fn forte_and_dinasore_wired_through_fbbus() {
     assert_eq!(text(&got[1]), "false");
 }
 
-// ------------------------------------------------------------------ discrepancies
+// ------------------------------------------------------------------ refusals, where they are told
 
-/// DISCREPANCY: a refusal on a profile's own output topic is counted with
-/// `port="undeclared"`, though the port is declared (by the profile) and the diagnostic
-/// names it (`PUB_COUNT.SD_1`). docs/runtimes.md: "An ill-typed one is refused like any
-/// typed publication (0x99, counted, ...)"; device-contract.md: counted in
-/// `fbbus_typed_messages_rejected_total{device, port, reason}`. `FbSession::rejected`
-/// derives the port label from `TypedTopic::parse(topic)`, which is None for an own topic
-/// (`line1/forte3/count`). Observed:
-/// `fbbus_typed_messages_rejected_total{device="forte3",port="undeclared",reason="payload_format_invalid"} 1`
+/// A refusal on a profile's own output topic is counted with the port the profile maps
+/// there (`PUB_COUNT.SD_1`), as on a typed topic. (Found by this test: it was counted as
+/// `port="undeclared"`.)
 #[tokio::test(flavor = "multi_thread")]
-#[ignore = "broker counts refusals on a profile's own topic with port=\"undeclared\""]
 async fn refusal_on_an_own_topic_is_counted_with_its_port() {
     if !require("python3") {
         return;
@@ -1074,19 +1068,12 @@ async fn refusal_on_an_own_topic_is_counted_with_its_port() {
     );
 }
 
-/// DISCREPANCY: a DINASORE whose first publication is ill-typed (its application
-/// publishes text, `nan`, or `True` on a REAL) is described on
-/// `fbbus/diag/<the client id the broker assigned it>` (random, new on every
-/// connection) and counted as `device="undeclared"`, not on `fbbus/diag/dina`: the
-/// connection is not yet the device, though the topic, its profile's own, says which
-/// device it is. A DINASORE whose every value is refused is never online and its
-/// refusals are never described where its operator looks. docs/runtimes.md: an ill-typed
-/// publication on its own topic is "refused like any typed publication (0x99, counted,
-/// `fbbus/diag/`)". Observed:
-/// `fbbus/diag/fbbus-ac6b506e4027aa47 {"code":153,"detail":"line1/dina/speed (CONV.SPEED): SPEED: expected REAL, got a JSON string","kind":"rejected",...}`
-/// and `fbbus_typed_messages_rejected_total{device="undeclared",port="undeclared",reason="payload_format_invalid"} 1`.
+/// A DINASORE whose first publication is ill-typed (its application publishes text,
+/// `nan`, or `True` on a REAL) is told so on `fbbus/diag/dina`, counted as `dina`, and
+/// online: the topic, its profile's own, says which device it is. (Found by this test:
+/// the refusal went to the random client id the broker assigned it, and a DINASORE whose
+/// every value was refused was never online.)
 #[tokio::test(flavor = "multi_thread")]
-#[ignore = "broker describes a topics-only device's first refused publication under its random client id"]
 async fn a_topics_only_device_first_refusal_is_described_under_its_id() {
     if !require_paho() {
         return;
