@@ -4,14 +4,15 @@
 //! know about each other comes over fbbus.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fb_bridge::client::DeviceConfig;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
 use crate::log;
 use crate::module::{self, Command, Report};
+use crate::runtime::{Roster, Runtime, Setup};
 
 /// The bound on every wait for the modules.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
@@ -19,6 +20,7 @@ pub const TIMEOUT: Duration = Duration::from_secs(10);
 /// A module standing on the line.
 struct Placed {
     position: i16,
+    runtime: Runtime,
     commands: mpsc::Sender<Command>,
     task: JoinHandle<()>,
 }
@@ -26,10 +28,11 @@ struct Placed {
 type Neighbours = (Option<String>, Option<String>);
 
 pub struct Line {
-    /// Broker address and timings; each module gets its own id.
-    base: DeviceConfig,
-    /// Every module id of this run, known to every module (the line's engineering).
-    roster: Vec<String>,
+    /// Broker address, line name and timings.
+    setup: Setup,
+    /// Every module of this run and its runtime, known to every module (the line's
+    /// engineering).
+    roster: Arc<Roster>,
     modules: BTreeMap<String, Placed>,
     reports_tx: mpsc::Sender<Report>,
     reports: mpsc::Receiver<Report>,
@@ -40,11 +43,11 @@ pub struct Line {
 }
 
 impl Line {
-    pub fn new(base: DeviceConfig, roster: Vec<String>) -> Line {
+    pub fn new(setup: Setup, roster: Roster) -> Line {
         let (reports_tx, reports) = mpsc::channel(256);
         Line {
-            base,
-            roster,
+            setup,
+            roster: Arc::new(roster),
             modules: BTreeMap::new(),
             reports_tx,
             reports,
@@ -68,11 +71,12 @@ impl Line {
     /// Places module `id` at the end of the line and powers it on.
     pub fn start(&mut self, id: &str) {
         let position = self.modules.values().map(|m| m.position).max().unwrap_or(0) + 1;
-        let mut config = self.base.clone();
-        config.id = id.to_owned();
+        let runtime = self.roster.get(id).copied().unwrap_or(Runtime::Contract);
         let (commands, rx) = mpsc::channel(16);
         let task = tokio::spawn(module::run(
-            config,
+            runtime,
+            id.to_owned(),
+            self.setup.clone(),
             position,
             self.roster.clone(),
             rx,
@@ -82,10 +86,17 @@ impl Line {
             id.to_owned(),
             Placed {
                 position,
+                runtime,
                 commands,
                 task,
             },
         );
+    }
+
+    /// The MQTT keep-alive module `id` asks the broker for (its runtime's).
+    pub fn keep_alive(&self, id: &str) -> Option<Duration> {
+        let module = self.modules.get(id)?;
+        Some(module.runtime.keep_alive(self.setup.keep_alive))
     }
 
     /// Waits until every module sees the line as it stands: the online count and its
@@ -177,7 +188,8 @@ impl Line {
         self.counts.remove(id);
         self.neighbours.remove(id);
         let started = Instant::now();
-        // Dropping the module's task drops its Device: no DISCONNECT, the will fires.
+        // Dropping the module's task drops its connections: no DISCONNECT, the will (its
+        // own, or its profile's at the broker) fires.
         module.task.abort();
         let online = self.modules.len() as u64;
         let deadline = started + TIMEOUT;

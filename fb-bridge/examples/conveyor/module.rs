@@ -1,35 +1,31 @@
-//! One conveyor module: a real fbbus device with its own connection.
+//! One conveyor module: its conveyor logic, whatever runtime it talks MQTT with.
 //!
-//! Its FB `CONV` has the data outputs of the reference line and the event output `STATE`
-//! carrying all of them. Like a PLC scan, the module publishes its outputs every
-//! [`CYCLE`] and on every change, so a module that joins later learns the others within
-//! one cycle. It follows every other module of the roster (their `STATE` and `CONNECT`
-//! ports, as soon as they are in the registry) and works out from their `POSITION`s who
-//! comes before and after it. A part arrives when the module before it reports
-//! `SENSOR_OUT`; the first module takes parts from the line's entrance.
+//! Its FB `CONV` has the data outputs of the reference line (CONNECT, SENSOR_IN,
+//! SENSOR_OUT, POSITION, SWAP) and, for the runtimes that can send one, the event output
+//! `STATE` carrying all of them (and ID). Like a PLC scan, the module publishes its
+//! outputs every [`CYCLE`] and on every change, so a module that joins later learns the
+//! others within one cycle. It follows every other module of the roster (their STATE or
+//! data outputs, and CONNECT) and works out from their `POSITION`s who comes before and
+//! after it. A part arrives when the module before it reports `SENSOR_OUT`; the first
+//! module takes parts from the line's entrance.
+//!
+//! How it connects, publishes and hears the others is its [`Link`]
+//! (`runtime/`): a `fb_bridge::client` device, a FORTE-like or a DINASORE-like device.
+//! This file is the same for all three.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
-use fb_bridge::client::{ClientError, Device, DeviceConfig, Ind, Publisher, WillSpec};
-use fb_bridge::{Interface, Value};
 use tokio::sync::mpsc;
-use tokio::task::JoinSet;
 
 use crate::log;
+use crate::runtime::{Heard, Link, Outputs, PeerUpdate, Roster, Runtime, Setup};
 
 /// The PLC scan: outputs are republished this often.
 const CYCLE: Duration = Duration::from_millis(250);
 /// How long a part takes from SENSOR_IN to SENSOR_OUT.
 const BELT: Duration = Duration::from_millis(40);
-
-const INTERFACE: &str = r#"{"fbs": {"CONV": {
-    "type": "CONVEYOR",
-    "events_out": {"STATE": {"with": ["ID", "CONNECT", "SENSOR_IN", "SENSOR_OUT", "POSITION", "SWAP"]}},
-    "data_out": {"ID": "STRING", "CONNECT": "BOOL", "SENSOR_IN": "BOOL",
-                 "SENSOR_OUT": "BOOL", "POSITION": "INT", "SWAP": "BOOL"}
-}}}"#;
 
 /// What the plant does to a module.
 pub enum Command {
@@ -76,91 +72,78 @@ struct Peer {
     sensor_out: bool,
 }
 
-/// Messages from the follower tasks.
-enum Heard {
-    State(String, Ind),
-    Connect(String, bool),
-}
-
 pub struct Module {
     id: String,
     position: i16,
-    device: Arc<Device>,
-    state: Publisher,
-    connect: Publisher,
+    link: Link,
     peers: BTreeMap<String, Peer>,
     /// Before and after this module, as last reported.
     neighbours: (Option<String>, Option<String>),
     reported: bool,
+    /// The online count, as last reported.
+    count: Option<u64>,
     reports: mpsc::Sender<Report>,
 }
 
-/// Runs module `id` at `position` until it is stopped (or its task aborted).
+/// Runs module `id` of `runtime` at `position` until it is stopped (or its task aborted).
 pub async fn run(
-    mut config: DeviceConfig,
+    runtime: Runtime,
+    id: String,
+    setup: Setup,
     position: i16,
-    roster: Vec<String>,
+    roster: Arc<Roster>,
     commands: mpsc::Receiver<Command>,
     reports: mpsc::Sender<Report>,
 ) {
-    let id = config.id.clone();
-    config.will = Some(WillSpec::new("CONV", "CONNECT", Value::Bool(false)));
-    if let Err(e) = Module::start(config, position, roster, commands, reports.clone()).await {
-        let _ = reports
-            .send(Report::Failed {
-                id,
-                error: e.to_string(),
-            })
-            .await;
+    let started = Module::start(
+        runtime,
+        &id,
+        &setup,
+        position,
+        &roster,
+        commands,
+        reports.clone(),
+    );
+    if let Err(error) = started.await {
+        let _ = reports.send(Report::Failed { id, error }).await;
     }
 }
 
 impl Module {
     async fn start(
-        config: DeviceConfig,
+        runtime: Runtime,
+        id: &str,
+        setup: &Setup,
         position: i16,
-        roster: Vec<String>,
+        roster: &Roster,
         commands: mpsc::Receiver<Command>,
         reports: mpsc::Sender<Report>,
-    ) -> Result<(), ClientError> {
-        let interface: Interface = serde_json::from_str(INTERFACE).expect("valid interface");
-        let id = config.id.clone();
-        let device = Arc::new(Device::connect(config, interface).await?);
-        log(format!(
-            "{id}: connected, session {}, line {}",
-            device.session(),
-            device.line()
-        ));
+    ) -> Result<(), String> {
+        let (heard_tx, heard) = mpsc::channel(256);
+        let link = Link::open(runtime, id, setup, roster, heard_tx).await?;
         let mut module = Module {
-            state: device.publisher("CONV", "STATE")?,
-            connect: device.publisher("CONV", "CONNECT")?,
-            id,
+            id: id.to_owned(),
             position,
-            device,
+            link,
             peers: BTreeMap::new(),
             neighbours: (None, None),
             reported: false,
+            count: None,
             reports,
         };
         module.publish(false).await?;
+        if module.link.counts_itself() {
+            module.count_connected().await;
+        }
         module.report_neighbours().await;
-        module.run(roster, commands).await
+        module.run(commands, heard).await
     }
 
     async fn run(
         &mut self,
-        roster: Vec<String>,
         mut commands: mpsc::Receiver<Command>,
-    ) -> Result<(), ClientError> {
-        let (heard_tx, mut heard) = mpsc::channel(256);
-        // Dropping the set (when this task ends or is aborted) stops the followers.
-        let mut followers = JoinSet::new();
-        for peer in roster.into_iter().filter(|p| *p != self.id) {
-            followers.spawn(follow(self.device.clone(), peer, heard_tx.clone()));
-        }
-        let mut count = self.device.online_count(&self.device.line()).await?;
-        let initial = *count.borrow_and_update();
-        self.count_changed(initial).await;
+        mut heard: mpsc::Receiver<Heard>,
+    ) -> Result<(), String> {
         let mut cycle = tokio::time::interval(CYCLE);
         loop {
             tokio::select! {
@@ -174,24 +157,19 @@ impl Module {
                         self.report_neighbours().await;
                     }
                     Some(Command::Stop) | None => {
-                        followers.shutdown().await;
-                        self.device.disconnect().await;
+                        self.link.close().await;
                         log(format!("{}: disconnected", self.id));
                         return Ok(());
                     }
                 },
                 Some(message) = heard.recv() => self.heard(message).await?,
-                Ok(()) = count.changed() => {
-                    let n = *count.borrow_and_update();
-                    self.count_changed(n).await;
-                }
                 _ = cycle.tick() => self.publish(false).await?,
             }
         }
     }
 
-    /// Publishes CONNECT and STATE (with SWAP as given).
-    async fn publish(&mut self, swap: bool) -> Result<(), ClientError> {
+    /// Publishes CONNECT and the outputs (with SWAP as given).
+    async fn publish(&mut self, swap: bool) -> Result<(), String> {
         self.publish_state(false, false, swap).await
     }
 
@@ -200,22 +178,21 @@ impl Module {
         sensor_in: bool,
         sensor_out: bool,
         swap: bool,
-    ) -> Result<(), ClientError> {
-        self.connect.req(vec![Value::Bool(true)]).await?;
-        self.state
-            .req(vec![
-                Value::String(self.id.clone()),
-                Value::Bool(true),
-                Value::Bool(sensor_in),
-                Value::Bool(sensor_out),
-                Value::Int(self.position),
-                Value::Bool(swap),
-            ])
-            .await?;
-        Ok(())
+    ) -> Result<(), String> {
+        let outputs = Outputs {
+            sensor_in,
+            sensor_out,
+            position: self.position,
+            swap,
+        };
+        self.link.publish(&self.id, &outputs).await
     }
 
     async fn count_changed(&mut self, count: u64) {
+        if self.count == Some(count) {
+            return;
+        }
+        self.count = Some(count);
         log(format!("{}: count = {count}", self.id));
         let report = Report::Count {
             id: self.id.clone(),
@@ -224,43 +201,63 @@ impl Module {
         let _ = self.reports.send(report).await;
     }
 
-    async fn heard(&mut self, message: Heard) -> Result<(), ClientError> {
-        match message {
-            Heard::Connect(peer, connected) => {
-                let known = self.peers.entry(peer.clone()).or_default();
-                if known.connected && !connected {
-                    log(format!("{}: {peer} CONNECT = FALSE (its will)", self.id));
+    /// NUM_DEV, for a runtime that cannot read the broker's count: this module and every
+    /// peer whose last CONNECT was TRUE.
+    async fn count_connected(&mut self) {
+        let connected = self.peers.values().filter(|p| p.connected).count() as u64;
+        self.count_changed(1 + connected).await;
+    }
+
+    async fn heard(&mut self, message: Heard) -> Result<(), String> {
+        let (peer, update) = match message {
+            Heard::Count(count) => {
+                if !self.link.counts_itself() {
+                    self.count_changed(count).await;
                 }
-                known.connected = connected;
+                return Ok(());
             }
-            Heard::State(peer, ind) => {
-                // WITH order: ID, CONNECT, SENSOR_IN, SENSOR_OUT, POSITION, SWAP.
-                let (Value::Bool(sensor_out), Value::Int(position), Value::Bool(swap)) =
-                    (&ind.data[3], &ind.data[4], &ind.data[5])
-                else {
-                    return Ok(());
-                };
-                let known = self.peers.entry(peer.clone()).or_default();
-                if *swap {
-                    log(format!(
-                        "{}: {peer} is now at position {position} (SWAP)",
-                        self.id
-                    ));
-                }
-                known.position = Some(*position);
-                let handed_over = *sensor_out && !known.sensor_out;
-                known.sensor_out = *sensor_out;
-                if handed_over && self.neighbours.0.as_deref() == Some(peer.as_str()) {
-                    self.take_part(Some(peer)).await?;
-                }
+            Heard::Peer(peer, update) => (peer, update),
+        };
+        let PeerUpdate {
+            connect,
+            position,
+            sensor_out,
+            swap,
+        } = update;
+        let known = self.peers.entry(peer.clone()).or_default();
+        if let Some(connected) = connect {
+            if known.connected && !connected {
+                log(format!("{}: {peer} CONNECT = FALSE (its will)", self.id));
             }
+            known.connected = connected;
+        }
+        if let Some(position) = position {
+            known.position = Some(position);
+        }
+        if swap == Some(true) {
+            let at = known.position.map_or("?".to_owned(), |p| p.to_string());
+            log(format!(
+                "{}: {peer} is now at position {at} (SWAP)",
+                self.id
+            ));
+        }
+        let mut handed_over = false;
+        if let Some(sensor_out) = sensor_out {
+            handed_over = sensor_out && !known.sensor_out;
+            known.sensor_out = sensor_out;
+        }
+        if handed_over && self.neighbours.0.as_deref() == Some(peer.as_str()) {
+            self.take_part(Some(peer)).await?;
+        }
+        if connect.is_some() && self.link.counts_itself() {
+            self.count_connected().await;
         }
         self.report_neighbours().await;
         Ok(())
     }
 
     /// SENSOR_IN, the belt, SENSOR_OUT: the module after this one takes the part over.
-    async fn take_part(&mut self, from: Option<String>) -> Result<(), ClientError> {
+    async fn take_part(&mut self, from: Option<String>) -> Result<(), String> {
         self.publish_state(true, false, false).await?;
         let report = Report::Entered {
             id: self.id.clone(),
@@ -314,36 +311,5 @@ impl Module {
             after,
         };
         let _ = self.reports.send(report).await;
-    }
-}
-
-/// Follows one peer's STATE and CONNECT ports, once it is in the registry.
-async fn follow(device: Arc<Device>, peer: String, heard: mpsc::Sender<Heard>) {
-    let mut state = subscribe(&device, &peer, "STATE").await;
-    let mut connect = subscribe(&device, &peer, "CONNECT").await;
-    loop {
-        let message = tokio::select! {
-            Some(ind) = state.ind() => Heard::State(peer.clone(), ind),
-            Some(ind) = connect.ind() => Heard::Connect(peer.clone(), ind.data[0] == Value::Bool(true)),
-            else => return,
-        };
-        if heard.send(message).await.is_err() {
-            return;
-        }
-    }
-}
-
-/// SUBSCRIBE INIT, retried until the peer has declared its interface.
-async fn subscribe(device: &Device, peer: &str, port: &str) -> fb_bridge::client::Subscriber {
-    loop {
-        match device.subscriber(peer, "CONV", port).await {
-            Ok(subscriber) => return subscriber,
-            // Not declared yet: the wait for its registry record starts over.
-            Err(ClientError::UnknownDevice(_)) => {}
-            Err(e) => {
-                tracing::warn!(peer, port, error = %e, "SUBSCRIBE INIT failed; retrying");
-                tokio::time::sleep(Duration::from_millis(500)).await;
-            }
-        }
     }
 }
