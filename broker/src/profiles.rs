@@ -517,8 +517,7 @@ from = "conv1/CONV/SPEED"
             ("conv1.toml".into(), feeder),
             ("conv2.toml".into(), fed),
         ])
-        .err()
-        .expect("refused");
+        .expect_err("refused");
         assert!(error.contains("sends other types"), "{error}");
     }
 
