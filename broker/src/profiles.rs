@@ -273,6 +273,40 @@ fn dir_stamp(dir: &Path) -> Option<DirStamp> {
     )
 }
 
+/// The connections speaking for each topics-only device. DINASORE opens one connection
+/// per MQTT FB, each with a random client id, so such a device is online while any of
+/// them lives: the first to publish on its topics brings it online, the last to end
+/// takes it offline. One entry per connection (bounded by `[broker] max_connections`);
+/// a device's entry goes with its last connection.
+#[derive(Debug, Default)]
+pub struct Speakers {
+    devices: Mutex<HashMap<String, std::collections::BTreeSet<u64>>>,
+}
+
+impl Speakers {
+    /// Connection `session` speaks for `device` from now; true if it is the only one.
+    pub fn join(&self, device: &str, session: u64) -> bool {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        let sessions = devices.entry(device.to_owned()).or_default();
+        sessions.insert(session);
+        sessions.len() == 1
+    }
+
+    /// Connection `session` of `device` ended; true if it was the last.
+    pub fn leave(&self, device: &str, session: u64) -> bool {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some(sessions) = devices.get_mut(device) else {
+            return false;
+        };
+        sessions.remove(&session);
+        let last = sessions.is_empty();
+        if last {
+            devices.remove(device);
+        }
+        last
+    }
+}
+
 /// Why [`Profiles::put`] did not put a profile.
 #[derive(Debug, thiserror::Error)]
 pub enum PutError {

@@ -398,3 +398,25 @@ async fn a_stated_period_makes_a_quiet_device_silent() {
         tokio::time::sleep(Duration::from_millis(150)).await;
     }
 }
+
+/// DINASORE opens a connection per MQTT FB, each with a random client id: the device is
+/// online while any of them lives, and one ending alone does not take it offline.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_topics_only_device_is_online_while_any_of_its_connections_lives() {
+    let broker = line();
+    let mut speed = Dev::connect(broker.port(), 5, "paho-speed");
+    let mut note = Dev::connect(broker.port(), 5, "paho-note");
+    assert_eq!(speed.publish("line1/conv3/speed", br#"{"SPEED": "1"}"#), 0);
+    let first = wait_record(&broker, "conv3", "online", |r| r["status"] == "online").await;
+    assert_eq!(note.publish("line1/conv3/note", br#"{"NOTE": "x"}"#), 0);
+    // The first publisher's FB is deleted: the other still speaks for the device.
+    speed.disconnect();
+    assert_eq!(note.publish("line1/conv3/note", br#"{"NOTE": "y"}"#), 0);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let r = record(&broker, "conv3").unwrap();
+    assert_eq!(r["status"], "online", "{r}");
+    assert_eq!(r["session"], first["session"], "one record, not one per connection");
+    // The last one ends: offline.
+    drop(note);
+    wait_record(&broker, "conv3", "offline", |r| r["status"] == "offline").await;
+}

@@ -365,8 +365,8 @@ impl ProfileFile {
                             at("port"),
                             format!(
                                 "{fb}.{port}: a DINASORE subscriber FB reads float(value), \
-                                 and a value float() cannot read (STRING, TIME, a date, an \
-                                 array, an event without data) stops that FB for good"
+                                 and this port has no value float() can read (only STRING, \
+                                 TIME, dates, arrays, or no data): that stops the FB for good"
                             ),
                         ))
                     }
@@ -453,26 +453,26 @@ impl ProfileFile {
     }
 }
 
-/// Whether every value of input `fb.port` is one DINASORE's subscriber FB reads with
-/// `float()`: numbers and BOOL (`float(true)` is 1.0), at least one of them.
+/// Whether input `fb.port` carries a value DINASORE's subscriber FB can read with
+/// `float()` (a number, or a BOOL: `float(true)` is 1.0). Its FB reads only the key its
+/// VALUE_NAME names, so an event whose other values are strings is fine; a port with no
+/// such value at all would stop it on every message.
 fn floats(interface: &Interface, fb: &str, port: &str) -> bool {
     let Some(shape) = interface.input(fb, port) else {
         return false;
     };
-    let types = shape.value_types();
-    !types.is_empty()
-        && types.iter().all(|t| match t {
-            DataType::Elementary(e) => !matches!(
-                e,
-                ElementaryType::String
-                    | ElementaryType::WString
-                    | ElementaryType::Time
-                    | ElementaryType::Date
-                    | ElementaryType::TimeOfDay
-                    | ElementaryType::DateAndTime
-            ),
-            DataType::Array(..) => false,
-        })
+    shape.value_types().iter().any(|t| match t {
+        DataType::Elementary(e) => !matches!(
+            e,
+            ElementaryType::String
+                | ElementaryType::WString
+                | ElementaryType::Time
+                | ElementaryType::Date
+                | ElementaryType::TimeOfDay
+                | ElementaryType::DateAndTime
+        ),
+        DataType::Array(..) => false,
+    })
 }
 
 /// `<device>/<FB>/<PORT>`.

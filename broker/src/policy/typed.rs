@@ -35,8 +35,9 @@ use serde_json::json;
 
 use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
-use crate::profiles::{ProfileSet, Profiles};
+use crate::profiles::{ProfileSet, Profiles, Speakers};
 use crate::registry::Registry;
+use crate::registry::Status;
 use crate::session::SubscriptionObserver;
 use crate::silence::Activity;
 
@@ -116,6 +117,8 @@ pub struct FbTopics {
     fbdk_max_payload: usize,
     /// The device profiles (`[fb] profiles_dir`).
     pub profiles: Arc<Profiles>,
+    /// The connections speaking for each topics-only device.
+    speakers: Speakers,
     publisher: Arc<BrokerPublisher>,
     metrics: Arc<Metrics>,
     /// Per encoding: someone subscribed to a filter that can match its namespace, so
@@ -146,6 +149,7 @@ impl FbTopics {
             fbdk_unit,
             fbdk_max_payload: FORTE_RECEIVE_BUFFER,
             profiles: Arc::new(Profiles::none()),
+            speakers: Speakers::default(),
             publisher,
             metrics,
             mirrors: Default::default(),
@@ -163,6 +167,26 @@ impl FbTopics {
     pub fn with_profiles(mut self, profiles: Arc<Profiles>) -> FbTopics {
         self.profiles = profiles;
         self
+    }
+
+    /// The connection `session` ended for `reason`: returns whether its device is offline
+    /// now. A device has one connection at a time, except a topics-only device, which is
+    /// online while any connection that speaks for it lives.
+    pub fn connection_ended(&self, session: &FbSession, reason: &str) -> bool {
+        let device = session.device();
+        if !session.by_topics {
+            return self.registry.disconnected(device, session.session, reason);
+        }
+        if !self.speakers.leave(device, session.session) {
+            return false;
+        }
+        // The record carries the session that brought the device online, which may have
+        // ended long ago: the device's end is its last speaker's.
+        let current = self
+            .registry
+            .get(device)
+            .map_or(session.session, |r| r.session);
+        self.registry.disconnected(device, current, reason)
     }
 
     /// A subscription was granted: start re-encoding into the namespaces it can match.
@@ -223,6 +247,8 @@ pub struct FbSession {
     /// The device's profile, when its connection was recognised by one at CONNECT: the
     /// device id and interface are the profile's.
     profile: Option<Arc<Profile>>,
+    /// It speaks for a topics-only device, recognised by its publications.
+    by_topics: bool,
     /// Where accepted publications on the interface's outputs are timed (`silence`); None
     /// for a connection that does not speak for a local device (the bus door's).
     activity: Option<Arc<Activity>>,
@@ -250,6 +276,7 @@ impl FbSession {
             session,
             interface: None,
             profile: None,
+            by_topics: false,
             activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
@@ -467,9 +494,21 @@ impl FbSession {
             // let it publish here, and it is no other device): the connection now speaks
             // for it, refusals included, so the registry shows it online until the
             // connection (or a newer one of it) ends, and its broker-side will fires then.
-            let interface =
-                fb.registry
-                    .declare(&profile.device, self.session, profile.interface.clone());
+            // Its other connections may speak for it already: then it is online, and
+            // its interface and output timing are theirs.
+            let first = fb.speakers.join(&profile.device, self.session);
+            let held = fb
+                .registry
+                .get(&profile.device)
+                .filter(|r| !first && r.status == Status::Online);
+            let interface = match held {
+                Some(record) => record.interface,
+                None => {
+                    fb.registry
+                        .declare(&profile.device, self.session, profile.interface.clone())
+                }
+            };
+            self.by_topics = true;
             self.set_profile(Arc::clone(profile), interface);
             self.set_activity(fb.registry.activity(&profile.device));
             tracing::info!(

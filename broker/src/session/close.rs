@@ -151,11 +151,10 @@ impl Session {
                 self.ctx.observers.unsubscribed(f);
             }
         }
-        let offline = self.ctx.fb.registry.disconnected(
-            self.fb.device(),
-            self.session,
-            end.reason().description(),
-        );
+        let offline = self
+            .ctx
+            .fb
+            .connection_ended(&self.fb, end.reason().description());
         // A profile's broker-side will, for a runtime that cannot set one: when the device
         // is offline (not when a newer connection of it took over), and not besides a
         // will the device did set.

@@ -166,6 +166,20 @@ fn a_dinasore_input_only_takes_what_float_reads() {
     };
     assert!(profile(json!({"IN": "REAL"})).validate().is_ok());
     assert!(profile(json!({"IN": "BOOL"})).validate().is_ok());
+    // An event whose FB reads its numeric key: the string beside it is ignored.
+    let event: ProfileFile = serde_json::from_value(json!({
+        "device": "d",
+        "runtime": "dinasore",
+        "identity": {"topics_only": true},
+        "speaks": {"encoding": "dinasore"},
+        "interface": {"fbs": {"SUB": {
+            "events_in": {"IN": {"with": ["ID", "POSITION"]}},
+            "data_in": {"ID": "STRING", "POSITION": "INT"}
+        }}},
+        "topics": [{"topic": "line/d/in", "port": "SUB.IN", "from": "x/F/P"}]
+    }))
+    .unwrap();
+    assert!(event.validate().is_ok());
     for refused in ["STRING", "TIME", "DT", "ARRAY [2] OF INT"] {
         let errors = profile(json!({ "IN": refused }))
             .validate()
