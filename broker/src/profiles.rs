@@ -380,6 +380,13 @@ impl Profiles {
                 profile.device
             )));
         }
+        // Hidden files are not read (editors' temporary files): such a profile would be
+        // written and then ignored by the next reload.
+        if device.starts_with('.') {
+            return Err(PutError::Invalid(format!(
+                "device id {device:?} starts with '.', which the profiles directory ignores"
+            )));
+        }
         let name = format!("{device}.toml");
         let path = dir.join(&name);
         // The whole set as it would be: this profile in place of the device's file.
