@@ -415,7 +415,10 @@ async fn a_topics_only_device_is_online_while_any_of_its_connections_lives() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let r = record(&broker, "conv3").unwrap();
     assert_eq!(r["status"], "online", "{r}");
-    assert_eq!(r["session"], first["session"], "one record, not one per connection");
+    assert_eq!(
+        r["session"], first["session"],
+        "one record, not one per connection"
+    );
     // The last one ends: offline.
     drop(note);
     wait_record(&broker, "conv3", "offline", |r| r["status"] == "offline").await;
