@@ -1240,6 +1240,7 @@ fn build_profiles(
             interface: Interface { fbs: draft.fbs },
             topics: draft.topics,
             will: BTreeMap::new(),
+            periods: BTreeMap::new(),
         });
     }
     for PendingFrom { note, topic } in pending {
