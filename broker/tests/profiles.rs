@@ -367,10 +367,7 @@ async fn a_device_whose_runtime_never_pings_is_not_cut_for_it() {
 /// restart publishes nothing to observe).
 #[tokio::test(flavor = "multi_thread")]
 async fn a_stated_period_makes_a_quiet_device_silent() {
-    let profile = CONV2.replace(
-        "[will]",
-        "[periods]\n\"CONV.POSITION\" = 200\n[will]",
-    );
+    let profile = CONV2.replace("[will]", "[periods]\n\"CONV.POSITION\" = 200\n[will]");
     let broker = Broker::start_with(
         Options {
             extra: "[fb]\nprofiles_dir = \"profiles\"\nsilence_min_s = 0.5\n".into(),

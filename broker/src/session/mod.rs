@@ -333,10 +333,7 @@ impl Session {
     /// (`speaks.enforce_keep_alive = false`): its keep-alive is not enforced from now on.
     /// The kernel's dead-link probes still end it if its peer vanishes.
     fn relax_keep_alive(&mut self) {
-        let lifted = self
-            .fb
-            .profile()
-            .is_some_and(|p| !p.enforce_keep_alive);
+        let lifted = self.fb.profile().is_some_and(|p| !p.enforce_keep_alive);
         if lifted && self.keep_alive.take().is_some() {
             tracing::info!(
                 client_id = &*self.client_id,

@@ -57,7 +57,11 @@ fn a_forte_profile_resolves() {
     assert_eq!(profile.max_payload, 255);
     assert_eq!(
         profile.periods,
-        vec![("CONV".into(), "POSITION".into(), std::time::Duration::from_millis(250))]
+        vec![(
+            "CONV".into(),
+            "POSITION".into(),
+            std::time::Duration::from_millis(250)
+        )]
     );
 }
 
@@ -163,7 +167,9 @@ fn a_dinasore_input_only_takes_what_float_reads() {
     assert!(profile(json!({"IN": "REAL"})).validate().is_ok());
     assert!(profile(json!({"IN": "BOOL"})).validate().is_ok());
     for refused in ["STRING", "TIME", "DT", "ARRAY [2] OF INT"] {
-        let errors = profile(json!({ "IN": refused })).validate().expect_err(refused);
+        let errors = profile(json!({ "IN": refused }))
+            .validate()
+            .expect_err(refused);
         assert!(errors[0].error.contains("float(value)"), "{errors:?}");
     }
 }
