@@ -82,7 +82,8 @@ enum Command {
         #[arg(long, short)]
         config: Option<PathBuf>,
     },
-    /// Device profiles without a broker: check one, or derive them from a 4diac boot file.
+    /// Device profiles without a broker: check one, or derive them from a 4diac boot file
+    /// (FORTE's, or a DINASORE's data_model.fboot).
     Profile {
         #[command(subcommand)]
         action: ProfileAction,
@@ -104,9 +105,16 @@ enum Command {
 enum ProfileAction {
     /// Validate a profile file: every mistake, each with its key.
     Check { file: PathBuf },
-    /// Derive profiles from a 4diac boot file (.fboot) and print them as TOML, with what
-    /// could not be derived.
-    Import { file: PathBuf },
+    /// Derive profiles from a 4diac boot file (.fboot: a FORTE boot file, or the
+    /// resources/data_model.fboot of a DINASORE) and print them as TOML, with what could
+    /// not be derived.
+    Import {
+        file: PathBuf,
+        /// The device id of a DINASORE's profile (nothing in its file names it); default
+        /// "dinasore". A FORTE profile's device is its MQTT client id.
+        #[arg(long)]
+        device: Option<String>,
+    },
 }
 
 #[derive(Args)]
@@ -168,7 +176,9 @@ fn main() -> std::process::ExitCode {
         } => admin_address(admin, config).and_then(|a| profile_command::declare(&file, a)),
         Command::Profile { action } => match action {
             ProfileAction::Check { file } => profile_command::check(&file),
-            ProfileAction::Import { file } => profile_command::import(&file),
+            ProfileAction::Import { file, device } => {
+                profile_command::import(&file, device.as_deref())
+            }
         },
         #[cfg(feature = "bridge")]
         Command::BusCert { action } => bus_cert::run(action),

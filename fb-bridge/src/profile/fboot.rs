@@ -8,6 +8,11 @@
 //! ([`ProfileFile`]) that say for the device what it cannot declare, with a note for
 //! everything the file does not tell.
 //!
+//! DINASORE keeps what 4diac IDE deploys to it in the same syntax
+//! (`resources/data_model.fboot`), but reads it otherwise, has MQTT FBs of its own and no
+//! client ids: [`import_dinasore`] derives its profile from that file (its module,
+//! `fboot/dinasore.rs`, says how), with the parsing below.
+//!
 //! # The boot file
 //!
 //! One command per line, `<resource>;<request>`: the resource the request goes to (empty
@@ -161,8 +166,9 @@ pub type TypeTable = BTreeMap<String, BTreeMap<String, String>>;
 /// `mBufferSize`) cuts longer ones.
 pub const FORTE_MAX_PAYLOAD: usize = 255;
 
-/// What a boot file gives: one profile per MQTT client id, and a sentence for each thing
-/// it could not derive, naming the FB and what to do.
+/// What a boot file gives: one profile per MQTT client id ([`import`]; one for the file with
+/// [`import_dinasore`]), and a sentence for each thing it could not derive, naming the FB
+/// and what to do.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct FbootImport {
     pub profiles: Vec<ProfileFile>,
@@ -329,27 +335,55 @@ impl Tag {
     }
 }
 
-/// The start tags of a request, in order; end tags are skipped.
+/// The start tags of a request, in order, read the way FORTE reads them; end tags are
+/// skipped.
 fn start_tags(text: &str) -> Result<Vec<Tag>, String> {
-    let mut tags = Vec::new();
+    Ok(xml_items(text, |value| Ok(decode_entities(value)))?
+        .into_iter()
+        .filter_map(|item| match item {
+            XmlItem::Start { tag, .. } => Some(tag),
+            XmlItem::End(_) => None,
+        })
+        .collect())
+}
+
+/// A tag of a request: a start tag (`empty` if it closes itself, `<FB ... />`) or an end
+/// tag, with its name.
+#[derive(Debug)]
+enum XmlItem {
+    Start { tag: Tag, empty: bool },
+    End(String),
+}
+
+/// The tags of a request, in order, attribute values decoded by `decode` (Err: why the
+/// value is not one the reader takes); text between tags is skipped.
+fn xml_items(
+    text: &str,
+    decode: impl Fn(&str) -> Result<String, String>,
+) -> Result<Vec<XmlItem>, String> {
+    let mut items = Vec::new();
     let mut rest = text;
     while let Some((_, after)) = rest.split_once('<') {
         if let Some(end_tag) = after.strip_prefix('/') {
-            let (_, after) = end_tag
+            let (name, after) = end_tag
                 .split_once('>')
                 .ok_or("an end tag is not closed with '>'")?;
+            items.push(XmlItem::End(name.trim().to_owned()));
             rest = after;
             continue;
         }
-        let (tag, after) = start_tag(after)?;
-        tags.push(tag);
+        let (tag, empty, after) = start_tag(after, &decode)?;
+        items.push(XmlItem::Start { tag, empty });
         rest = after;
     }
-    Ok(tags)
+    Ok(items)
 }
 
-/// One start tag after its `<`, and the text after it.
-fn start_tag(text: &str) -> Result<(Tag, &str), String> {
+/// One start tag after its `<`, whether it closes itself, and the text after it.
+fn start_tag<'t>(
+    text: &'t str,
+    decode: &impl Fn(&str) -> Result<String, String>,
+) -> Result<(Tag, bool, &'t str), String> {
     let name_end = text
         .find(|c: char| c.is_whitespace() || c == '/' || c == '>')
         .ok_or("a tag is not closed")?;
@@ -360,12 +394,16 @@ fn start_tag(text: &str) -> Result<(Tag, &str), String> {
     let mut attrs = Vec::new();
     loop {
         rest = rest.trim_start();
-        if let Some(after) = rest.strip_prefix("/>").or_else(|| rest.strip_prefix('>')) {
+        let closed = match rest.strip_prefix("/>") {
+            Some(after) => Some((true, after)),
+            None => rest.strip_prefix('>').map(|after| (false, after)),
+        };
+        if let Some((empty, after)) = closed {
             let tag = Tag {
                 name: name.to_owned(),
                 attrs,
             };
-            return Ok((tag, after));
+            return Ok((tag, empty, after));
         }
         let (key, after) = rest
             .split_once('=')
@@ -383,7 +421,8 @@ fn start_tag(text: &str) -> Result<(Tag, &str), String> {
             .strip_prefix(quote)
             .and_then(|v| v.split_once(quote))
             .ok_or_else(|| format!("attribute {key} of <{name}> has no closing quote"))?;
-        attrs.push((key.to_owned(), decode_entities(value)));
+        let value = decode(value).map_err(|why| format!("attribute {key} of <{name}>: {why}"))?;
+        attrs.push((key.to_owned(), value));
         rest = after;
     }
 }
@@ -1021,11 +1060,11 @@ fn subscribe_port_type(fb: &CommFb<'_>, port: &str, types: &TypeTable) -> Result
 // ---------------------------------------------------------------------------------------
 // Profiles.
 
-/// A usable device id for a client id: forbidden characters (`/ + # $`, controls) become
-/// `_`, and it is cut to the longest id.
-fn sanitized_device(client_id: &str) -> String {
+/// A usable device id for a name (a client id): forbidden characters (`/ + # $`,
+/// controls) become `_`, and it is cut to the longest id; `fallback` if nothing is left.
+fn sanitized_device(name: &str, fallback: &str) -> String {
     let mut out = String::new();
-    for c in client_id.chars() {
+    for c in name.chars() {
         let c = if c.is_control() || "/+#$".contains(c) {
             '_'
         } else {
@@ -1037,7 +1076,7 @@ fn sanitized_device(client_id: &str) -> String {
         out.push(c);
     }
     if out.is_empty() {
-        out.push_str("forte");
+        out.push_str(fallback);
     }
     out
 }
@@ -1155,7 +1194,7 @@ fn build_profiles(
         let device = if usable && !devices.contains(*client_id) {
             (*client_id).to_owned()
         } else {
-            let base = sanitized_device(client_id);
+            let base = sanitized_device(client_id, "forte");
             let device = unique(base, |d| devices.contains(d), topic::MAX_DEVICE_ID);
             let why = if usable {
                 "is the device id of another profile of this import".to_owned()
@@ -1320,38 +1359,34 @@ fn connection_notes(groups: &[(&str, Vec<&CommFb<'_>>)], notes: &mut Vec<String>
     }
 }
 
-/// The interface name of an instance: the instance name if it is an identifier not yet
-/// taken, else a sanitized or numbered one, with a note.
-fn instance_name(fb: &CommFb<'_>, draft: &Draft, notes: &mut Vec<String>) -> String {
+/// The interface name of an instance (`what` names it in notes): the instance name if it
+/// is an identifier not yet taken, else a sanitized or numbered one, with a note.
+fn instance_name(what: &str, instance: &str, draft: &Draft, notes: &mut Vec<String>) -> String {
     const MAX: usize = 64;
-    let name = if is_identifier(fb.instance) {
-        fb.instance.to_owned()
+    let name = if is_identifier(instance) {
+        instance.to_owned()
     } else {
-        sanitized_identifier(fb.instance, MAX)
+        sanitized_identifier(instance, MAX)
     };
     let unique_name = unique(name.clone(), |n| draft.fbs.contains_key(n), MAX);
-    if name != fb.instance {
+    if name != instance {
         notes.push(format!(
-            "{}: its name is not an IEC 61131-3 identifier, so its FB in profile {} is \
+            "{what}: its name is not an IEC 61131-3 identifier, so its FB in profile {} is \
              {unique_name}.",
-            fb.what(),
             draft.device
         ));
     } else if unique_name != name {
         notes.push(format!(
-            "{}: another FB of profile {} already has its name (one from another resource \
+            "{what}: another FB of profile {} already has its name (one from another resource \
              or named by a typed topic), so its FB there is {unique_name}.",
-            fb.what(),
             draft.device
         ));
     }
     unique_name
 }
 
-/// Whether the topic may be mapped at all; notes why not.
-fn mappable_topic(fb: &CommFb<'_>, draft: &Draft, notes: &mut Vec<String>) -> bool {
-    let what = fb.what();
-    let t = fb.topic.as_str();
+/// Whether topic `t` of the FB `what` may be mapped at all; notes why not.
+fn mappable_topic(what: &str, t: &str, draft: &Draft, notes: &mut Vec<String>) -> bool {
     if t.starts_with(topic::BROKER_NAMESPACE) {
         notes.push(format!(
             "{what}: its topic {t:?} is in fbbus/, the broker's own namespace; skipped: use \
@@ -1391,10 +1426,10 @@ fn publish(
         publish_typed(fb, draft, types, notes);
         return;
     }
-    if !mappable_topic(fb, draft, notes) {
+    if !mappable_topic(&what, t, draft, notes) {
         return;
     }
-    let name = instance_name(fb, draft, notes);
+    let name = instance_name(&what, fb.instance, draft, notes);
     let ports: Vec<String> = (1..=fb.ports).map(|i| format!("SD_{i}")).collect();
     let mut data_out = BTreeMap::new();
     for port in &ports {
@@ -1604,10 +1639,10 @@ fn subscribe(
         }
         return;
     }
-    if !mappable_topic(fb, draft, notes) {
+    if !mappable_topic(&what, t, draft, notes) {
         return;
     }
-    let name = instance_name(fb, draft, notes);
+    let name = instance_name(&what, fb.instance, draft, notes);
     let ports: Vec<String> = (1..=fb.ports).map(|i| format!("RD_{i}")).collect();
     let mut data_in = BTreeMap::new();
     for port in &ports {
@@ -1812,6 +1847,9 @@ pub fn builtin_types() -> TypeTable {
     }
     table
 }
+
+mod dinasore;
+pub use dinasore::import_dinasore;
 
 #[cfg(test)]
 mod tests;

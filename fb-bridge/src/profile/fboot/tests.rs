@@ -468,10 +468,10 @@ fn names_and_ids_are_made_usable() {
         p.clone().validate().expect("valid");
     }
 
-    assert_eq!(sanitized_device("a/b+c#d$e\u{7}"), "a_b_c_d_e_");
-    assert_eq!(sanitized_device(""), "forte");
+    assert_eq!(sanitized_device("a/b+c#d$e\u{7}", "forte"), "a_b_c_d_e_");
+    assert_eq!(sanitized_device("", "forte"), "forte");
     let long: String = "é".repeat(200);
-    let cut = sanitized_device(&long);
+    let cut = sanitized_device(&long, "forte");
     assert!(cut.len() <= topic::MAX_DEVICE_ID && topic::is_device_id(&cut));
     assert_eq!(unique(long.clone(), |_| false, topic::MAX_DEVICE_ID), long);
     let numbered = unique(long.clone(), |n| n == long, topic::MAX_DEVICE_ID);
@@ -670,17 +670,17 @@ fn the_builtin_table_has_forte_s_port_types() {
 }
 
 /// A small xorshift: the garbage below is reproducible without a random-number crate.
-struct Noise(u64);
+pub(super) struct Noise(pub(super) u64);
 
 impl Noise {
-    fn next(&mut self) -> u64 {
+    pub(super) fn next(&mut self) -> u64 {
         self.0 ^= self.0 << 13;
         self.0 ^= self.0 >> 7;
         self.0 ^= self.0 << 17;
         self.0
     }
 
-    fn below(&mut self, n: usize) -> usize {
+    pub(super) fn below(&mut self, n: usize) -> usize {
         (self.next() % n.max(1) as u64) as usize
     }
 }
