@@ -47,8 +47,10 @@ pub struct ProfileSet {
     by_device: HashMap<String, Arc<Profile>>,
     /// Own output topic → (profile, index in `outputs`).
     outputs: HashMap<String, (Arc<Profile>, usize)>,
-    /// Typed output → the input topics it feeds, as (profile, index in `inputs`).
-    feeds: HashMap<Source, Vec<(Arc<Profile>, usize)>>,
+    /// By the device of the typed output: (that output, the profile whose input topic it
+    /// feeds, the index in its `inputs`). Keyed by device so that the packet path looks
+    /// it up without building a key.
+    feeds: HashMap<String, Vec<(Source, Arc<Profile>, usize)>>,
     /// Every input topic.
     inputs: std::collections::HashSet<String>,
 }
@@ -78,16 +80,16 @@ impl ProfileSet {
             for (i, input) in profile.inputs.iter().enumerate() {
                 set.inputs.insert(input.own.topic.clone());
                 set.feeds
-                    .entry(input.from.clone())
+                    .entry(input.from.device.clone())
                     .or_default()
-                    .push((Arc::clone(&profile), i));
+                    .push((input.from.clone(), Arc::clone(&profile), i));
             }
             set.by_device.insert(profile.device.clone(), profile);
         }
         // An input topic is the broker's to publish: no device may also publish it. An
         // input fed by a profiled device's output reads the values that output sends.
-        for (source, feeds) in &set.feeds {
-            for (profile, i) in feeds {
+        for feeds in set.feeds.values() {
+            for (source, profile, i) in feeds {
                 let input = &profile.inputs[*i];
                 let topic = &input.own.topic;
                 if let Some(from) = set.by_device.get(&source.device) {
@@ -176,8 +178,18 @@ impl ProfileSet {
     }
 
     /// The input topics fed by the typed output `device/fb/port`.
-    pub fn feeds(&self, source: &Source) -> &[(Arc<Profile>, usize)] {
-        self.feeds.get(source).map_or(&[], Vec::as_slice)
+    pub fn feeds<'a>(
+        &'a self,
+        device: &str,
+        fb: &'a str,
+        port: &'a str,
+    ) -> impl Iterator<Item = (&'a Arc<Profile>, usize)> + 'a {
+        self.feeds
+            .get(device)
+            .into_iter()
+            .flatten()
+            .filter(move |(s, _, _)| s.fb == fb && s.port == port)
+            .map(|(_, p, i)| (p, *i))
     }
 
     /// Whether `topic` is some profile's input topic (the broker publishes it).
@@ -505,12 +517,8 @@ from = "conv1/CONV/SPEED"
         assert!(set.identify("conv2", Some("conv3")).is_none());
         assert!(set.identify("conv3", None).is_none());
         assert_eq!(set.output("line1/conv2/position").unwrap().1, 0);
-        let source = Source {
-            device: "conv1".into(),
-            fb: "CONV".into(),
-            port: "SPEED".into(),
-        };
-        assert_eq!(set.feeds(&source).len(), 1);
+        assert_eq!(set.feeds("conv1", "CONV", "SPEED").count(), 1);
+        assert_eq!(set.feeds("conv1", "CONV", "POSITION").count(), 0);
 
         let metrics = Metrics::new();
         assert!(!profiles.reload(false, &metrics), "unchanged");
@@ -532,6 +540,33 @@ from = "conv1/CONV/SPEED"
         );
         assert!(profiles.reload(false, &metrics));
         assert_eq!(profiles.get().len(), 2);
+    }
+
+    #[test]
+    fn own_topics_in_any_utf8_are_owned_and_found() {
+        let profile = parse(
+            &FORTE
+                .replace("line1/conv2/position", "Förderband/1/Position")
+                .replace("line1/conv2/speed", "ライン/速度"),
+        )
+        .unwrap();
+        let set = ProfileSet::new(vec![("conv2.toml".into(), profile)]).unwrap();
+        assert_eq!(
+            set.output("Förderband/1/Position").unwrap().0.device,
+            "conv2"
+        );
+        assert!(set.output("Förderband/1/position").is_none());
+        assert!(set.is_input_topic("ライン/速度"));
+        // Wildcards and the broker's namespaces are not own topics, in any script.
+        for bad in [
+            "Förderband/+",
+            "fb/conv2/CONV/POSITION",
+            "fbbus/x",
+            "$SYS/é",
+        ] {
+            let text = FORTE.replace("line1/conv2/position", bad);
+            assert!(parse(&text).is_err(), "{bad} accepted");
+        }
     }
 
     #[test]

@@ -27,7 +27,7 @@ use std::time::SystemTime;
 
 use bytes::Bytes;
 use fb_bridge::codec::{self, fbdk, Encoding};
-use fb_bridge::profile::{self as profile_file, Identity, Profile, Source};
+use fb_bridge::profile::{self as profile_file, Identity, Profile};
 use fb_bridge::topic::{self, TypedTopic};
 use fb_bridge::{Declaration, DeclarationError, EventMessage, Interface, Message, OutputPort};
 use serde::Deserialize;
@@ -583,14 +583,10 @@ impl FbSession {
                 fb.registry.silence_bound(),
             );
         }
-        let source = Source {
-            device: typed.device.to_owned(),
-            fb: typed.fb.to_owned(),
-            port: typed.port.to_owned(),
-        };
-        let feeds = match profiles.maps_topics() {
-            true => profiles.feeds(&source),
-            false => &[],
+        // (Collecting nothing allocates nothing: the common case.)
+        let feeds: Vec<(&Arc<Profile>, usize)> = match profiles.maps_topics() {
+            true => profiles.feeds(typed.device, typed.fb, typed.port).collect(),
+            false => Vec::new(),
         };
         // Subscribers of fb/ always get canonical JSON. JSON that came in complete (nothing
         // stamped) on a port whose types have one JSON form is canonical already and is
@@ -644,7 +640,7 @@ impl FbSession {
             routes.push((typed.in_encoding(e), bytes));
         }
         for (profile, i) in feeds {
-            if let Some(route) = self.feed(fb, profile, *i, typed, port, &message) {
+            if let Some(route) = self.feed(fb, profile, i, typed, port, &message) {
                 routes.push(route);
             }
         }
