@@ -127,6 +127,55 @@ async fn a_remote_device_is_subscribed_to_as_if_it_were_local() {
     );
 }
 
+/// A FORTE device as it is, known to its line by a profile only, publishing fbdk on its
+/// own topic: another line sees it as any typed device, with its record and its types.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_profiled_device_on_its_own_topic_is_typed_on_another_line() {
+    const PROFILE: &str = r#"
+device = "forte-a"
+[speaks]
+encoding = "fbdk"
+[interface.fbs.CONV.data_out]
+POSITION = "INT"
+[[topics]]
+topic = "line-a/forte/position"
+port = "CONV.POSITION"
+"#;
+    let a = Line::start_with("line-a", &tls_endpoint(), &[], "", |dir| {
+        let profiles = dir.join("profiles");
+        std::fs::create_dir(&profiles).unwrap();
+        std::fs::write(profiles.join("forte-a.toml"), PROFILE).unwrap();
+        "[fb]\nprofiles_dir = \"profiles\"\n".into()
+    });
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    // FORTE: MQTT 3.1.1, its fixed client id, QoS 0, no declaration.
+    let forte = V4::connect(a.port(), "forte-a", None).await.unwrap();
+    let record = b.wait_record("forte-a", "online", PROPAGATION);
+    assert_eq!(record["line"], "line-a");
+    assert_eq!(
+        record["interface"]["fbs"]["CONV"]["data_out"]["POSITION"],
+        "INT"
+    );
+
+    let mut obs = observe(&b, "watch-b", &["fb/forte-a/CONV/POSITION"], &[&a]).await;
+    for i in [7i16, 8] {
+        let mut fbdk = vec![0x43];
+        fbdk.extend(i.to_be_bytes());
+        forte
+            .client
+            .publish(
+                "line-a/forte/position",
+                rumqttc::QoS::AtMostOnce,
+                false,
+                fbdk,
+            )
+            .await
+            .unwrap();
+    }
+    let received = drain(&mut obs, Duration::from_millis(1500)).await;
+    assert_eq!(positions(&received, "fb/forte-a/CONV/POSITION"), [7, 8]);
+}
+
 // ---------------------------------------------------------------- three lines: no loops, no duplicates
 
 /// Starts a device on each line and an observer of everything (`fb/#`) on each, has
