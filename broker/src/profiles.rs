@@ -197,6 +197,16 @@ impl ProfileSet {
         self.inputs.contains(topic)
     }
 
+    /// The typed topics (`fb/<device>/<FB>/<PORT>`) that feed an input topic: a line must
+    /// ask the bus for them, or another line's device would feed nothing here.
+    pub fn fed_outputs(&self) -> std::collections::BTreeSet<String> {
+        self.feeds
+            .values()
+            .flatten()
+            .map(|(s, _, _)| format!("fb/{}/{}/{}", s.device, s.fb, s.port))
+            .collect()
+    }
+
     /// Whether any profile maps own topics (the typed check looks them up only then).
     pub fn maps_topics(&self) -> bool {
         !self.outputs.is_empty() || !self.feeds.is_empty()
@@ -330,11 +340,15 @@ pub enum PutError {
     Io(String),
 }
 
+/// Told of every new set in force: (the set before, the set now).
+type OnChange = Box<dyn Fn(&ProfileSet, &ProfileSet) + Send + Sync>;
+
 /// The profiles in force, reloaded from their directory when it changes.
 pub struct Profiles {
     dir: Option<PathBuf>,
     current: RwLock<Arc<ProfileSet>>,
     stamp: Mutex<Option<DirStamp>>,
+    on_change: std::sync::OnceLock<OnChange>,
 }
 
 impl Profiles {
@@ -344,6 +358,7 @@ impl Profiles {
             dir: None,
             current: RwLock::default(),
             stamp: Mutex::default(),
+            on_change: std::sync::OnceLock::new(),
         }
     }
 
@@ -356,11 +371,32 @@ impl Profiles {
             dir: Some(dir.to_owned()),
             current: RwLock::new(Arc::new(set)),
             stamp: Mutex::new(stamp),
+            on_change: std::sync::OnceLock::new(),
         })
     }
 
     pub fn dir(&self) -> Option<&Path> {
         self.dir.as_deref()
+    }
+
+    /// Calls `hook` with the set in force now (as both sets), and with every later change
+    /// (the set before, the set after). Set once, by the server, which keeps the bus's
+    /// interest in the outputs that feed input topics.
+    pub fn on_change(&self, hook: impl Fn(&ProfileSet, &ProfileSet) + Send + Sync + 'static) {
+        let now = self.get();
+        hook(&ProfileSet::default(), &now);
+        let _ = self.on_change.set(Box::new(hook));
+    }
+
+    fn install(&self, set: ProfileSet) {
+        let set = Arc::new(set);
+        let before = std::mem::replace(
+            &mut *self.current.write().unwrap_or_else(PoisonError::into_inner),
+            Arc::clone(&set),
+        );
+        if let Some(hook) = self.on_change.get() {
+            hook(&before, &set);
+        }
     }
 
     /// The profiles now.
@@ -418,7 +454,7 @@ impl Profiles {
             .and_then(|()| std::fs::rename(&tmp, &path))
             .map_err(|e| PutError::Io(format!("{}: {e}", path.display())))?;
         *self.stamp.lock().unwrap_or_else(PoisonError::into_inner) = dir_stamp(dir);
-        *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(set);
+        self.install(set);
         metrics
             .reloads
             .with_label_values(&["profiles_dir", "ok"])
@@ -444,7 +480,7 @@ impl Profiles {
         match read_dir(dir) {
             Ok(set) => {
                 let count = set.len();
-                *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(set);
+                self.install(set);
                 metrics
                     .reloads
                     .with_label_values(&["profiles_dir", "ok"])

@@ -192,6 +192,24 @@ impl Broker {
             bridge.start(bus, Arc::clone(&ctx)).await?;
         }
 
+        // An input topic fed from another line's device: this line asks the bus for that
+        // output, as a subscriber of it would, for as long as a profile needs it.
+        profiles.on_change({
+            let ctx = Arc::downgrade(&ctx);
+            move |before, after| {
+                let Some(ctx) = ctx.upgrade() else {
+                    return;
+                };
+                let (before, after) = (before.fed_outputs(), after.fed_outputs());
+                for filter in after.difference(&before) {
+                    ctx.observers.subscribed(filter);
+                }
+                for filter in before.difference(&after) {
+                    ctx.observers.unsubscribed(filter);
+                }
+            }
+        });
+
         let mut listeners = Vec::new();
         for (section, tls) in config.listeners.iter().zip(tls.drain(..)) {
             let socket = bind(&section.name, section.bind)?;

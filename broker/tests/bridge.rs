@@ -128,7 +128,8 @@ async fn a_remote_device_is_subscribed_to_as_if_it_were_local() {
 }
 
 /// A FORTE device as it is, known to its line by a profile only, publishing fbdk on its
-/// own topic: another line sees it as any typed device, with its record and its types.
+/// own topic: another line sees it as any typed device, with its record and its types,
+/// and feeds a FORTE device's input topic there.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_profiled_device_on_its_own_topic_is_typed_on_another_line() {
     const PROFILE: &str = r#"
@@ -147,7 +148,28 @@ port = "CONV.POSITION"
         std::fs::write(profiles.join("forte-a.toml"), PROFILE).unwrap();
         "[fb]\nprofiles_dir = \"profiles\"\n".into()
     });
-    let b = Line::start("line-b", &[&a.zenoh], "");
+    // A FORTE device of line B reads forte-a's POSITION on its own input topic. Nobody on
+    // line B subscribes to fb/forte-a/...: the profile's `from` is what asks the bus.
+    const READER: &str = r#"
+device = "forte-b"
+[speaks]
+encoding = "fbdk"
+[interface.fbs.CONV.data_in]
+POS = "INT"
+[[topics]]
+topic = "line-b/forte/pos"
+port = "CONV.POS"
+from = "forte-a/CONV/POSITION"
+"#;
+    let b = Line::start_with("line-b", &tls_endpoint(), &[&a.zenoh], "", |dir| {
+        let profiles = dir.join("profiles");
+        std::fs::create_dir(&profiles).unwrap();
+        std::fs::write(profiles.join("forte-b.toml"), READER).unwrap();
+        "[fb]\nprofiles_dir = \"profiles\"\n".into()
+    });
+    a.wait_metric("fbbus_bridge_remote_subscriptions", 1.0);
+    let mut reader = V4::connect(b.port(), "forte-b", None).await.unwrap();
+    reader.subscribe("line-b/forte/pos").await;
     // FORTE: MQTT 3.1.1, its fixed client id, QoS 0, no declaration.
     let forte = V4::connect(a.port(), "forte-a", None).await.unwrap();
     let record = b.wait_record("forte-a", "online", PROPAGATION);
@@ -156,8 +178,35 @@ port = "CONV.POSITION"
         record["interface"]["fbs"]["CONV"]["data_out"]["POSITION"],
         "INT"
     );
+    let fed = Instant::now();
+    loop {
+        forte
+            .client
+            .publish(
+                "line-a/forte/position",
+                rumqttc::QoS::AtMostOnce,
+                false,
+                vec![0x43, 0, 6],
+            )
+            .await
+            .unwrap();
+        if let Some(p) = reader.next_publish(Duration::from_millis(300)).await {
+            assert_eq!(
+                (p.topic.as_str(), &p.payload[..]),
+                ("line-b/forte/pos", &[0x43, 0, 6][..])
+            );
+            break;
+        }
+        assert!(
+            fed.elapsed() < PROPAGATION,
+            "forte-b's input was never fed from line A"
+        );
+    }
 
-    let mut obs = observe(&b, "watch-b", &["fb/forte-a/CONV/POSITION"], &[&a]).await;
+    // Line B imports that output already (forte-b's input): a subscriber of it there is
+    // served by the same import, no new one.
+    let mut obs = V4::connect(b.port(), "watch-b", None).await.unwrap();
+    obs.subscribe("fb/forte-a/CONV/POSITION").await;
     for i in [7i16, 8] {
         let mut fbdk = vec![0x43];
         fbdk.extend(i.to_be_bytes());
