@@ -138,13 +138,16 @@ class _ReportingClient(mqtt.Client):
         return info
 
     def subscribe(self, topic, qos=0, options=None, properties=None):
+        # Known before the SUBSCRIBE is sent: paho's network thread may handle the
+        # SUBACK before subscribe() returns its mid (a race CI hit).
+        self._report_topic = topic
         rc, mid = super().subscribe(topic, qos, options, properties)
         self._report_subs[mid] = topic
-        self._report_topic = topic
         return rc, mid
 
     def _report_subscribe(self, client, userdata, mid, granted_qos):
-        topic = self._report_subs.get(mid, "?")
+        # Each DINASORE subscriber FB's client subscribes one topic.
+        topic = self._report_subs.get(mid, self._report_topic or "?")
         if granted_qos and granted_qos[0] == 0x80:
             out(f"error {topic} SUBACK 0x80")
         else:
