@@ -38,6 +38,8 @@ pub struct Message {
     pub properties: Option<PublishProperties>,
     /// The client the message is published for (a will's owner), or the broker itself.
     pub publisher: String,
+    /// Its number in the store (`store`), 0 when it is not stored.
+    pub seq: u64,
 }
 
 impl Message {
@@ -50,6 +52,7 @@ impl Message {
             retain,
             properties: None,
             publisher: INTERNAL_CLIENT_ID.to_owned(),
+            seq: 0,
         }
     }
 }
@@ -83,10 +86,9 @@ impl BrokerPublisher {
                 let mut publish =
                     publish_packet(message.topic, message.payload, qos, message.retain, pkid);
                 let properties = message.properties;
-                origin::mark(
-                    &mut publish,
-                    origin::new(qos, message.retain, &message.publisher.into()),
-                );
+                let mut mark = origin::new(qos, message.retain, &message.publisher.into());
+                mark.seq = message.seq;
+                origin::mark(&mut publish, mark);
                 if let Err(e) = tx.send(Packet::Publish(publish, properties)).await {
                     tracing::error!(topic, error = %e, "router gone: broker message not published");
                     return;

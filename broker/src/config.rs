@@ -26,6 +26,10 @@ allow_anonymous = true
 
 [admin]
 bind = "127.0.0.1:9883"
+
+# Retained messages and persistent sessions survive a restart, next to the registry.
+[persistence]
+dir = "fbbus-store"
 "#;
 
 /// Most connections `broker.max_connections` may allow. The router reserves a slot per
@@ -70,6 +74,9 @@ pub struct Config {
     pub log: LogSection,
     #[serde(default)]
     pub fb: FbSection,
+    /// What survives a restart (`store`).
+    #[serde(default)]
+    pub persistence: crate::store::PersistenceSection,
     /// Present: link this line to the other lines' brokers over zenoh (`bridge`).
     pub bridge: Option<fb_bridge::bus::BusConfig>,
 }
@@ -370,6 +377,7 @@ impl Config {
         if !self.fb.profiles_dir.as_os_str().is_empty() {
             fix(&mut self.fb.profiles_dir);
         }
+        fix(&mut self.persistence.dir);
         if let Some(tls) = self.bridge.as_mut().and_then(|b| b.tls.as_mut()) {
             fix(&mut tls.root_ca);
             fix(&mut tls.cert);
@@ -407,6 +415,21 @@ impl Config {
                 file,
                 "broker.max_packet_bytes",
                 "must be between 64 and 268435455 (the MQTT maximum)",
+            ));
+        }
+        let p = &self.persistence;
+        if p.max_queued_messages == 0 {
+            return Err(invalid(
+                file,
+                "persistence.max_queued_messages",
+                "must be at least 1",
+            ));
+        }
+        if p.enabled && p.dir.as_os_str().is_empty() {
+            return Err(invalid(
+                file,
+                "persistence.dir",
+                "must name a directory (or set persistence.enabled = false)",
             ));
         }
         if b.max_inflight == 0 {

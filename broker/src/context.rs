@@ -34,6 +34,8 @@ pub struct Context {
     pub fb: Arc<FbTopics>,
     pub sessions: SessionTable,
     pub redeliveries: Redeliveries,
+    /// What survives a restart; None with `[persistence] enabled = false`.
+    pub store: Option<Arc<crate::store::Store>>,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,

@@ -51,6 +51,7 @@ mod router;
 mod server;
 mod session;
 mod silence;
+pub mod store;
 mod supervisor;
 mod tls;
 mod watched_file;

@@ -373,6 +373,11 @@ impl Metrics {
     }
 
     /// The Prometheus text exposition of every metric.
+    /// Registers metrics kept by another part of the broker (`store`).
+    pub fn register(&self, collector: Box<dyn prometheus::core::Collector>) {
+        self.registry.register(collector).expect("unique metric");
+    }
+
     pub fn render(&self) -> String {
         self.copy_router_sessions();
         let mut out = Vec::new();

@@ -30,6 +30,7 @@ use crate::session::lifetime::purge_evicted;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
 use crate::session::Observers;
+use crate::store::{Restore, Store};
 use crate::supervisor::Tasks;
 use crate::watched_file::WatchedFile;
 use crate::wills::Wills;
@@ -74,6 +75,7 @@ pub struct Broker {
     /// Every task the broker spawned, finished on shutdown.
     tasks: Tasks,
     registry: Arc<Registry>,
+    store: Option<Arc<Store>>,
     #[cfg(feature = "bridge")]
     bridge: Option<Arc<crate::bridge::Bridge>>,
 }
@@ -124,12 +126,25 @@ impl Broker {
             message: e.to_string(),
         })?;
         registry.start_silence_check(&tasks);
+        let (store, restore) = if config.persistence.enabled {
+            let (store, restore) =
+                Store::open(&config.persistence, &metrics).map_err(|e| StartError::File {
+                    kind: "store",
+                    path: crate::store::log_path(&config.persistence.dir)
+                        .display()
+                        .to_string(),
+                    message: e.to_string(),
+                })?;
+            (Some(store), restore)
+        } else {
+            (None, Restore::default())
+        };
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
         let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker))
             .evicting({
-                let (router, tasks) = (router.clone(), tasks.clone());
-                move |client_id| purge_evicted(&router, &tasks, client_id)
+                let (router, tasks, store) = (router.clone(), tasks.clone(), store.clone());
+                move |client_id| purge_evicted(&router, &tasks, store.as_ref(), client_id)
             });
         for (_, session) in registry.sessions() {
             sessions.seed(session);
@@ -174,6 +189,7 @@ impl Broker {
             fb,
             sessions,
             redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(&config.broker)),
+            store,
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -186,6 +202,16 @@ impl Broker {
             test_panic_topic: crate::supervisor::test_panic_topic("FBBUS_TEST_SESSION_PANIC_TOPIC"),
             observers,
         });
+
+        // What the store held is back in the router before the bus or any client sees it.
+        if let Some(store) = &ctx.store {
+            ctx.wills.set_store(Arc::clone(store));
+        }
+        crate::store::restore::put_back(&restore, &ctx)
+            .await
+            .map_err(StartError::Router)?;
+        let owners = crate::store::restore::owners(&restore);
+        ctx.wills.restore(&owners, restore.wills);
 
         #[cfg(feature = "bridge")]
         if let (Some(bridge), Some(bus)) = (&bridge, &config.bridge) {
@@ -289,6 +315,7 @@ impl Broker {
             health,
             tasks,
             registry,
+            store: ctx.store.clone(),
             #[cfg(feature = "bridge")]
             bridge,
         })
@@ -308,6 +335,9 @@ impl Broker {
         // Bounded: a task that does not yield cannot hold the exit up.
         let _ = tokio::time::timeout(Duration::from_secs(1), self.tasks.finish()).await;
         self.registry.flush();
+        if let Some(store) = &self.store {
+            store.close().await;
+        }
     }
 
     /// Stops accepting, disconnects every client (MQTT 5: reason 0x8B, server shutting
@@ -328,6 +358,9 @@ impl Broker {
         }
         self.tasks.finish().await;
         self.registry.flush();
+        if let Some(store) = &self.store {
+            store.close().await;
+        }
         tracing::info!("broker stopped");
     }
 }

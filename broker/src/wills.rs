@@ -15,7 +15,7 @@
 //! cannot use its will to publish where it may not publish itself.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -27,6 +27,7 @@ use crate::supervisor::Tasks;
 use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::identity::Owner;
 use crate::metrics::Metrics;
+use crate::store::Store;
 
 /// The MQTT 5 user property a will carries with its connection's session number, so a
 /// consumer can tell a late will from an old session (Sparkplug's `bdSeq`).
@@ -74,6 +75,8 @@ pub struct Wills {
     metrics: Arc<Metrics>,
     /// Where delayed wills wait: finished (not fired) when the broker shuts down.
     tasks: Tasks,
+    /// Where delayed wills and retained or queued wills are kept across a restart.
+    store: OnceLock<Arc<Store>>,
 }
 
 impl Wills {
@@ -83,7 +86,44 @@ impl Wills {
             delayed: Mutex::new(HashMap::new()),
             metrics,
             tasks,
+            store: OnceLock::new(),
         })
+    }
+
+    /// Keeps delayed wills, and wills that are retained or queued for persistent
+    /// sessions, in `store` from now on.
+    pub fn set_store(&self, store: Arc<Store>) {
+        let _ = self.store.set(store);
+    }
+
+    /// Schedules the delayed wills the store held at start: each is published when what
+    /// was left of its delay has passed, unless its client comes back first.
+    pub fn restore(
+        self: &Arc<Self>,
+        owners: &HashMap<String, Owner>,
+        wills: Vec<(String, Duration, Arc<crate::store::Message>)>,
+    ) {
+        for (client_id, left, m) in wills {
+            let owner = owners.get(&client_id).cloned().unwrap_or(Owner::Anonymous);
+            let will = Will {
+                topic: m.topic.clone(),
+                payload: m.payload.clone(),
+                qos: m.qos,
+                retain: m.retain,
+                properties: m.properties.clone().map(|p| LastWillProperties {
+                    delay_interval: None,
+                    payload_format_indicator: p.payload_format_indicator,
+                    message_expiry_interval: p.message_expiry_interval,
+                    content_type: p.content_type,
+                    response_topic: p.response_topic,
+                    correlation_data: p.correlation_data,
+                    user_properties: p.user_properties,
+                }),
+                delay: left.max(Duration::from_millis(1)),
+            };
+            // Already in the store: scheduled without writing it again.
+            self.schedule(&client_id, 0, &owner, will);
+        }
     }
 
     /// `owner` connected with this client id: its wills still waiting for their delay
@@ -102,6 +142,11 @@ impl Wills {
         });
         if tasks.len() < waiting {
             tracing::debug!(client_id, "delayed will cancelled by reconnect");
+            if let Some(store) = self.store.get() {
+                store.write_now(vec![crate::store::Record::WillDone {
+                    client: client_id.to_owned(),
+                }]);
+            }
         }
         if tasks.is_empty() {
             delayed.remove(client_id);
@@ -115,11 +160,25 @@ impl Wills {
             self.publish(client_id, session, will);
             return;
         }
+        if let Some(store) = self.store.get() {
+            store.write_now(vec![crate::store::Record::Will {
+                client: client_id.to_owned(),
+                due: crate::store::now_ms() + will.delay.as_millis() as u64,
+                message: stored_will(client_id, &will),
+            }]);
+        }
+        self.schedule(client_id, session, owner, will);
+    }
+
+    fn schedule(self: &Arc<Self>, client_id: &str, session: u64, owner: &Owner, will: Will) {
         let this = Arc::clone(self);
         let id = client_id.to_owned();
         let task = self.tasks.spawn(async move {
             tokio::time::sleep(will.delay).await;
             this.forget(&id, tokio::task::id());
+            if let Some(store) = this.store.get() {
+                store.write_now(vec![crate::store::Record::WillDone { client: id.clone() }]);
+            }
             this.publish(&id, session, will);
         });
         // Several when a typed will is published in several encodings.
@@ -161,15 +220,56 @@ impl Wills {
             .push((SESSION_PROPERTY.to_owned(), session.to_string()));
         tracing::info!(client_id, session, topic = ?String::from_utf8_lossy(&will.topic), "will published");
         self.metrics.wills_published.inc();
+        let qos = will.qos.min(1);
+        // A retained will, or one persistent sessions subscribe to, is stored as a
+        // client's publication is (`store`), before the router has it.
+        let seq = match self.store.get().filter(|s| s.stores(qos, will.retain)) {
+            Some(store) => {
+                let seq = store.number();
+                let message = crate::store::Message {
+                    topic: will.topic.clone(),
+                    payload: will.payload.clone(),
+                    qos,
+                    retain: will.retain,
+                    properties: Some(properties.clone()),
+                    publisher: client_id.into(),
+                };
+                store.write_now(vec![crate::store::Record::Publish { seq, message }]);
+                seq
+            }
+            None => 0,
+        };
         self.publisher.publish(Message {
             topic: will.topic,
             payload: will.payload,
             // QoS 2 would need a PUBREL exchange on the internal link; QoS 1 already gives
             // subscribers at-least-once delivery of the will, which is what a will needs.
-            qos: will.qos.min(1),
+            qos,
             retain: will.retain,
             properties: Some(properties),
             publisher: client_id.to_owned(),
+            seq,
         });
+    }
+}
+
+/// A will as the store keeps it.
+fn stored_will(client_id: &str, will: &Will) -> crate::store::Message {
+    crate::store::Message {
+        topic: will.topic.clone(),
+        payload: will.payload.clone(),
+        qos: will.qos,
+        retain: will.retain,
+        properties: will.properties.clone().map(|p| PublishProperties {
+            payload_format_indicator: p.payload_format_indicator,
+            message_expiry_interval: p.message_expiry_interval,
+            topic_alias: None,
+            response_topic: p.response_topic,
+            correlation_data: p.correlation_data,
+            user_properties: p.user_properties,
+            subscription_identifiers: Vec::new(),
+            content_type: p.content_type,
+        }),
+        publisher: client_id.into(),
     }
 }

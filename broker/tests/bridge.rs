@@ -621,3 +621,28 @@ async fn a_zenoh_client_line_serves_alone_while_its_router_is_down_and_links_whe
     assert_eq!(positions(&received, "fb/conv-b/CONV/POSITION"), vec![7]);
     drop(r);
 }
+
+// ---------------------------------------------------------------- a line restarts
+
+/// Issue 17: a line that crashed and came back serves its retained values to the other
+/// lines from its store, as before: line B had never seen the value, so it can only come
+/// from line A's restored state.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restarted_line_serves_its_restored_retained_values_to_other_lines() {
+    let mut a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let dev = device(&a, "conv-a").await;
+    publish(&dev, "fb/conv-a/CONV/ID", json!("belt-9").to_string(), true).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    drop(dev);
+
+    a.broker.restart("KILL");
+    let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/ID"], &[&a]).await;
+    let retained = obs
+        .next_publish(WAIT)
+        .await
+        .expect("line A's restored retained value on line B");
+    assert_eq!(retained.topic, "fb/conv-a/CONV/ID");
+    assert_eq!(&retained.payload[..], b"\"belt-9\"");
+    assert!(drain(&mut obs, Duration::from_millis(800)).await.is_empty());
+}

@@ -709,12 +709,19 @@ async fn retain_handling_decides_the_retained_messages_of_every_subscribe() {
 async fn mqtt311_repeated_subscribe_resends_retained_messages() {
     let broker = Broker::start();
     let port = broker.port();
-    let publisher = V4::connect(port, "rs-publisher", None).await.unwrap();
+    let mut publisher = V4::connect(port, "rs-publisher", None).await.unwrap();
     publisher
         .client
         .publish("rs/t", rumqttc::QoS::AtLeastOnce, true, "kept")
         .await
         .unwrap();
+    // Retained once acknowledged (with persistence on, the PUBACK follows the store's write).
+    publisher
+        .next(WAIT, |p| {
+            matches!(p, rumqttc::Packet::PubAck(_)).then_some(())
+        })
+        .await
+        .expect("PUBACK");
     let mut c = V4::connect(port, "rs-sub", None).await.unwrap();
     for round in ["first", "second"] {
         c.subscribe("rs/#").await;

@@ -25,6 +25,7 @@ pub fn new(qos: u8, retain: bool, publisher: &Arc<str>) -> Origin {
         qos: qos.min(2),
         retain,
         publisher: Arc::clone(publisher),
+        seq: 0,
     }
 }
 
@@ -54,7 +55,8 @@ mod tests {
             Some(Origin {
                 qos: 1,
                 retain: true,
-                publisher: "plc-1".into()
+                publisher: "plc-1".into(),
+                seq: 0,
             })
         );
         assert_eq!(publish, plain);

@@ -92,6 +92,8 @@ impl Session {
     /// Ends the session: tells the client why (MQTT 5), the router that it is gone,
     /// fires the will if the end calls for it, and meters the disconnect.
     pub(super) async fn close(mut self, end: End) {
+        // Whether this connection still is its client id's newest (not taken over).
+        let current = self.ctx.sessions.is_current(&self.client_id, self.session);
         // First, so a reconnecting client's next connection, which may already wait for
         // it, gets this session's open exchanges at once (`redelivery`).
         let open = if self.lifetime.clean_link {
@@ -133,6 +135,24 @@ impl Session {
                 }
             }
             let _ = timeout(Duration::from_secs(1), self.io.stream.shutdown()).await;
+        }
+        // The store: the session is offline from now (its expiry counts from here), with
+        // what it did not get of its backlog; then every record this connection left.
+        if self.persistent {
+            self.return_backlog(true);
+            if current {
+                self.journal.push(crate::store::Record::Offline {
+                    client: self.client_id.to_string(),
+                    at: crate::store::now(),
+                    expiry: self
+                        .lifetime
+                        .expires_after
+                        .map(|d| d.as_secs().min(u32::MAX as u64) as u32),
+                });
+            }
+        }
+        if let Some(store) = self.ctx.store.clone() {
+            store.write(std::mem::take(&mut self.journal), false).await;
         }
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;

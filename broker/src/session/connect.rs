@@ -125,6 +125,7 @@ impl Session {
             will,
             lifetime,
             linked,
+            session_present,
         } = answer(&mut io, ctx, accepted, server_keep_alive).await?;
 
         ctx.metrics.connects.inc();
@@ -154,7 +155,10 @@ impl Session {
             "client connected"
         );
         let ids = resume(ctx, &client_id, &linked, lifetime).await;
-        Some(Session {
+        let owner = ctx.identity.owner(username.as_deref());
+        let (persistent, journal) =
+            stored_session(ctx, &client_id, &owner, version, lifetime, session_present);
+        let mut session = Session {
             io,
             peer,
             client_id: client_id.into(),
@@ -195,7 +199,59 @@ impl Session {
             subscriptions: BTreeMap::new(),
             special_subscriptions: false,
             fb,
-        })
+            persistent,
+            journal,
+            stored_out: BTreeMap::new(),
+        };
+        if persistent && session_present {
+            session.take_backlog();
+        }
+        Some(session)
+    }
+}
+
+/// Whether the store keeps this connection's session, and the record that says so: a
+/// persistent session starts or resumes (`fresh` unless the router resumed one); a clean
+/// connection ends the stored session its client id had.
+fn stored_session(
+    ctx: &Context,
+    client_id: &str,
+    owner: &Owner,
+    version: Version,
+    lifetime: SessionLifetime,
+    session_present: bool,
+) -> (bool, Vec<crate::store::Record>) {
+    let Some(store) = &ctx.store else {
+        return (false, Vec::new());
+    };
+    let persistent = matches!(lifetime.remains(), Remains::Kept(e) if e != Some(Duration::ZERO));
+    if persistent {
+        store.set_session(client_id, true);
+        if !session_present {
+            // Whatever the store still held for this client id is not this session's.
+            drop(store.take_backlog(client_id));
+        }
+        let record = crate::store::Record::Session {
+            client: client_id.to_owned(),
+            owner: match owner {
+                Owner::Anonymous => String::new(),
+                Owner::User(user) => user.to_string(),
+            },
+            v5: version == Version::V5,
+            expiry: lifetime
+                .expires_after
+                .map(|d| d.as_secs().min(u32::MAX as u64) as u32),
+            fresh: !session_present,
+        };
+        (true, vec![record])
+    } else if store.has_session(client_id) {
+        store.set_session(client_id, false);
+        let record = crate::store::Record::Ended {
+            client: client_id.to_owned(),
+        };
+        (false, vec![record])
+    } else {
+        (false, Vec::new())
     }
 }
 
@@ -427,6 +483,8 @@ async fn answer(
     server_keep_alive: Option<u16>,
 ) -> Option<Opened> {
     let mut connack_packet: Option<Packet> = accepted.ack.into();
+    let session_present =
+        matches!(&connack_packet, Some(Packet::ConnAck(ack, _)) if ack.session_present);
     if let Some(Packet::ConnAck(_, props)) = &mut connack_packet {
         let mut p = props.take().unwrap_or_default();
         p.assigned_client_identifier = accepted.assigned;
@@ -444,6 +502,7 @@ async fn answer(
         will: accepted.will,
         lifetime: accepted.lifetime,
         linked: accepted.linked,
+        session_present,
     };
     if io.flush().await.is_ok() {
         return Some(opened);
@@ -526,6 +585,8 @@ struct Opened {
     will: Option<Will>,
     lifetime: SessionLifetime,
     linked: Linked,
+    /// The router resumed a session of this client id.
+    session_present: bool,
 }
 
 /// A random 64-bit id for clients that connect without one.

@@ -74,6 +74,12 @@ impl Session {
 
     /// Sends held deliveries while the client's Receive Maximum allows.
     pub(super) fn release_held(&mut self) {
+        if self.backlog_waiting() {
+            self.release_backlog();
+            if self.backlog_waiting() {
+                return;
+            }
+        }
         while self.outstanding_out < self.client_receive_max {
             let Some((publish, properties)) = self.held.pop_front() else {
                 break;
@@ -106,7 +112,10 @@ impl Session {
             }
             Some(Packet::Publish(publish, properties)) => {
                 // Order is kept: once something is held, everything after it waits too.
-                if self.held.is_empty() && self.outstanding_out < self.client_receive_max {
+                if self.held.is_empty()
+                    && self.outstanding_out < self.client_receive_max
+                    && !self.backlog_waiting()
+                {
                     self.deliver_publish(publish, properties);
                 } else {
                     self.held_bytes += held_size(&publish);
@@ -166,6 +175,7 @@ impl Session {
     ) {
         let origin = origin::take(&mut publish);
         let published = origin.as_ref().map(|o| o.qos);
+        let seq = origin.as_ref().map_or(0, |o| o.seq);
         let (mut deliver, retain_as_published) =
             self.subscription_options(&publish, origin.as_ref());
         // Whatever subscription matched, and whenever it was made: the rules in force now.
@@ -198,6 +208,7 @@ impl Session {
 
         if routed_qos > 0 {
             self.ack_order.delivered(pkid);
+            self.store_delivering(seq, pkid, client_pkid);
         }
         if !deliver {
             self.io.write.truncate(before);
@@ -257,6 +268,9 @@ impl Session {
                     if dup {
                         self.io.write[before] |= 0b0000_1000;
                     }
+                    if qos == 2 {
+                        self.store_sent_qos2(pkid);
+                    }
                 }
             }
         }
@@ -308,6 +322,7 @@ impl Session {
     /// sent it at the router's QoS), so the session's in-flight window does not leak.
     /// At QoS 2 the router answers with PUBREL, which `outbound` completes with PUBCOMP.
     pub(super) fn ack_for_client(&mut self, routed_qos: u8, pkid: u16) {
+        self.store_acked(pkid, true);
         let ack = match routed_qos {
             1 => Packet::PubAck(
                 PubAck {

@@ -22,6 +22,10 @@ const TOPIC_ALIAS_MAX: u16 = 4096;
 impl Session {
     /// The packet path for one packet from the client (see the module doc).
     pub(super) fn inbound(&mut self, packet: Packet) -> Result<(), End> {
+        // A restored session's backlog is answered here, never by the router (`persist`).
+        if self.backlog_ack(&packet) {
+            return Ok(());
+        }
         // Acknowledgements of deliveries carry the client's packet ids; from here on the
         // packet path works with the router's (`packet_ids`).
         let packet = self.ids.in_router_ids(packet);
@@ -73,12 +77,14 @@ impl Session {
             Packet::PubAck(ack, properties) => {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 let pkid = ack.pkid;
+                self.store_acked(pkid, true);
                 let packet = Packet::PubAck(ack, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
                 Ok(())
             }
             Packet::PubRec(rec, properties) => {
                 let pkid = rec.pkid;
+                self.store_acked(pkid, false);
                 let packet = Packet::PubRec(rec, properties);
                 self.ack_order.ack(pkid, packet, &mut self.to_router);
                 Ok(())
@@ -86,6 +92,7 @@ impl Session {
             Packet::PubComp(comp, properties) => {
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
                 let pkid = comp.pkid;
+                self.store_acked(pkid, true);
                 let packet = Packet::PubComp(comp, properties);
                 self.ack_order.complete(pkid, packet, &mut self.to_router);
                 Ok(())
@@ -97,6 +104,7 @@ impl Session {
                     }
                 }
                 self.remember_subscriptions(std::iter::empty(), &unsubscribe.filters);
+                self.store_unsubscribed(&unsubscribe.filters);
                 self.to_router
                     .push(Packet::Unsubscribe(unsubscribe, properties));
                 Ok(())
@@ -353,6 +361,7 @@ impl Session {
                 self.ctx.observers.subscribed(&filter.path);
             }
         }
+        self.store_subscribed(&granted, properties.as_ref().and_then(|p| p.id));
         self.remember_subscriptions(granted.into_iter(), &[]);
         if refused.iter().all(Option::is_none) {
             self.to_router

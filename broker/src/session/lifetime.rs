@@ -17,6 +17,7 @@ use tokio::sync::watch;
 use crate::context::Context;
 use crate::router::{unlink, RouterHandle};
 use crate::session::table::Remains;
+use crate::store::{Record, Store};
 use crate::supervisor::Tasks;
 
 /// When the router's copy of a session ends.
@@ -82,7 +83,18 @@ pub async fn purge_router_session(router: &RouterHandle, client_id: &str) {
 /// its own order; usually it has already dropped this one and the purge finds nothing.
 /// Blocks the thread for one router turn (`RouterHandle::link_blocking`, multi-thread
 /// runtime only, as `end_idle_session`); only a close beyond the limit does this.
-pub fn purge_evicted(router: &RouterHandle, tasks: &Tasks, client_id: &str) {
+pub fn purge_evicted(
+    router: &RouterHandle,
+    tasks: &Tasks,
+    store: Option<&Arc<Store>>,
+    client_id: &str,
+) {
+    if let Some(store) = store {
+        store.set_session(client_id, false);
+        store.write_now(vec![Record::Ended {
+            client: client_id.to_owned(),
+        }]);
+    }
     match router.link_blocking(client_id, true) {
         Ok((tx, rx, _)) => {
             tasks.spawn(async move {
@@ -109,6 +121,13 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
     if let Some(Ok((tx, _rx, _))) = linked {
         let _ = unlink(tx).await;
         ctx.redeliveries.forget(client_id);
+        if let Some(store) = &ctx.store {
+            store.set_session(client_id, false);
+            let ended = Record::Ended {
+                client: client_id.to_owned(),
+            };
+            store.write(vec![ended], false).await;
+        }
         tracing::debug!(client_id, "session expired");
     }
 }

@@ -36,6 +36,7 @@ mod inbound;
 pub mod lifetime;
 mod observer;
 pub mod packet_ids;
+mod persist;
 mod read_access;
 pub mod redelivery;
 pub mod table;
@@ -213,6 +214,13 @@ struct Session {
     read_verdicts: Option<Box<read_access::ReadVerdicts>>,
     /// State most sessions never need, allocated on first use ([`Session::rare`]).
     rare: Option<Box<Rare>>,
+    /// The session outlives its connection and the store keeps it ([`persist`]).
+    persistent: bool,
+    /// Records for the store, written with the next batch ([`persist`]).
+    journal: Vec<crate::store::Record>,
+    /// Stored messages on their way to the client: router packet id -> (message number,
+    /// client packet id). Bounded by the in-flight window.
+    stored_out: BTreeMap<u16, (u64, u16)>,
 }
 
 /// What a session needs only for uncommon traffic: refused or partly refused requests,
@@ -235,6 +243,10 @@ struct Rare {
     qos2_sent_as_qos1: BTreeSet<u16>,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: BTreeSet<(&'static str, String)>,
+    /// What was queued for a restored session when the broker stopped, still to be sent.
+    backlog: VecDeque<crate::store::Backlogged>,
+    /// Backlog messages sent and not yet acknowledged, by client packet id.
+    backlog_out: BTreeMap<u16, crate::store::Backlogged>,
 }
 
 const MAX_LOGGED_DENIALS: usize = 1024;
@@ -261,6 +273,13 @@ impl Session {
             far_future
         });
         tokio::pin!(deadline);
+        // What a restored session had queued goes first.
+        if self.backlog_waiting() {
+            self.release_backlog();
+            if let Err(end) = self.write_out().await {
+                return end;
+            }
+        }
         // Packets that came in the same read as CONNECT (a client that does not wait for
         // CONNACK): handled now, not when the socket next has something.
         if !self.io.read.is_empty() {
@@ -412,6 +431,9 @@ impl Session {
     /// Then publishes the broker's answers to them (diagnostics), which must reach the
     /// router after the packets they answer (a SUBSCRIBE to the diag topic among them).
     async fn route(&mut self) -> Result<(), End> {
+        if self.ctx.store.is_some() {
+            self.store_batch().await;
+        }
         if let Some(last) = self.to_router.pop() {
             {
                 let mut buffer = self.link_tx.buffer();

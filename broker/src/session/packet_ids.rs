@@ -126,6 +126,47 @@ impl PacketIds {
         Delivery { id, dup: false }
     }
 
+    /// An id for a delivery the router never had (a restored session's backlog,
+    /// `persist`): held until [`PacketIds::finish_local`]. Its router id is 0, which the
+    /// router never uses.
+    pub fn local(&mut self) -> u16 {
+        let id = self.free_id();
+        self.open.push_back(Exchange {
+            client: id,
+            router: 0,
+            stage: Stage::Sent,
+            print: 0,
+        });
+        id
+    }
+
+    /// Holds `id` for a backlog delivery that must keep it (a QoS 2 exchange resumed
+    /// after a restart); false when an open exchange already holds it.
+    pub fn reserve(&mut self, id: u16) -> bool {
+        if id == 0 || self.open.iter().any(|e| e.client == id) {
+            return false;
+        }
+        self.may_collide = true;
+        self.open.push_back(Exchange {
+            client: id,
+            router: 0,
+            stage: Stage::Sent,
+            print: 0,
+        });
+        true
+    }
+
+    /// The backlog delivery under `id` is complete.
+    pub fn finish_local(&mut self, id: u16) {
+        if let Some(i) = self
+            .open
+            .iter()
+            .position(|e| e.client == id && e.router == 0)
+        {
+            self.open.remove(i);
+        }
+    }
+
     /// A delivery given an id by [`PacketIds::deliver`] was not sent after all (the packet
     /// path acknowledged it to the router for the client).
     pub fn withdraw(&mut self, id: u16) {
@@ -190,6 +231,8 @@ impl PacketIds {
             self.open
                 .into_iter()
                 .filter(|e| !(went_on && e.stage == Stage::Unsent))
+                // Backlog deliveries go back to the store, not to the router's re-sends.
+                .filter(|e| e.router != 0 || e.stage == Stage::Unsent)
                 .map(|mut e| {
                     e.stage = match e.stage {
                         Stage::Unsent | Stage::Sent => Stage::Unsent,

@@ -170,7 +170,6 @@ impl SessionTable {
     }
 
     /// The connection of `session` ended, leaving what `remains`.
-    #[cfg(test)]
     pub fn close(&self, client_id: &str, session: u64, remains: Remains) {
         self.close_with(client_id, session, remains, |_| ());
     }

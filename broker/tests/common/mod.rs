@@ -221,6 +221,30 @@ impl Broker {
     pub fn path(&self, name: &str) -> PathBuf {
         self.dir.path().join(name)
     }
+
+    /// Stops the broker with `signal` ("TERM", "KILL"), waits until it exited, and starts
+    /// it again on the same config, directory and ports; its log goes on in the same file.
+    pub fn restart(&mut self, signal: &str) {
+        self.signal(signal);
+        wait_until(&mut self.child, Duration::from_secs(15)).expect("the broker did not stop");
+        self.start_again();
+    }
+
+    /// Starts the broker again after it exited, on the same config, directory and ports.
+    pub fn start_again(&mut self) {
+        let log = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&self.log)
+            .unwrap();
+        self.child = Command::new(fbbus_bin())
+            .args(["serve", "--config", self.config.to_str().unwrap()])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        self.wait_ready();
+    }
 }
 
 impl Drop for Broker {

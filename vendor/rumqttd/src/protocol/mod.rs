@@ -188,6 +188,9 @@ pub struct Origin {
     pub retain: bool,
     /// The publishing client's id.
     pub publisher: std::sync::Arc<str>,
+    /// fbbus: the message's number in the broker's store (0: not stored), so a delivery's
+    /// acknowledgement can be recorded against it.
+    pub seq: u64,
 }
 
 impl Publish {

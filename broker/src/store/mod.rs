@@ -1,0 +1,775 @@
+//! What survives the broker (issue 17): retained messages, persistent MQTT sessions (their
+//! subscriptions with options, the QoS 1/2 messages queued for them, QoS 2 exchanges in
+//! flight) and delayed wills, in one append-only log (`log`) under `[persistence] dir`.
+//!
+//! **The write path.** A session hands its network read's accepted publications to the
+//! router as one batch (`Session::route`). Before it does, the retained ones and, while
+//! some persistent session subscribes to anything, the QoS 1/2 ones are numbered
+//! (`Origin::seq`) and sent to the writer thread as one batch; the session waits until
+//! the writer has written it (`fsync = "always"`: written and synced). Only then does the
+//! router get them, and only the router's answer is the PUBACK/PUBREC: a publication
+//! fbbus acknowledged is in the log. The writer thread takes every batch waiting and
+//! writes them with one `write` (and, by policy, one `fsync`): group commit, so a line of
+//! publishers shares the cost of each sync.
+//!
+//! **What is queued for whom** is not decided on the packet path: the log records
+//! subscriptions and publications, and the writer's copy of the state (`state`) works out
+//! which persistent session each publication is queued for, as a replay would. A
+//! delivery carries its number out of the router, and the client's PUBACK/PUBCOMP (or the
+//! broker's decision not to send it) is recorded as `Done`.
+//!
+//! **At start** the log is replayed: retained messages go back into the router, each
+//! persistent session is linked to the router again with its subscriptions (so messages
+//! published before its client returns are queued for it as before), and what was queued
+//! for it when the broker stopped is its backlog, which its next connection sends first
+//! (`Session::send_backlog`), QoS 2 exchanges at the step they had reached.
+//!
+//! **Bounded**: `max_queued_messages` per session and `max_bytes` in all; a message over
+//! either is not stored (it is still routed), counted in `fbbus_store_not_stored_total`.
+
+mod log;
+pub mod record;
+pub mod restore;
+mod state;
+
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use prometheus::{Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts};
+use serde::Deserialize;
+use tokio::sync::oneshot;
+
+pub use self::log::LogError;
+pub use self::record::{Message, Options, Qos2, Record};
+use self::state::{Drops, Limits, State, StoredSession};
+
+/// `[persistence]` in the configuration.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PersistenceSection {
+    pub enabled: bool,
+    /// The store's directory; relative to the config file's directory, or to the working
+    /// directory for the embedded default.
+    pub dir: PathBuf,
+    /// "always", "every <N> ms" or "os" (see `deploy/fbbus.example.toml`).
+    pub fsync: Fsync,
+    /// Bytes of retained and queued messages the store keeps at most.
+    pub max_bytes: usize,
+    /// Messages queued for one session at most.
+    pub max_queued_messages: usize,
+    /// The log is compacted once it is this large and four times what is live.
+    pub compact_min_bytes: u64,
+}
+
+impl Default for PersistenceSection {
+    fn default() -> Self {
+        PersistenceSection {
+            enabled: true,
+            dir: PathBuf::from("fbbus-store"),
+            fsync: Fsync::Every(Duration::from_millis(100)),
+            max_bytes: 256 * 1024 * 1024,
+            max_queued_messages: 1000,
+            compact_min_bytes: 64 * 1024 * 1024,
+        }
+    }
+}
+
+/// When the log is forced to the disk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fsync {
+    /// Before every acknowledgement: survives a power cut.
+    Always,
+    /// Written before every acknowledgement, synced at most this long after: survives a
+    /// crash of fbbus; a power cut loses at most this much.
+    Every(Duration),
+    /// Written before every acknowledgement, synced when the OS decides.
+    Os,
+}
+
+impl<'de> Deserialize<'de> for Fsync {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Fsync, D::Error> {
+        let text = String::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+impl std::str::FromStr for Fsync {
+    type Err = String;
+    fn from_str(text: &str) -> Result<Fsync, String> {
+        let t = text.trim();
+        match t {
+            "always" => return Ok(Fsync::Always),
+            "os" => return Ok(Fsync::Os),
+            _ => {}
+        }
+        let ms = t
+            .strip_prefix("every")
+            .and_then(|rest| rest.trim().strip_suffix("ms"))
+            .and_then(|n| n.trim().parse::<u64>().ok())
+            .filter(|n| (1..=60_000).contains(n));
+        match ms {
+            Some(ms) => Ok(Fsync::Every(Duration::from_millis(ms))),
+            None => Err(format!(
+                "`{text}`: expected \"always\", \"os\" or \"every <N> ms\" with N from 1 to 60000"
+            )),
+        }
+    }
+}
+
+/// One record batch for the writer, and who waits for it.
+struct Batch {
+    records: Vec<Record>,
+    written: Option<oneshot::Sender<()>>,
+    /// Force the log to the disk after this batch, whatever the policy (shutdown).
+    sync: bool,
+}
+
+/// A queued message a restored session's next connection sends first.
+#[derive(Debug, Clone)]
+pub struct Backlogged {
+    pub seq: u64,
+    pub message: Arc<Message>,
+    /// The QoS it is delivered at.
+    pub qos: u8,
+    pub qos2: Option<Qos2>,
+}
+
+/// A session the log held at start.
+#[derive(Debug, Clone)]
+pub struct RestoredSession {
+    pub client: String,
+    pub owner: String,
+    pub v5: bool,
+    /// How long it has left offline (None: never expires).
+    pub expires_in: Option<Duration>,
+    pub subscriptions: Vec<(String, Options)>,
+}
+
+/// What the log held at start, for the broker to put back.
+#[derive(Default)]
+pub struct Restore {
+    pub retained: Vec<Arc<Message>>,
+    pub sessions: Vec<RestoredSession>,
+    /// Delayed wills: client id, seconds from now (0: overdue), message.
+    pub wills: Vec<(String, Duration, Arc<Message>)>,
+    pub queued: usize,
+    pub took: Duration,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error(transparent)]
+    Log(#[from] LogError),
+    #[error("store {path}: cannot start its writer thread: {source}")]
+    Thread {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+/// The store's handle, shared by every session.
+pub struct Store {
+    queue: flume::Sender<Batch>,
+    fsync: Fsync,
+    next_seq: AtomicU64,
+    /// Persistent sessions with at least one subscription, after the writer's last batch.
+    subscribed: Arc<AtomicUsize>,
+    /// Subscribe records sent and not yet applied by the writer: while there are any,
+    /// publications are stored as if a session subscribed (no window where a new
+    /// subscription's messages are routed but not stored).
+    subscribing: Arc<AtomicUsize>,
+    /// Client ids with a stored session (so a clean connection ends one).
+    persistent: Mutex<HashSet<String>>,
+    /// Restored sessions' queued messages, taken by their next connection.
+    backlogs: Mutex<HashMap<String, Vec<Backlogged>>>,
+    thread: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+/// Metrics of the store (`fbbus_store_*`).
+pub struct StoreMetrics {
+    retained: IntGauge,
+    sessions: IntGauge,
+    queued: IntGauge,
+    bytes: IntGauge,
+    file_bytes: IntGauge,
+    write_seconds: Histogram,
+    fsync_seconds: Histogram,
+    not_stored: IntCounterVec,
+    write_errors: IntCounter,
+    compactions: IntCounter,
+}
+
+impl StoreMetrics {
+    fn new(metrics: &crate::metrics::Metrics) -> StoreMetrics {
+        let gauge = |name: &str, help: &str| {
+            let g = IntGauge::new(name, help).expect("valid metric");
+            metrics.register(Box::new(g.clone()));
+            g
+        };
+        let histogram = |name: &str, help: &str| {
+            let h = Histogram::with_opts(HistogramOpts::new(name, help).buckets(vec![
+                0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5,
+            ]))
+            .expect("valid metric");
+            metrics.register(Box::new(h.clone()));
+            h
+        };
+        let not_stored = IntCounterVec::new(
+            Opts::new(
+                "fbbus_store_not_stored_total",
+                "Messages not stored (still routed) by reason: session_queue_full \
+                 (max_queued_messages), store_full (max_bytes)",
+            ),
+            &["reason"],
+        )
+        .expect("valid metric");
+        metrics.register(Box::new(not_stored.clone()));
+        let counter = |name: &str, help: &str| {
+            let c = IntCounter::new(name, help).expect("valid metric");
+            metrics.register(Box::new(c.clone()));
+            c
+        };
+        StoreMetrics {
+            retained: gauge("fbbus_store_retained_messages", "Retained messages stored"),
+            sessions: gauge(
+                "fbbus_store_sessions",
+                "Persistent sessions stored (connected and offline)",
+            ),
+            queued: gauge(
+                "fbbus_store_queued_messages",
+                "Messages stored for persistent sessions, not yet acknowledged",
+            ),
+            bytes: gauge(
+                "fbbus_store_message_bytes",
+                "Bytes of retained and queued messages the store holds (max_bytes)",
+            ),
+            file_bytes: gauge("fbbus_store_file_bytes", "Size of the store's log on disk"),
+            write_seconds: histogram(
+                "fbbus_store_write_seconds",
+                "Time of one batch's write to the log",
+            ),
+            fsync_seconds: histogram("fbbus_store_fsync_seconds", "Time of one fsync of the log"),
+            not_stored,
+            write_errors: counter(
+                "fbbus_store_write_errors_total",
+                "Failed writes or syncs of the log (the disk is full or failing)",
+            ),
+            compactions: counter("fbbus_store_compactions_total", "Compactions of the log"),
+        }
+    }
+
+    fn show(&self, state: &State, file: u64) {
+        self.retained.set(state.retained.len() as i64);
+        self.sessions.set(state.sessions.len() as i64);
+        self.queued.set(state.queued as i64);
+        self.bytes.set(state.bytes as i64);
+        self.file_bytes.set(file as i64);
+    }
+}
+
+/// Batches waiting for the writer at most: beyond, sessions wait to hand theirs over
+/// (and, not reading their sockets meanwhile, slow their publishers by TCP).
+const QUEUE: usize = 4096;
+
+fn unix_now() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0)
+}
+
+impl Store {
+    /// Opens the store in `section.dir`, replays it, and starts its writer thread.
+    pub fn open(
+        section: &PersistenceSection,
+        metrics: &crate::metrics::Metrics,
+    ) -> Result<(Arc<Store>, Restore), StoreError> {
+        let started = Instant::now();
+        let path = section.dir.join("store.log");
+        let (mut log, replay) = log::Log::open(&path)?;
+        if let Some((torn, bytes)) = &replay.torn {
+            tracing::warn!(
+                store = %path.display(),
+                kept_in = %torn.display(),
+                bytes,
+                "the store's last records were torn or corrupt (a crash or power cut while \
+                 writing): recovered up to the last intact record; the rest is kept aside"
+            );
+        }
+        let limits = Limits {
+            max_bytes: section.max_bytes,
+            max_queued: section.max_queued_messages.max(1),
+        };
+        let mut state = State::default();
+        let mut drops = Drops::default();
+        for record in replay.records {
+            state.apply(record, limits, &mut drops);
+        }
+        // Sessions whose expiry passed while the broker was down end now.
+        let now = unix_now();
+        let expired: Vec<String> = state
+            .sessions
+            .iter()
+            .filter(|(_, s)| match (s.offline_at, s.expiry) {
+                (Some(at), Some(e)) => at.saturating_add(e as u64) <= now,
+                _ => false,
+            })
+            .map(|(c, _)| c.clone())
+            .collect();
+        let mut ended = Vec::new();
+        for client in expired {
+            let record = Record::Ended { client };
+            ended.push(record.clone());
+            state.apply(record, limits, &mut drops);
+        }
+        let mut restore = Restore::default();
+        let mut backlogs = HashMap::new();
+        let mut persistent = HashSet::new();
+        for (client, s) in &state.sessions {
+            persistent.insert(client.clone());
+            restore.sessions.push(restored_session(client, s, now));
+            let backlog: Vec<Backlogged> = s
+                .queue
+                .iter()
+                .map(|(seq, q)| Backlogged {
+                    seq: *seq,
+                    message: Arc::clone(&q.message),
+                    qos: q.qos,
+                    qos2: q.qos2,
+                })
+                .collect();
+            restore.queued += backlog.len();
+            if !backlog.is_empty() {
+                backlogs.insert(client.clone(), backlog);
+            }
+        }
+        restore.retained = state.retained.values().cloned().collect();
+        for (client, wills) in &state.wills {
+            let now_ms = now_ms();
+            for (due, message) in wills {
+                let left = Duration::from_millis(due.saturating_sub(now_ms));
+                restore
+                    .wills
+                    .push((client.clone(), left, Arc::clone(message)));
+            }
+        }
+        let store_metrics = Arc::new(StoreMetrics::new(metrics));
+        if !ended.is_empty() {
+            let mut bytes = Vec::new();
+            for r in &ended {
+                log::frame(r, &mut bytes);
+            }
+            if let Err(e) = log.append(&bytes) {
+                tracing::error!(store = %path.display(), error = %e, "cannot write to the store");
+            }
+        }
+        store_metrics.show(&state, log.length());
+        let subscribed = Arc::new(AtomicUsize::new(count_subscribed(&state)));
+        let subscribing = Arc::new(AtomicUsize::new(0));
+        let (queue, batches) = flume::bounded(QUEUE);
+        let writer = Writer {
+            log,
+            state,
+            limits,
+            fsync: section.fsync,
+            compact_min: section.compact_min_bytes,
+            metrics: Arc::clone(&store_metrics),
+            subscribed: Arc::clone(&subscribed),
+            subscribing: Arc::clone(&subscribing),
+        };
+        let next_seq = AtomicU64::new(writer.state.last_seq + 1);
+        let thread = std::thread::Builder::new()
+            .name("fbbus-store".into())
+            .spawn(move || writer.run(batches))
+            .map_err(|source| StoreError::Thread {
+                path: path.clone(),
+                source,
+            })?;
+        restore.took = started.elapsed();
+        let store = Store {
+            queue,
+            fsync: section.fsync,
+            next_seq,
+            subscribed,
+            subscribing,
+            persistent: Mutex::new(persistent),
+            backlogs: Mutex::new(backlogs),
+            thread: Mutex::new(Some(thread)),
+        };
+        Ok((Arc::new(store), restore))
+    }
+
+    /// Whether a publication at `qos` with `retain` is stored.
+    pub fn stores(&self, qos: u8, retain: bool) -> bool {
+        retain
+            || (qos > 0
+                && (self.subscribed.load(Ordering::Acquire) > 0
+                    || self.subscribing.load(Ordering::Acquire) > 0))
+    }
+
+    /// The next message number.
+    pub fn number(&self) -> u64 {
+        self.next_seq.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Hands `records` to the writer; with `wait`, returns once they are written (and
+    /// synced under `fsync = "always"`).
+    pub async fn write(&self, records: Vec<Record>, wait: bool) {
+        if records.is_empty() {
+            return;
+        }
+        let subscribes = records
+            .iter()
+            .filter(|r| matches!(r, Record::Subscribe { .. }))
+            .count();
+        if subscribes > 0 {
+            self.subscribing.fetch_add(subscribes, Ordering::AcqRel);
+        }
+        let (written, done) = if wait {
+            let (tx, rx) = oneshot::channel();
+            (Some(tx), Some(rx))
+        } else {
+            (None, None)
+        };
+        let batch = Batch {
+            records,
+            written,
+            sync: false,
+        };
+        if self.queue.send_async(batch).await.is_err() {
+            return;
+        }
+        if let Some(done) = done {
+            let _ = done.await;
+        }
+    }
+
+    /// Hands `records` to the writer from code that cannot wait (wills): in order with
+    /// everything handed over before, unless the writer's queue is full, when they go on
+    /// a task of their own after it.
+    pub fn write_now(&self, records: Vec<Record>) {
+        let batch = Batch {
+            records,
+            written: None,
+            sync: false,
+        };
+        if let Err(flume::TrySendError::Full(batch)) = self.queue.try_send(batch) {
+            let queue = self.queue.clone();
+            tokio::spawn(async move {
+                let _ = queue.send_async(batch).await;
+            });
+        }
+    }
+
+    /// Writes and syncs everything handed over so far (shutdown), then stops the writer.
+    pub async fn close(&self) {
+        let (tx, rx) = oneshot::channel();
+        let batch = Batch {
+            records: Vec::new(),
+            written: Some(tx),
+            sync: true,
+        };
+        if self.queue.send_async(batch).await.is_ok() {
+            let _ = rx.await;
+        }
+        let thread = self
+            .thread
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        // The writer ends when the last sender is gone; it has nothing left to write.
+        drop(thread);
+    }
+
+    /// Whether `client` has a stored session.
+    pub fn has_session(&self, client: &str) -> bool {
+        self.persistent
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains(client)
+    }
+
+    /// Notes that `client` has (true) or no longer has (false) a stored session.
+    pub fn set_session(&self, client: &str, stored: bool) {
+        let mut set = self
+            .persistent
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if stored {
+            if !set.contains(client) {
+                set.insert(client.to_owned());
+            }
+        } else {
+            set.remove(client);
+            drop(set);
+            self.backlogs
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .remove(client);
+        }
+    }
+
+    /// The queued messages a restored session's next connection sends first.
+    pub fn take_backlog(&self, client: &str) -> Vec<Backlogged> {
+        self.backlogs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(client)
+            .unwrap_or_default()
+    }
+
+    /// What a connection did not get through of its backlog, for the session's next one.
+    pub fn give_back(&self, client: &str, backlog: Vec<Backlogged>) {
+        if self.has_session(client) {
+            self.backlogs
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .insert(client.to_owned(), backlog);
+        }
+    }
+
+    pub fn fsync(&self) -> Fsync {
+        self.fsync
+    }
+}
+
+fn restored_session(client: &str, s: &StoredSession, now: u64) -> RestoredSession {
+    let expires_in = match (s.offline_at, s.expiry) {
+        (_, None) => None,
+        (Some(at), Some(e)) => Some(Duration::from_secs(
+            at.saturating_add(e as u64).saturating_sub(now),
+        )),
+        // Connected when the broker stopped: offline from now on.
+        (None, Some(e)) => Some(Duration::from_secs(e as u64)),
+    };
+    RestoredSession {
+        client: client.to_owned(),
+        owner: s.owner.clone(),
+        v5: s.v5,
+        expires_in,
+        subscriptions: s
+            .subscriptions
+            .iter()
+            .map(|(f, o)| (f.clone(), *o))
+            .collect(),
+    }
+}
+
+fn count_subscribed(state: &State) -> usize {
+    state
+        .sessions
+        .values()
+        .filter(|s| !s.subscriptions.is_empty())
+        .count()
+}
+
+/// The writer thread: the only owner of the log and of the state it mirrors.
+struct Writer {
+    log: log::Log,
+    state: State,
+    limits: Limits,
+    fsync: Fsync,
+    compact_min: u64,
+    metrics: Arc<StoreMetrics>,
+    subscribed: Arc<AtomicUsize>,
+    subscribing: Arc<AtomicUsize>,
+}
+
+/// Batches taken in one write at most.
+const GROUP: usize = 1024;
+
+impl Writer {
+    fn run(mut self, batches: flume::Receiver<Batch>) {
+        let mut buffer = Vec::with_capacity(64 * 1024);
+        let mut unsynced = false;
+        let mut last_sync = Instant::now();
+        let mut failing = false;
+        self.maybe_compact();
+        loop {
+            let first = match self.fsync {
+                Fsync::Every(every) if unsynced => {
+                    let left = every.saturating_sub(last_sync.elapsed());
+                    match batches.recv_timeout(left) {
+                        Ok(b) => Some(b),
+                        Err(flume::RecvTimeoutError::Timeout) => None,
+                        Err(flume::RecvTimeoutError::Disconnected) => break,
+                    }
+                }
+                _ => match batches.recv() {
+                    Ok(b) => Some(b),
+                    Err(_) => break,
+                },
+            };
+            let mut group: Vec<Batch> = first.into_iter().collect();
+            while group.len() < GROUP {
+                match batches.try_recv() {
+                    Ok(b) => group.push(b),
+                    Err(_) => break,
+                }
+            }
+            buffer.clear();
+            let mut sync = self.fsync == Fsync::Always;
+            for b in &group {
+                for r in &b.records {
+                    log::frame(r, &mut buffer);
+                }
+                sync |= b.sync;
+            }
+            if !buffer.is_empty() {
+                let t = Instant::now();
+                let written = self.log.append(&buffer);
+                self.metrics
+                    .write_seconds
+                    .observe(t.elapsed().as_secs_f64());
+                self.report(written, &mut failing);
+                unsynced = true;
+            }
+            let due = matches!(self.fsync, Fsync::Every(every) if last_sync.elapsed() >= every);
+            if unsynced && (sync || due) {
+                let t = Instant::now();
+                let synced = self.log.sync();
+                self.metrics
+                    .fsync_seconds
+                    .observe(t.elapsed().as_secs_f64());
+                self.report(synced, &mut failing);
+                unsynced = false;
+                last_sync = Instant::now();
+            }
+            let mut drops = Drops::default();
+            let mut subscribes = 0;
+            for b in group {
+                if let Some(w) = b.written {
+                    let _ = w.send(());
+                }
+                for r in b.records {
+                    subscribes += matches!(r, Record::Subscribe { .. }) as usize;
+                    self.state.apply(r, self.limits, &mut drops);
+                }
+            }
+            self.subscribed
+                .store(count_subscribed(&self.state), Ordering::Release);
+            if subscribes > 0 {
+                self.subscribing.fetch_sub(subscribes, Ordering::AcqRel);
+            }
+            self.count(drops);
+            self.maybe_compact();
+            self.metrics.show(&self.state, self.log.length());
+        }
+        if unsynced {
+            let _ = self.log.sync();
+        }
+    }
+
+    fn report(&self, result: std::io::Result<()>, failing: &mut bool) {
+        match result {
+            Ok(()) => {
+                if *failing {
+                    tracing::info!(store = %self.log.path().display(), "the store writes again");
+                    *failing = false;
+                }
+            }
+            Err(e) => {
+                self.metrics.write_errors.inc();
+                if !*failing {
+                    tracing::error!(
+                        store = %self.log.path().display(),
+                        error = %e,
+                        "cannot write the store: what is acknowledged now may not survive a \
+                         restart (free disk space or fix the disk; the line goes on)"
+                    );
+                    *failing = true;
+                }
+            }
+        }
+    }
+
+    fn count(&self, drops: Drops) {
+        for (reason, n) in [
+            ("session_queue_full", drops.session_queue_full),
+            ("store_full", drops.store_full),
+        ] {
+            if n > 0 {
+                let counter = self.metrics.not_stored.with_label_values(&[reason]);
+                if counter.get() == 0 {
+                    tracing::warn!(
+                        store = %self.log.path().display(),
+                        reason,
+                        "a message was not stored (it is still routed, but lost if the \
+                         broker restarts before it is delivered); see \
+                         fbbus_store_not_stored_total"
+                    );
+                }
+                counter.inc_by(n);
+            }
+        }
+    }
+
+    /// Rewrites the log once it is over `compact_min_bytes` and four times what is live.
+    fn maybe_compact(&mut self) {
+        let live = self.state.bytes as u64 + 256 * self.state.sessions.len() as u64 + 4096;
+        if self.log.length() < self.compact_min.max(live.saturating_mul(4)) {
+            return;
+        }
+        let t = Instant::now();
+        let before = self.log.length();
+        match self.log.compact(self.state.snapshot().into_iter()) {
+            Ok(()) => {
+                self.metrics.compactions.inc();
+                tracing::info!(
+                    store = %self.log.path().display(),
+                    before,
+                    after = self.log.length(),
+                    ms = t.elapsed().as_millis() as u64,
+                    "store compacted"
+                );
+            }
+            Err(e) => {
+                self.metrics.write_errors.inc();
+                tracing::error!(error = %e, "store compaction failed; the log is kept as it was");
+            }
+        }
+    }
+}
+
+/// Unix seconds now (records' times).
+pub fn now() -> u64 {
+    unix_now()
+}
+
+/// Unix milliseconds now (a delayed will's due time).
+pub fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+/// The store's directory is where it will be (for `check-config`).
+pub fn log_path(dir: &Path) -> PathBuf {
+    dir.join("store.log")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fsync_policies_parse() {
+        assert_eq!("always".parse(), Ok(Fsync::Always));
+        assert_eq!("os".parse(), Ok(Fsync::Os));
+        assert_eq!(
+            "every 100 ms".parse(),
+            Ok(Fsync::Every(Duration::from_millis(100)))
+        );
+        assert_eq!(
+            "every 5ms".parse(),
+            Ok(Fsync::Every(Duration::from_millis(5)))
+        );
+        for bad in ["every 0 ms", "every ms", "sometimes", "every 100 s", ""] {
+            assert!(bad.parse::<Fsync>().is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,491 @@
+//! What the store holds, rebuilt from the log's records: retained messages, persistent
+//! sessions with their subscriptions and queued messages, delayed wills.
+//!
+//! The same [`State::apply`] replays the log at start and follows the writer thread as it
+//! appends, so compaction writes what replay would rebuild. Queues are computed here, off
+//! the packet path: a `Publish` record names no session; it is queued for every persistent
+//! session whose subscriptions match it at that point of the log, at the delivery QoS
+//! (min of the publication's and the best matching subscription's), unless every matching
+//! subscription is No Local and the session published it. A `Done` takes it off again.
+//!
+//! Bounded: at most `max_queued` messages per session and `max_bytes` of messages in all
+//! (a message queued for n sessions counts n times); beyond either, a message is not
+//! stored for that session (or, for a retained message, not stored), and counted.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+
+use fb_bridge::topic::filter;
+
+use super::record::{Message, Options, Qos2, Record, Target};
+
+/// Limits on what the store keeps.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    pub max_bytes: usize,
+    pub max_queued: usize,
+}
+
+#[derive(Debug, Clone)]
+pub struct Queued {
+    pub message: Arc<Message>,
+    /// The QoS it is delivered at.
+    pub qos: u8,
+    pub qos2: Option<Qos2>,
+}
+
+#[derive(Debug, Clone)]
+pub struct StoredSession {
+    pub owner: String,
+    pub v5: bool,
+    pub expiry: Option<u32>,
+    /// Unix seconds since it is offline; None while connected.
+    pub offline_at: Option<u64>,
+    pub subscriptions: BTreeMap<String, Options>,
+    pub queue: BTreeMap<u64, Queued>,
+}
+
+/// Why a message was not stored.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Drops {
+    pub session_queue_full: u64,
+    pub store_full: u64,
+}
+
+#[derive(Default)]
+pub struct State {
+    pub retained: BTreeMap<Vec<u8>, Arc<Message>>,
+    pub sessions: HashMap<String, StoredSession>,
+    /// Delayed wills by client id (several when a typed will goes out in several encodings).
+    pub wills: BTreeMap<String, Vec<(u64, Arc<Message>)>>,
+    /// Bytes of retained and queued messages (see the module doc).
+    pub bytes: usize,
+    /// The highest message number seen.
+    pub last_seq: u64,
+    /// Queued messages in all sessions.
+    pub queued: usize,
+}
+
+impl State {
+    pub fn apply(&mut self, record: Record, limits: Limits, drops: &mut Drops) {
+        match record {
+            Record::Session {
+                client,
+                owner,
+                v5,
+                expiry,
+                fresh,
+            } => {
+                if fresh {
+                    self.end(&client);
+                }
+                let s = self
+                    .sessions
+                    .entry(client)
+                    .or_insert_with(|| StoredSession {
+                        owner: String::new(),
+                        v5,
+                        expiry,
+                        offline_at: None,
+                        subscriptions: BTreeMap::new(),
+                        queue: BTreeMap::new(),
+                    });
+                s.owner = owner;
+                s.v5 = v5;
+                s.expiry = expiry;
+                s.offline_at = None;
+            }
+            Record::Offline { client, at, expiry } => {
+                if let Some(s) = self.sessions.get_mut(&client) {
+                    s.offline_at = Some(at);
+                    s.expiry = expiry;
+                }
+            }
+            Record::Ended { client } => self.end(&client),
+            Record::Subscribe {
+                client,
+                filter,
+                options,
+            } => {
+                if let Some(s) = self.sessions.get_mut(&client) {
+                    s.subscriptions.insert(filter, options);
+                }
+            }
+            Record::Unsubscribe { client, filter } => {
+                if let Some(s) = self.sessions.get_mut(&client) {
+                    s.subscriptions.remove(&filter);
+                }
+            }
+            Record::Publish { seq, message } => {
+                self.last_seq = self.last_seq.max(seq);
+                let message = Arc::new(message);
+                if message.retain {
+                    self.retain(&message, limits, drops);
+                }
+                if message.qos > 0 {
+                    self.queue_for_subscribers(seq, &message, limits, drops);
+                }
+            }
+            Record::Queued {
+                seq,
+                message,
+                targets,
+            } => {
+                self.last_seq = self.last_seq.max(seq);
+                let message = Arc::new(message);
+                if message.retain && targets.is_empty() {
+                    self.retain(&message, limits, drops);
+                }
+                for t in targets {
+                    self.enqueue(&t.client, seq, &message, t.qos, t.qos2, limits, drops);
+                }
+            }
+            Record::Done { client, seq } => {
+                if let Some(q) = self
+                    .sessions
+                    .get_mut(&client)
+                    .and_then(|s| s.queue.remove(&seq))
+                {
+                    self.bytes = self.bytes.saturating_sub(q.message.size());
+                    self.queued = self.queued.saturating_sub(1);
+                }
+            }
+            Record::Qos2 { client, seq, state } => {
+                if let Some(q) = self
+                    .sessions
+                    .get_mut(&client)
+                    .and_then(|s| s.queue.get_mut(&seq))
+                {
+                    q.qos2 = Some(state);
+                }
+            }
+            Record::Will {
+                client,
+                due,
+                message,
+            } => {
+                self.wills
+                    .entry(client)
+                    .or_default()
+                    .push((due, Arc::new(message)));
+            }
+            Record::WillDone { client } => {
+                self.wills.remove(&client);
+            }
+        }
+    }
+
+    fn end(&mut self, client: &str) {
+        if let Some(s) = self.sessions.remove(client) {
+            for q in s.queue.values() {
+                self.bytes = self.bytes.saturating_sub(q.message.size());
+            }
+            self.queued = self.queued.saturating_sub(s.queue.len());
+        }
+    }
+
+    fn retain(&mut self, message: &Arc<Message>, limits: Limits, drops: &mut Drops) {
+        let old = self.retained.remove(message.topic.as_ref());
+        if let Some(old) = old {
+            self.bytes = self.bytes.saturating_sub(old.size());
+        }
+        if message.payload.is_empty() {
+            return;
+        }
+        if self.bytes + message.size() > limits.max_bytes {
+            drops.store_full += 1;
+            return;
+        }
+        self.bytes += message.size();
+        self.retained
+            .insert(message.topic.to_vec(), Arc::clone(message));
+    }
+
+    fn queue_for_subscribers(
+        &mut self,
+        seq: u64,
+        message: &Arc<Message>,
+        limits: Limits,
+        drops: &mut Drops,
+    ) {
+        let Ok(topic) = std::str::from_utf8(&message.topic) else {
+            return;
+        };
+        let mut targets: Vec<(String, u8)> = Vec::new();
+        for (client, s) in &self.sessions {
+            let mut best: Option<u8> = None;
+            let mut all_no_local = true;
+            for (f, o) in &s.subscriptions {
+                // Shared subscriptions deliver to one member: not stored per session.
+                if f.starts_with("$share/") || !filter::filter_matches(f, topic) {
+                    continue;
+                }
+                best = Some(best.unwrap_or(0).max(o.qos));
+                all_no_local &= o.no_local;
+            }
+            let Some(best) = best else { continue };
+            if all_no_local && *message.publisher == **client {
+                continue;
+            }
+            let qos = best.min(message.qos);
+            if qos > 0 {
+                targets.push((client.clone(), qos));
+            }
+        }
+        for (client, qos) in targets {
+            self.enqueue(&client, seq, message, qos, None, limits, drops);
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn enqueue(
+        &mut self,
+        client: &str,
+        seq: u64,
+        message: &Arc<Message>,
+        qos: u8,
+        qos2: Option<Qos2>,
+        limits: Limits,
+        drops: &mut Drops,
+    ) {
+        let Some(s) = self.sessions.get_mut(client) else {
+            return;
+        };
+        if s.queue.len() >= limits.max_queued {
+            drops.session_queue_full += 1;
+            return;
+        }
+        if self.bytes + message.size() > limits.max_bytes {
+            drops.store_full += 1;
+            return;
+        }
+        let queued = Queued {
+            message: Arc::clone(message),
+            qos,
+            qos2,
+        };
+        if s.queue.insert(seq, queued).is_none() {
+            self.bytes += message.size();
+            self.queued += 1;
+        }
+    }
+
+    /// Records that rebuild this state: what compaction writes.
+    pub fn snapshot(&self) -> Vec<Record> {
+        let mut out = Vec::new();
+        for (client, s) in &self.sessions {
+            out.push(Record::Session {
+                client: client.clone(),
+                owner: s.owner.clone(),
+                v5: s.v5,
+                expiry: s.expiry,
+                fresh: true,
+            });
+            if let Some(at) = s.offline_at {
+                out.push(Record::Offline {
+                    client: client.clone(),
+                    at,
+                    expiry: s.expiry,
+                });
+            }
+            for (f, o) in &s.subscriptions {
+                out.push(Record::Subscribe {
+                    client: client.clone(),
+                    filter: f.clone(),
+                    options: *o,
+                });
+            }
+        }
+        for m in self.retained.values() {
+            out.push(Record::Queued {
+                seq: 0,
+                message: (**m).clone(),
+                targets: Vec::new(),
+            });
+        }
+        let mut by_seq: BTreeMap<u64, (Arc<Message>, Vec<Target>)> = BTreeMap::new();
+        for (client, s) in &self.sessions {
+            for (seq, q) in &s.queue {
+                by_seq
+                    .entry(*seq)
+                    .or_insert_with(|| (Arc::clone(&q.message), Vec::new()))
+                    .1
+                    .push(Target {
+                        client: client.clone(),
+                        qos: q.qos,
+                        qos2: q.qos2,
+                    });
+            }
+        }
+        for (seq, (message, targets)) in by_seq {
+            let mut message = (*message).clone();
+            message.retain = false;
+            out.push(Record::Queued {
+                seq,
+                message,
+                targets,
+            });
+        }
+        for (client, wills) in &self.wills {
+            for (due, message) in wills {
+                out.push(Record::Will {
+                    client: client.clone(),
+                    due: *due,
+                    message: (**message).clone(),
+                });
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bytes::Bytes;
+
+    const LIMITS: Limits = Limits {
+        max_bytes: 1 << 20,
+        max_queued: 3,
+    };
+
+    fn session(client: &str) -> Record {
+        Record::Session {
+            client: client.into(),
+            owner: String::new(),
+            v5: false,
+            expiry: None,
+            fresh: true,
+        }
+    }
+
+    fn subscribe(client: &str, filter: &str, qos: u8, no_local: bool) -> Record {
+        Record::Subscribe {
+            client: client.into(),
+            filter: filter.into(),
+            options: Options {
+                qos,
+                no_local,
+                retain_as_published: false,
+                retain_handling: 0,
+                id: 0,
+            },
+        }
+    }
+
+    fn publish(seq: u64, topic: &str, qos: u8, retain: bool, payload: &str) -> Record {
+        Record::Publish {
+            seq,
+            message: Message {
+                topic: Bytes::copy_from_slice(topic.as_bytes()),
+                payload: Bytes::copy_from_slice(payload.as_bytes()),
+                qos,
+                retain,
+                properties: None,
+                publisher: "pub".into(),
+            },
+        }
+    }
+
+    fn state(records: Vec<Record>) -> (State, Drops) {
+        let mut s = State::default();
+        let mut d = Drops::default();
+        for r in records {
+            s.apply(r, LIMITS, &mut d);
+        }
+        (s, d)
+    }
+
+    fn queue(s: &State, client: &str) -> Vec<(u64, u8)> {
+        s.sessions[client]
+            .queue
+            .iter()
+            .map(|(seq, q)| (*seq, q.qos))
+            .collect()
+    }
+
+    #[test]
+    fn messages_queue_at_the_delivery_qos_until_done() {
+        let (s, _) = state(vec![
+            session("a"),
+            subscribe("a", "x/+", 1, false),
+            subscribe("a", "x/#", 2, false),
+            session("b"),
+            subscribe("b", "x/1", 0, false),
+            publish(1, "x/1", 2, false, "p"),
+            publish(2, "x/1", 1, false, "p"),
+            publish(3, "y", 1, false, "p"),
+            publish(4, "x/1", 0, false, "p"),
+            Record::Done {
+                client: "a".into(),
+                seq: 2,
+            },
+        ]);
+        assert_eq!(queue(&s, "a"), vec![(1, 2)]);
+        // A QoS 0 subscription queues nothing.
+        assert!(queue(&s, "b").is_empty());
+        assert_eq!(s.queued, 1);
+    }
+
+    #[test]
+    fn limits_and_no_local_and_retained() {
+        let (s, d) = state(vec![
+            session("pub"),
+            subscribe("pub", "#", 1, true),
+            session("a"),
+            subscribe("a", "#", 1, false),
+            publish(1, "t", 1, true, "1"),
+            publish(2, "t", 1, false, "2"),
+            publish(3, "t", 1, false, "3"),
+            publish(4, "t", 1, false, "4"),
+        ]);
+        assert!(queue(&s, "pub").is_empty(), "No Local");
+        assert_eq!(queue(&s, "a"), vec![(1, 1), (2, 1), (3, 1)]);
+        assert_eq!(d.session_queue_full, 1);
+        assert_eq!(s.retained.len(), 1);
+        // An empty retained publication clears it; a fresh session starts empty.
+        let (s, _) = state(vec![
+            session("a"),
+            subscribe("a", "#", 1, false),
+            publish(1, "t", 0, true, "1"),
+            publish(2, "t", 0, true, ""),
+            publish(3, "t", 1, false, "x"),
+            session("a"),
+        ]);
+        assert!(s.retained.is_empty());
+        assert!(queue(&s, "a").is_empty());
+        assert_eq!((s.bytes, s.queued), (0, 0));
+    }
+
+    #[test]
+    fn a_snapshot_rebuilds_the_same_state() {
+        let (s, _) = state(vec![
+            session("a"),
+            subscribe("a", "x/#", 2, false),
+            session("b"),
+            subscribe("b", "x/1", 1, false),
+            Record::Offline {
+                client: "b".into(),
+                at: 9,
+                expiry: Some(60),
+            },
+            publish(1, "x/1", 2, true, "p"),
+            Record::Qos2 {
+                client: "a".into(),
+                seq: 1,
+                state: Qos2::Received(4),
+            },
+            publish(2, "x/2", 1, false, "q"),
+        ]);
+        let (t, _) = state(s.snapshot());
+        assert_eq!(queue(&t, "a"), queue(&s, "a"));
+        assert_eq!(queue(&t, "b"), queue(&s, "b"));
+        assert_eq!(t.sessions["a"].queue[&1].qos2, Some(Qos2::Received(4)));
+        assert_eq!(t.sessions["b"].offline_at, Some(9));
+        assert_eq!(t.retained.len(), 1);
+        assert_eq!(
+            (t.bytes, t.queued, t.last_seq),
+            (s.bytes, s.queued, s.last_seq)
+        );
+    }
+}
