@@ -637,11 +637,20 @@ async fn a_restarted_line_serves_its_restored_retained_values_to_other_lines() {
     drop(dev);
 
     a.broker.restart("KILL");
+    // Line B sees line A again (a subscription made while A was down would have asked a
+    // line that was not there).
+    b.wait_metric(
+        "fbbus_bridge_liveliness_changes_total{kind=\"line_up\"}",
+        2.0,
+    );
     let mut obs = observe(&b, "watch-b", &["fb/conv-a/CONV/ID"], &[&a]).await;
-    let retained = obs
-        .next_publish(WAIT)
-        .await
-        .expect("line A's restored retained value on line B");
+    let Some(retained) = obs.next_publish(WAIT).await else {
+        panic!(
+            "line A's restored retained value is not on line B.\nA: {}\nB: {}",
+            a.broker.log_text(),
+            b.broker.log_text()
+        );
+    };
     assert_eq!(retained.topic, "fb/conv-a/CONV/ID");
     assert_eq!(&retained.payload[..], b"\"belt-9\"");
     assert!(drain(&mut obs, Duration::from_millis(800)).await.is_empty());

@@ -27,7 +27,7 @@ use super::record::Record;
 const MAGIC: &[u8; 8] = b"FBBUSLOG";
 /// The format this fbbus writes and reads.
 pub const VERSION: u32 = 1;
-const HEADER: usize = 12;
+pub(super) const HEADER: usize = 12;
 /// A record longer than this is taken as corruption (a stored message is at most MQTT's
 /// 256 MB packet, and a compaction's `Queued` record adds its targets).
 const MAX_RECORD: usize = 512 * 1024 * 1024;
@@ -213,7 +213,7 @@ pub fn frame(record: &Record, out: &mut Vec<u8>) {
 }
 
 /// The intact records after the header, and where they end.
-fn parse(bytes: &[u8]) -> (Vec<Record>, usize) {
+pub(super) fn parse(bytes: &[u8]) -> (Vec<Record>, usize) {
     let mut records = Vec::new();
     let mut at = HEADER;
     while let Some(head) = bytes.get(at..at + 8) {

@@ -734,6 +734,55 @@ impl Writer {
     }
 }
 
+/// For the fuzzer (`broker/fuzz`, target `store_replay`): reads `bytes` as a store log
+/// (a 12-byte header, then records) into a state under small limits, checks what the state
+/// promises, and that a compaction of it rebuilds the same state. Returns how many records
+/// were intact. A file on disk is outside input: nothing here may panic on it.
+#[doc(hidden)]
+pub fn replay_for_fuzzing(bytes: &[u8]) -> usize {
+    let (records, end) = log::parse(bytes);
+    assert!(end <= bytes.len().max(log::HEADER));
+    let limits = Limits {
+        max_bytes: 1 << 16,
+        max_queued: 16,
+    };
+    let mut state = State::default();
+    let mut drops = Drops::default();
+    let n = records.len();
+    for r in records {
+        // Every record that was read writes back as the same bytes.
+        let mut bytes = Vec::new();
+        r.encode(&mut bytes);
+        assert_eq!(Record::decode(&bytes).ok().as_ref(), Some(&r));
+        state.apply(r, limits, &mut drops);
+    }
+    assert!(state.bytes <= limits.max_bytes);
+    assert!(state
+        .sessions
+        .values()
+        .all(|s| s.queue.len() <= limits.max_queued));
+    let mut again = State::default();
+    for r in state.snapshot() {
+        again.apply(r, limits, &mut drops);
+    }
+    assert_eq!(
+        (
+            again.retained.len(),
+            again.sessions.len(),
+            again.queued,
+            again.bytes
+        ),
+        (
+            state.retained.len(),
+            state.sessions.len(),
+            state.queued,
+            state.bytes
+        ),
+        "a compaction does not rebuild the state"
+    );
+    n
+}
+
 /// Unix seconds now (records' times).
 pub fn now() -> u64 {
     unix_now()

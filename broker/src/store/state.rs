@@ -12,7 +12,7 @@
 //! (a message queued for n sessions counts n times); beyond either, a message is not
 //! stored for that session (or, for a retained message, not stored), and counted.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
 use fb_bridge::topic::filter;
@@ -52,6 +52,76 @@ pub struct Drops {
     pub store_full: u64,
 }
 
+/// Which persistent sessions subscribe to what, as a tree of topic levels, so that finding
+/// the sessions a publication is queued for costs its levels and the sessions that match,
+/// not every subscription of every session.
+#[derive(Default)]
+struct Subscribers {
+    /// Sessions whose filter ends at this node.
+    here: BTreeSet<String>,
+    /// Sessions with `#` below this node (it matches this level too).
+    rest: BTreeSet<String>,
+    plus: Option<Box<Subscribers>>,
+    levels: HashMap<String, Subscribers>,
+}
+
+impl Subscribers {
+    fn node(&mut self, filter: &str) -> (&mut Subscribers, bool) {
+        let mut node = self;
+        let mut levels = filter.split('/').peekable();
+        while let Some(level) = levels.next() {
+            if level == "#" && levels.peek().is_none() {
+                return (node, true);
+            }
+            node = match level {
+                "+" => node.plus.get_or_insert_with(Box::default),
+                _ => node.levels.entry(level.to_owned()).or_default(),
+            };
+        }
+        (node, false)
+    }
+
+    fn insert(&mut self, filter: &str, client: &str) {
+        let (node, rest) = self.node(filter);
+        match rest {
+            true => node.rest.insert(client.to_owned()),
+            false => node.here.insert(client.to_owned()),
+        };
+    }
+
+    /// Removes the entry (empty nodes stay: a session's filters are few and bounded).
+    fn remove(&mut self, filter: &str, client: &str) {
+        let (node, rest) = self.node(filter);
+        match rest {
+            true => node.rest.remove(client),
+            false => node.here.remove(client),
+        };
+    }
+
+    /// The sessions with a filter matching `topic` (MQTT 4.7: a filter starting with a
+    /// wildcard does not match a topic starting with `$`).
+    fn matching(&self, topic: &str, out: &mut BTreeSet<String>) {
+        let levels: Vec<&str> = topic.split('/').collect();
+        self.walk(&levels, topic.starts_with('$'), out);
+    }
+
+    fn walk(&self, levels: &[&str], dollar: bool, out: &mut BTreeSet<String>) {
+        if !dollar {
+            out.extend(self.rest.iter().cloned());
+        }
+        let Some((first, below)) = levels.split_first() else {
+            out.extend(self.here.iter().cloned());
+            return;
+        };
+        if let Some(next) = self.levels.get(*first) {
+            next.walk(below, false, out);
+        }
+        if let (Some(plus), false) = (&self.plus, dollar) {
+            plus.walk(below, false, out);
+        }
+    }
+}
+
 #[derive(Default)]
 pub struct State {
     pub retained: BTreeMap<Vec<u8>, Arc<Message>>,
@@ -64,6 +134,7 @@ pub struct State {
     pub last_seq: u64,
     /// Queued messages in all sessions.
     pub queued: usize,
+    subscribers: Subscribers,
 }
 
 impl State {
@@ -108,12 +179,17 @@ impl State {
                 options,
             } => {
                 if let Some(s) = self.sessions.get_mut(&client) {
+                    if !filter.starts_with("$share/") {
+                        self.subscribers.insert(&filter, &client);
+                    }
                     s.subscriptions.insert(filter, options);
                 }
             }
             Record::Unsubscribe { client, filter } => {
                 if let Some(s) = self.sessions.get_mut(&client) {
-                    s.subscriptions.remove(&filter);
+                    if s.subscriptions.remove(&filter).is_some() {
+                        self.subscribers.remove(&filter, &client);
+                    }
                 }
             }
             Record::Publish { seq, message } => {
@@ -177,6 +253,9 @@ impl State {
 
     fn end(&mut self, client: &str) {
         if let Some(s) = self.sessions.remove(client) {
+            for f in s.subscriptions.keys() {
+                self.subscribers.remove(f, client);
+            }
             for q in s.queue.values() {
                 self.bytes = self.bytes.saturating_sub(q.message.size());
             }
@@ -211,8 +290,13 @@ impl State {
         let Ok(topic) = std::str::from_utf8(&message.topic) else {
             return;
         };
+        let mut matching = BTreeSet::new();
+        self.subscribers.matching(topic, &mut matching);
         let mut targets: Vec<(String, u8)> = Vec::new();
-        for (client, s) in &self.sessions {
+        for (client, s) in matching
+            .into_iter()
+            .filter_map(|c| self.sessions.get(&c).map(|s| (c, s)))
+        {
             let mut best: Option<u8> = None;
             let mut all_no_local = true;
             for (f, o) in &s.subscriptions {
@@ -224,12 +308,12 @@ impl State {
                 all_no_local &= o.no_local;
             }
             let Some(best) = best else { continue };
-            if all_no_local && *message.publisher == **client {
+            if all_no_local && *message.publisher == *client {
                 continue;
             }
             let qos = best.min(message.qos);
             if qos > 0 {
-                targets.push((client.clone(), qos));
+                targets.push((client, qos));
             }
         }
         for (client, qos) in targets {
@@ -455,6 +539,34 @@ mod tests {
         assert!(s.retained.is_empty());
         assert!(queue(&s, "a").is_empty());
         assert_eq!((s.bytes, s.queued), (0, 0));
+    }
+
+    #[test]
+    fn the_subscriber_tree_matches_as_mqtt_does() {
+        let filters = [
+            "a/b", "a/+", "a/#", "#", "+/b", "+", "a/+/c", "$SYS/#", "+/+/#", "a/b/c/#", "é/ü/+",
+        ];
+        let topics = [
+            "a", "a/b", "a/b/c", "a/b/c/d", "b", "b/b", "$SYS/x", "$SYS", "/", "a//c", "é/ü/ß", "",
+        ];
+        let mut tree = Subscribers::default();
+        for f in filters {
+            tree.insert(f, f);
+        }
+        for t in topics {
+            let mut got = BTreeSet::new();
+            tree.matching(t, &mut got);
+            let want: BTreeSet<String> = filters
+                .iter()
+                .filter(|f| filter::filter_matches(f, t))
+                .map(|f| f.to_string())
+                .collect();
+            assert_eq!(got, want, "topic {t:?}");
+        }
+        tree.remove("a/#", "a/#");
+        let mut got = BTreeSet::new();
+        tree.matching("a/b/c", &mut got);
+        assert!(!got.contains("a/#"));
     }
 
     #[test]
