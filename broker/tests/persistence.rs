@@ -600,3 +600,34 @@ fn every_acknowledged_message_survives_twenty_crashes() {
     );
     assert!(missing.is_empty(), "acknowledged and lost: {missing:?}");
 }
+
+/// A subscription's MQTT 5 options hold for the session after a reconnect and after a
+/// crash: No Local (the router ignores it; the session applies it from its own table,
+/// which a resumed connection gets from its predecessor or from the store).
+#[test]
+fn subscription_options_hold_after_a_reconnect_and_a_crash() {
+    let mut broker = Broker::start();
+    let (mut dev, _) = client(&broker, 5, "nl-dev", false);
+    // QoS 1, No Local.
+    dev.send(&raw::subscribe_with_options(1, "nl/#", 0x01 | 0x04));
+    assert_eq!(dev.read_packet().expect("SUBACK").0, 0x90);
+    for step in ["reconnect", "crash"] {
+        dev.send(&raw::DISCONNECT);
+        drop(dev);
+        if step == "crash" {
+            broker.restart("KILL");
+        }
+        let (mut again, present) = client(&broker, 5, "nl-dev", false);
+        assert!(present, "{step}");
+        publish_acked(&mut again, 5, "nl/own", 1, 7, false, "mine");
+        let (mut other, _) = client(&broker, 5, "nl-other", true);
+        publish_acked(&mut other, 5, "nl/other", 1, 1, false, "theirs");
+        let got = drain(&mut again, 5, QUIET);
+        assert_eq!(
+            payloads(&got),
+            vec![("nl/other".into(), "theirs".into(), 1)],
+            "{step}: No Local still holds"
+        );
+        dev = again;
+    }
+}

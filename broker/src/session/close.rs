@@ -99,7 +99,11 @@ impl Session {
         let open = if self.lifetime.clean_link {
             Resume::default()
         } else {
-            std::mem::take(&mut self.ids).into_resume()
+            let mut open = std::mem::take(&mut self.ids).into_resume();
+            if self.special_subscriptions {
+                open.subscriptions = self.subscriptions.clone();
+            }
+            open
         };
         let (redeliveries, client_id, session) =
             (&self.ctx.redeliveries, &*self.client_id, self.session);

@@ -154,7 +154,7 @@ impl Session {
             profile = fb.profile().map(|p| p.device.as_str()),
             "client connected"
         );
-        let ids = resume(ctx, &client_id, &linked, lifetime).await;
+        let (ids, subscriptions) = resume(ctx, &client_id, &linked, lifetime).await;
         let owner = ctx.identity.owner(username.as_deref());
         let (persistent, journal) =
             stored_session(ctx, &client_id, &owner, version, lifetime, session_present);
@@ -205,6 +205,11 @@ impl Session {
         };
         if persistent && session_present {
             session.take_backlog();
+        }
+        // A resumed session's subscriptions whose options the delivery path applies.
+        if !subscriptions.is_empty() {
+            let filters: Vec<_> = subscriptions.into_values().collect();
+            session.remember_subscriptions(filters.iter(), &[]);
         }
         Some(session)
     }
@@ -539,16 +544,17 @@ async fn resume(
     client_id: &str,
     linked: &Linked,
     lifetime: SessionLifetime,
-) -> PacketIds {
+) -> (PacketIds, BTreeMap<String, rumqttd::protocol::Filter>) {
     if lifetime.clean_link || lifetime.purge_before_link {
         ctx.redeliveries.forget(client_id);
-        return PacketIds::default();
+        return (PacketIds::default(), BTreeMap::new());
     }
-    let handed_over = ctx
+    let mut handed_over = ctx
         .redeliveries
         .take(client_id, linked.session, linked.predecessor_running)
         .await;
-    PacketIds::resumed(handed_over)
+    let subscriptions = std::mem::take(&mut handed_over.subscriptions);
+    (PacketIds::resumed(handed_over), subscriptions)
 }
 
 /// The keep-alive a connection runs with, in seconds (0: off), and the Server Keep Alive

@@ -44,13 +44,29 @@ pub struct PacketIds {
     may_collide: bool,
 }
 
-/// What a resumed session starts from (see the module doc).
+/// What a resumed session starts from (see the module doc), and the subscriptions the
+/// previous connection made when some use an option the router ignores (No Local, Retain
+/// As Published, Retain Handling): the delivery path applies them from the session's own
+/// table, which a resumed connection would otherwise start empty.
 #[derive(Debug, Default, PartialEq)]
-pub struct Resume(Vec<Exchange>);
+pub struct Resume {
+    exchanges: Vec<Exchange>,
+    pub subscriptions: std::collections::BTreeMap<String, rumqttd::protocol::Filter>,
+}
 
 impl Resume {
+    /// Only subscriptions (a session put back from the store at start).
+    pub fn with_subscriptions(
+        subscriptions: std::collections::BTreeMap<String, rumqttd::protocol::Filter>,
+    ) -> Resume {
+        Resume {
+            exchanges: Vec::new(),
+            subscriptions,
+        }
+    }
+
     pub fn is_empty(&self) -> bool {
-        self.0.is_empty()
+        self.exchanges.is_empty() && self.subscriptions.is_empty()
     }
 }
 
@@ -87,7 +103,7 @@ pub struct Delivery {
 impl PacketIds {
     /// A connection resuming a session that an earlier connection left as `resume`.
     pub fn resumed(resume: Resume) -> PacketIds {
-        let open: VecDeque<Exchange> = resume.0.into();
+        let open: VecDeque<Exchange> = resume.exchanges.into();
         PacketIds {
             unsent: open.iter().filter(|e| e.stage == Stage::Unsent).count() as u16,
             may_collide: !open.is_empty(),
@@ -227,21 +243,24 @@ impl PacketIds {
     /// the session's connections, each holding a packet id.
     pub fn into_resume(self) -> Resume {
         let went_on = self.last > 0;
-        Resume(
-            self.open
-                .into_iter()
-                .filter(|e| !(went_on && e.stage == Stage::Unsent))
-                // Backlog deliveries go back to the store, not to the router's re-sends.
-                .filter(|e| e.router != 0 || e.stage == Stage::Unsent)
-                .map(|mut e| {
-                    e.stage = match e.stage {
-                        Stage::Unsent | Stage::Sent => Stage::Unsent,
-                        Stage::Received | Stage::Released => Stage::Received,
-                    };
-                    e
-                })
-                .collect(),
-        )
+        let exchanges = self
+            .open
+            .into_iter()
+            .filter(|e| !(went_on && e.stage == Stage::Unsent))
+            // Backlog deliveries go back to the store, not to the router's re-sends.
+            .filter(|e| e.router != 0 || e.stage == Stage::Unsent)
+            .map(|mut e| {
+                e.stage = match e.stage {
+                    Stage::Unsent | Stage::Sent => Stage::Unsent,
+                    Stage::Received | Stage::Released => Stage::Received,
+                };
+                e
+            })
+            .collect();
+        Resume {
+            exchanges,
+            subscriptions: Default::default(),
+        }
     }
 
     fn position(&self, client: u16, stages: &[Stage]) -> Option<usize> {

@@ -10,12 +10,13 @@ use std::time::Instant;
 use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe, SubscribeProperties};
 use rumqttd::Notification;
 
-use super::{Restore, RestoredSession};
+use super::{Options, Restore, RestoredSession};
 use crate::broker_publisher::publish_packet;
 use crate::context::Context;
 use crate::identity::Owner;
 use crate::policy::origin;
 use crate::router::unlink;
+use crate::session::packet_ids::Resume;
 use crate::session::table::Remains;
 
 /// The router link retained messages are put back through.
@@ -133,6 +134,29 @@ fn owner(name: &str) -> Owner {
     }
 }
 
+/// A stored subscription as the router's filter, with `retain`'s Retain Handling.
+fn filter(path: &str, o: &Options, retain: RetainForwardRule) -> Filter {
+    Filter {
+        path: path.to_owned(),
+        qos: match o.qos {
+            0 => QoS::AtMostOnce,
+            1 => QoS::AtLeastOnce,
+            _ => QoS::ExactlyOnce,
+        },
+        nolocal: o.no_local,
+        preserve_retain: o.retain_as_published,
+        retain_forward_rule: retain,
+    }
+}
+
+fn rule(retain_handling: u8) -> RetainForwardRule {
+    match retain_handling {
+        0 => RetainForwardRule::OnEverySubscribe,
+        1 => RetainForwardRule::OnNewSubscribe,
+        _ => RetainForwardRule::Never,
+    }
+}
+
 /// One persistent session: linked as persistent, subscribed (Retain Handling 2: a
 /// resumed session gets no retained messages), unlinked, so the router keeps it offline;
 /// its offline entry in the session table with its owner and what is left of its expiry.
@@ -149,17 +173,10 @@ async fn session(s: &RestoredSession, ctx: &Context) -> Result<(), String> {
     // One SUBSCRIBE per Subscription Identifier: the identifier is per packet.
     let mut by_id: std::collections::BTreeMap<u32, Vec<Filter>> = Default::default();
     for (path, o) in &s.subscriptions {
-        by_id.entry(o.id).or_default().push(Filter {
-            path: path.clone(),
-            qos: match o.qos {
-                0 => QoS::AtMostOnce,
-                1 => QoS::AtLeastOnce,
-                _ => QoS::ExactlyOnce,
-            },
-            nolocal: o.no_local,
-            preserve_retain: o.retain_as_published,
-            retain_forward_rule: RetainForwardRule::Never,
-        });
+        by_id
+            .entry(o.id)
+            .or_default()
+            .push(filter(path, o, RetainForwardRule::Never));
     }
     for (pkid, (id, filters)) in by_id.into_iter().enumerate() {
         for f in &filters {
@@ -184,5 +201,24 @@ async fn session(s: &RestoredSession, ctx: &Context) -> Result<(), String> {
     drop(rx);
     ctx.sessions
         .close(&s.client, session, Remains::Kept(s.expires_in));
+    // Options the router ignores (No Local, Retain As Published, Retain Handling) are
+    // applied by the session from its own table: handed to its next connection.
+    let special = s
+        .subscriptions
+        .iter()
+        .any(|(_, o)| o.no_local || o.retain_as_published || o.retain_handling == 2);
+    if special {
+        let filters = s
+            .subscriptions
+            .iter()
+            .map(|(path, o)| (path.clone(), filter(path, o, rule(o.retain_handling))))
+            .collect();
+        ctx.redeliveries.save(
+            &s.client,
+            session,
+            Resume::with_subscriptions(filters),
+            false,
+        );
+    }
     Ok(())
 }
