@@ -39,16 +39,25 @@ impl Session {
                 Ok(())
             }
             Packet::PubRel(pubrel, _) => {
-                if self
+                // The router knows only the QoS 2 publications this connection routed: a
+                // PUBREL for another (refused, consumed, or one an earlier connection or an
+                // earlier run of fbbus already routed and answered with PUBREC) ends here;
+                // the router drops a connection that releases a packet id it never saw.
+                let routed = self
                     .rare
                     .as_mut()
-                    .is_some_and(|r| r.refused_qos2.remove(&pubrel.pkid))
-                {
-                    // A refused QoS 2 exchange ends here, never in the router, which drops
-                    // a connection that releases a packet id it never saw.
+                    .is_some_and(|r| r.qos2_routed.remove(&pubrel.pkid));
+                let refused = self
+                    .rare
+                    .as_mut()
+                    .is_some_and(|r| r.refused_qos2.remove(&pubrel.pkid));
+                if !routed {
+                    // A refused QoS 2 exchange ends here with "not found" (MQTT 5); one an
+                    // earlier connection routed (before a reconnect or a restart) with
+                    // success: the message went on when its PUBREC was sent.
                     let reason = match self.version {
-                        Version::V5 => PubCompReason::PacketIdentifierNotFound,
-                        Version::V311 => PubCompReason::Success,
+                        Version::V5 if refused => PubCompReason::PacketIdentifierNotFound,
+                        _ => PubCompReason::Success,
                     };
                     self.io.queue(Packet::PubComp(
                         PubComp {
@@ -207,6 +216,9 @@ impl Session {
         }
         origin::mark(&mut publish, origin);
         self.to_router.push(Packet::Publish(publish, properties));
+        if qos == 2 {
+            self.rare().qos2_routed.insert(pkid);
+        }
         Ok(())
     }
 

@@ -232,6 +232,8 @@ struct Rare {
     partial_subscribes: BTreeMap<u16, Vec<Option<SubscribeReasonCode>>>,
     /// Refused QoS 2 publications: their PUBREL is answered here, not by the router.
     refused_qos2: BTreeSet<u16>,
+    /// QoS 2 publications this connection routed: their PUBREL goes to the router.
+    qos2_routed: BTreeSet<u16>,
     /// MQTT 5 topic aliases the client set. fbbus resolves them itself, so the ACL sees the
     /// real topic and the router only ever gets full topic names.
     topic_aliases: BTreeMap<u16, String>,

@@ -39,13 +39,15 @@ impl Session {
             let Packet::Publish(publish, properties) = packet else {
                 continue;
             };
-            let (qos, _) = publish.qos_and_pkid();
-            if !store.stores(qos, publish.retain) {
-                continue;
-            }
+            // The publication's QoS, from its origin: a typed message's re-encodings travel
+            // as QoS 0 copies and are delivered at the publication's QoS.
             let Some(origin) = publish.origin.as_mut() else {
                 continue;
             };
+            let qos = origin.qos;
+            if !store.stores(qos, publish.retain) {
+                continue;
+            }
             let seq = store.number();
             origin.seq = seq;
             self.journal.push(Record::Publish {
