@@ -39,7 +39,7 @@ pub struct Message {
     /// The client the message is published for (a will's owner), or the broker itself.
     pub publisher: String,
     /// Its number in the store (`store`), 0 when it is not stored.
-    pub seq: u64,
+    pub stored: u64,
 }
 
 impl Message {
@@ -52,7 +52,7 @@ impl Message {
             retain,
             properties: None,
             publisher: INTERNAL_CLIENT_ID.to_owned(),
-            seq: 0,
+            stored: 0,
         }
     }
 }
@@ -87,7 +87,7 @@ impl BrokerPublisher {
                     publish_packet(message.topic, message.payload, qos, message.retain, pkid);
                 let properties = message.properties;
                 let mut mark = origin::new(qos, message.retain, &message.publisher.into());
-                mark.seq = message.seq;
+                mark.stored = message.stored;
                 origin::mark(&mut publish, mark);
                 if let Err(e) = tx.send(Packet::Publish(publish, properties)).await {
                     tracing::error!(topic, error = %e, "router gone: broker message not published");

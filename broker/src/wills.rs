@@ -248,7 +248,7 @@ impl Wills {
             retain: will.retain,
             properties: Some(properties),
             publisher: client_id.to_owned(),
-            seq,
+            stored: seq,
         });
     }
 }

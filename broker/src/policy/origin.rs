@@ -25,7 +25,7 @@ pub fn new(qos: u8, retain: bool, publisher: &Arc<str>) -> Origin {
         qos: qos.min(2),
         retain,
         publisher: Arc::clone(publisher),
-        seq: 0,
+        stored: 0,
     }
 }
 
@@ -56,7 +56,7 @@ mod tests {
                 qos: 1,
                 retain: true,
                 publisher: "plc-1".into(),
-                seq: 0,
+                stored: 0,
             })
         );
         assert_eq!(publish, plain);

@@ -175,7 +175,7 @@ impl Session {
     ) {
         let origin = origin::take(&mut publish);
         let published = origin.as_ref().map(|o| o.qos);
-        let seq = origin.as_ref().map_or(0, |o| o.seq);
+        let stored = origin.as_ref().map_or(0, |o| o.stored);
         let (mut deliver, retain_as_published) =
             self.subscription_options(&publish, origin.as_ref());
         // Whatever subscription matched, and whenever it was made: the rules in force now.
@@ -208,7 +208,7 @@ impl Session {
 
         if routed_qos > 0 {
             self.ack_order.delivered(pkid);
-            self.store_delivering(seq, pkid, client_pkid);
+            self.store_delivering(stored, pkid, client_pkid);
         }
         if !deliver {
             self.io.write.truncate(before);

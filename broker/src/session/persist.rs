@@ -3,7 +3,7 @@
 //!
 //! - **Before routing** ([`Session::store_batch`]): the batch's retained publications and,
 //!   while a persistent session subscribes to anything, its QoS 1/2 ones are numbered
-//!   (`Origin::seq`) and written; the router gets them, and so the client its
+//!   (`Origin::stored`) and written; the router gets them, and so the client its
 //!   PUBACK/PUBREC, only once they are written.
 //! - **A persistent session's** SUBSCRIBE/UNSUBSCRIBE, the start and end of its
 //!   connection, and what becomes of each stored message delivered to it: `Done` at the
@@ -49,7 +49,7 @@ impl Session {
                 continue;
             }
             let seq = store.number();
-            origin.seq = seq;
+            origin.stored = seq;
             self.journal.push(Record::Publish {
                 seq,
                 message: Message {

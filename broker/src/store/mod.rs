@@ -5,7 +5,7 @@
 //! **The write path.** A session hands its network read's accepted publications to the
 //! router as one batch (`Session::route`). Before it does, the retained ones and, while
 //! some persistent session subscribes to anything, the QoS 1/2 ones are numbered
-//! (`Origin::seq`) and sent to the writer thread as one batch; the session waits until
+//! (`Origin::stored`) and sent to the writer thread as one batch; the session waits until
 //! the writer has written it (`fsync = "always"`: written and synced). Only then does the
 //! router get them, and only the router's answer is the PUBACK/PUBREC: a publication
 //! fbbus acknowledged is in the log. The writer thread takes every batch waiting and

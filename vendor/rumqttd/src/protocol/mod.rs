@@ -190,7 +190,7 @@ pub struct Origin {
     pub publisher: std::sync::Arc<str>,
     /// fbbus: the message's number in the broker's store (0: not stored), so a delivery's
     /// acknowledgement can be recorded against it.
-    pub seq: u64,
+    pub stored: u64,
 }
 
 impl Publish {
