@@ -105,10 +105,28 @@ impl Session {
                 self.io.queue(Packet::PingResp(PingResp));
                 Ok(())
             }
-            Packet::Disconnect(disconnect, _) => Err(End::Client {
-                with_will: disconnect.reason_code
-                    == DisconnectReasonCode::DisconnectWithWillMessage,
-            }),
+            Packet::Disconnect(disconnect, properties) => {
+                let expiry = properties.and_then(|p| p.session_expiry_interval);
+                if let Some(expiry) = expiry.filter(|_| self.version == Version::V5) {
+                    let Some(lifetime) = self.lifetime.on_disconnect(expiry) else {
+                        tracing::warn!(
+                            client_id = &*self.client_id,
+                            session_expiry = expiry,
+                            "DISCONNECT sets a Session Expiry Interval after CONNECT's 0; \
+                             protocol error"
+                        );
+                        return Err(End::ProtocolError(DisconnectReasonCode::ProtocolError));
+                    };
+                    self.lifetime = lifetime;
+                    if let Some(will) = self.will.as_mut() {
+                        will.set_session_expiry(expiry);
+                    }
+                }
+                Err(End::Client {
+                    with_will: disconnect.reason_code
+                        == DisconnectReasonCode::DisconnectWithWillMessage,
+                })
+            }
             Packet::Connect(..) => {
                 tracing::warn!(
                     client_id = &*self.client_id,
