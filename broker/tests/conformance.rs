@@ -1122,3 +1122,80 @@ fn unusable_client_ids_are_refused() {
         assert_eq!(handshake(good), 0, "{good:?}");
     }
 }
+
+/// Server-to-client topic aliases (MQTT 5 3.3.2.3.4, policy in `session/aliases.rs`): a
+/// client announcing Topic Alias Maximum 2 gets topic + alias on a topic's first delivery,
+/// an empty topic + the alias after; a third topic goes with its full name and no alias;
+/// a client that announced none never sees an alias; a new connection starts over.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deliveries_use_topic_aliases_the_client_allows() {
+    let broker = Broker::start();
+    let port = broker.port();
+    let subscriber = |id: &'static str, alias_max: Option<u16>| {
+        let mut c = RawClient::connect(port);
+        assert_eq!(
+            c.handshake(&raw::Connect {
+                version: 5,
+                client_id: id,
+                clean: false,
+                session_expiry: Some(60),
+                topic_alias_max: alias_max,
+                ..Default::default()
+            }),
+            0
+        );
+        c
+    };
+    let mut aliased = subscriber("aliased", Some(2));
+    let mut plain = subscriber("plain", None);
+    for c in [&mut aliased, &mut plain] {
+        c.send(&raw::subscribe(5, 1, &["ta/#"]));
+        assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    }
+    let publisher = V4::connect(port, "ta-pub", None).await.unwrap();
+    let sends = ["ta/a", "ta/a", "ta/b", "ta/c", "ta/b", "ta/a"];
+    for (i, topic) in sends.iter().enumerate() {
+        publisher
+            .client
+            .publish(*topic, rumqttc::QoS::AtMostOnce, false, vec![i as u8])
+            .await
+            .unwrap();
+    }
+    let alias = |n: u16| {
+        let mut p = vec![0x23];
+        p.extend_from_slice(&n.to_be_bytes());
+        p
+    };
+    let expected: Vec<(&[u8], Vec<u8>)> = vec![
+        (b"ta/a", alias(1)),
+        (b"", alias(1)),
+        (b"ta/b", alias(2)),
+        (b"ta/c", vec![]),
+        (b"", alias(2)),
+        (b"", alias(1)),
+    ];
+    for (i, (topic, props)) in expected.iter().enumerate() {
+        let (byte1, body) = aliased.read_packet().expect("delivery");
+        let (t, _, p, payload) = raw::parse_publish_v5(byte1, &body);
+        assert_eq!(
+            (&t[..], &p, &payload[..]),
+            (*topic, props, &[i as u8][..]),
+            "delivery {i}"
+        );
+        let (byte1, body) = plain.read_packet().expect("delivery");
+        let (t, _, p, _) = raw::parse_publish_v5(byte1, &body);
+        assert_eq!((&t[..], &p[..]), (sends[i].as_bytes(), &[][..]), "no alias");
+    }
+    // Resumed session, new connection: aliases start over.
+    drop(aliased);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut again = subscriber("aliased", Some(2));
+    publisher
+        .client
+        .publish("ta/b", rumqttc::QoS::AtMostOnce, false, vec![9])
+        .await
+        .unwrap();
+    let (byte1, body) = again.read_packet().expect("delivery after reconnect");
+    let (t, _, p, _) = raw::parse_publish_v5(byte1, &body);
+    assert_eq!((&t[..], p), (&b"ta/b"[..], alias(1)));
+}

@@ -10,6 +10,7 @@ use rumqttd::protocol::{
 };
 use rumqttd::Notification;
 
+use super::aliases::{Alias, OutAliases};
 use super::close::End;
 use super::redelivery::{self};
 use super::{Session, HOLD_LIMIT};
@@ -185,6 +186,14 @@ impl Session {
         } else {
             (0, false)
         };
+        // Topic aliases, for deliveries that are sent (`aliases`).
+        let mut properties = properties;
+        let alias_topic = publish.topic.clone();
+        let alias = if deliver && self.client_alias_max > 0 {
+            self.topic_alias(&mut publish, &mut properties)
+        } else {
+            None
+        };
         let (topic, payload, retain) = (
             publish.topic.clone(),
             publish.payload.clone(),
@@ -229,6 +238,9 @@ impl Session {
         match self.client_max_packet {
             Some(max) if size > max => {
                 self.io.write.truncate(before);
+                if let (Some(Alias::Set(_)), Some(aliases)) = (alias, self.aliases_out.as_mut()) {
+                    aliases.forget_last(&alias_topic);
+                }
                 if let Some(rare) = self.rare.as_mut() {
                     rare.qos2_sent_as_qos1.remove(&pkid);
                 }
@@ -260,6 +272,28 @@ impl Session {
                 }
             }
         }
+    }
+
+    /// Puts this connection's topic alias on a delivery the client announced a Topic
+    /// Alias Maximum for (policy in [`super::aliases`]): a new alias goes with the topic,
+    /// a known one replaces it.
+    fn topic_alias(
+        &mut self,
+        publish: &mut Publish,
+        properties: &mut Option<PublishProperties>,
+    ) -> Option<Alias> {
+        let max = self.client_alias_max;
+        let aliases = match &mut self.aliases_out {
+            Some(a) => a,
+            none => none.insert(Box::new(OutAliases::new(max)?)),
+        };
+        let alias = aliases.alias(&publish.topic)?;
+        let (Alias::Set(n) | Alias::Use(n)) = alias;
+        properties.get_or_insert_with(Default::default).topic_alias = Some(n);
+        if let Alias::Use(_) = alias {
+            publish.topic = bytes::Bytes::new();
+        }
+        Some(alias)
     }
 
     /// What the client's subscription options say about one delivery: whether to send it

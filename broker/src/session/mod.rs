@@ -19,7 +19,8 @@
 //! refused filters; [`read_access`]: the access rules in force at each delivery),
 //! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
-//! session expiry), [`observer`] (who else is told of subscriptions), [`write`] (every
+//! session expiry), [`aliases`] (the topic aliases of deliveries), [`observer`] (who else
+//! is told of subscriptions), [`write`] (every
 //! write to the client under its deadlines: liveness does not depend on the client
 //! reading). Bytes and packets are `wire`'s business.
 //!
@@ -29,6 +30,7 @@
 //! MQTT 3.1.1 and 5, and refusals with the right reason codes.
 
 pub mod ack_order;
+pub mod aliases;
 mod close;
 mod connect;
 mod deliver;
@@ -174,6 +176,10 @@ struct Session {
     /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
     /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
     inflight_in: u16,
+    /// The client's Topic Alias Maximum (MQTT 5 3.1.2.11.5); 0: no aliases (and 3.1.1).
+    client_alias_max: u16,
+    /// The topic aliases of this connection's deliveries, from the first one ([`aliases`]).
+    aliases_out: Option<Box<aliases::OutAliases>>,
     /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
     client_max_packet: Option<usize>,
     /// Acknowledgements to the router, kept in the order the router requires.
