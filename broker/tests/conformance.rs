@@ -1199,3 +1199,72 @@ async fn deliveries_use_topic_aliases_the_client_allows() {
     let (t, _, p, _) = raw::parse_publish_v5(byte1, &body);
     assert_eq!((&t[..], p), (&b"ta/b"[..], alias(1)));
 }
+
+/// MQTT 5 SUBSCRIBE of one filter with a Subscription Identifier.
+fn subscribe_with_id(pkid: u16, filter: &str, qos: u8, id: u8) -> Vec<u8> {
+    let mut body = pkid.to_be_bytes().to_vec();
+    body.extend_from_slice(&[2, 0x0B, id]);
+    body.extend_from_slice(&(filter.len() as u16).to_be_bytes());
+    body.extend_from_slice(filter.as_bytes());
+    body.push(qos);
+    raw::packet(0x82, &body)
+}
+
+/// A client whose subscriptions overlap gets one copy of a message matching several,
+/// with every matching subscription's identifier [MQTT-3.3.4-3] [MQTT-3.3.4-4], at the
+/// highest QoS [MQTT-3.3.4-2] (`session/copies.rs`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overlapping_subscriptions_get_one_copy_with_every_identifier() {
+    let broker = Broker::start();
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            version: 5,
+            client_id: "overlap",
+            ..Default::default()
+        }),
+        0
+    );
+    for (pkid, filter, qos, id) in [
+        (1, "a/+/c", 1, 1),
+        (2, "a/#", 1, 2),
+        (3, "q/+", 0, 3),
+        (4, "q/#", 1, 4),
+    ] {
+        c.send(&subscribe_with_id(pkid, filter, qos, id));
+        assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    }
+    let publisher = V4::connect(broker.port(), "overlap-pub", None)
+        .await
+        .unwrap();
+    for topic in ["a/b/c", "q/x", "a/x"] {
+        publisher
+            .client
+            .publish(topic, rumqttc::QoS::AtLeastOnce, false, topic)
+            .await
+            .unwrap();
+    }
+    let mut got = Vec::new();
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(800)))
+        .unwrap();
+    while let Some((byte1, body)) = c.read_packet() {
+        if byte1 & 0xF0 != 0x30 {
+            continue;
+        }
+        let (topic, pkid, props, _) = raw::parse_publish_v5(byte1, &body);
+        if pkid > 0 {
+            c.send(&[0x40, 0x02, (pkid >> 8) as u8, pkid as u8]);
+        }
+        got.push((String::from_utf8(topic).unwrap(), (byte1 >> 1) & 3, props));
+    }
+    assert_eq!(
+        got,
+        [
+            ("a/b/c".to_owned(), 1, vec![0x0B, 1, 0x0B, 2]),
+            ("q/x".to_owned(), 1, vec![0x0B, 3, 0x0B, 4]),
+            ("a/x".to_owned(), 1, vec![0x0B, 2]),
+        ],
+        "one copy each, every matching subscription's identifier, the highest QoS"
+    );
+}

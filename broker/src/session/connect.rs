@@ -199,6 +199,7 @@ impl Session {
             wake_pending: false,
             subscriptions: BTreeMap::new(),
             special_subscriptions: false,
+            overlapping: false,
             fb,
         })
     }

@@ -10,7 +10,7 @@ use rumqttd::protocol::{
 use security::Identity;
 
 use super::close::End;
-use super::{Session, MAX_LOGGED_DENIALS};
+use super::{copies, Session, MAX_LOGGED_DENIALS};
 use crate::policy::origin;
 use crate::policy::typed::Refusal;
 use crate::policy::{Admission, Door, Publication, Stage};
@@ -371,6 +371,21 @@ impl Session {
                 self.ctx.observers.subscribed(&filter.path);
             }
         }
+        let id = properties.as_ref().and_then(|p| p.id);
+        if id.is_some()
+            || self
+                .rare
+                .as_ref()
+                .is_some_and(|r| !r.subscription_ids.is_empty())
+        {
+            let ids = &mut self.rare().subscription_ids;
+            for filter in &granted {
+                match id {
+                    Some(id) => ids.insert(filter.path.clone(), id),
+                    None => ids.remove(&filter.path),
+                };
+            }
+        }
         self.remember_subscriptions(granted.into_iter(), &[]);
         if refused.iter().all(Option::is_none) {
             self.to_router
@@ -420,7 +435,22 @@ impl Session {
         }
         for path in removed {
             self.subscriptions.remove(path);
+            if let Some(rare) = self.rare.as_mut() {
+                rare.subscription_ids.remove(path);
+            }
         }
+        let own: Vec<&str> = self
+            .subscriptions
+            .keys()
+            .map(String::as_str)
+            .filter(|f| !filter::is_shared(f))
+            .collect();
+        // Pairwise for the usual few filters; a client with hundreds is assumed to overlap.
+        self.overlapping = own.len() > 256
+            || own
+                .iter()
+                .enumerate()
+                .any(|(i, a)| own[i + 1..].iter().any(|b| copies::filters_overlap(a, b)));
         self.special_subscriptions = self.subscriptions.values().any(|f| {
             f.nolocal
                 || f.preserve_retain

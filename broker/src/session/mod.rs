@@ -19,7 +19,8 @@
 //! refused filters; [`read_access`]: the access rules in force at each delivery),
 //! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
-//! session expiry), [`aliases`] (the topic aliases of deliveries), [`observer`] (who else
+//! session expiry), [`aliases`] (the topic aliases of deliveries), [`copies`] (one copy
+//! for overlapping subscriptions), [`observer`] (who else
 //! is told of subscriptions), [`write`] (every
 //! write to the client under its deadlines: liveness does not depend on the client
 //! reading). Bytes and packets are `wire`'s business.
@@ -33,6 +34,7 @@ pub mod ack_order;
 pub mod aliases;
 mod close;
 mod connect;
+pub mod copies;
 mod deliver;
 mod inbound;
 pub mod lifetime;
@@ -212,6 +214,9 @@ struct Session {
     subscriptions: BTreeMap<String, Filter>,
     /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
     special_subscriptions: bool,
+    /// Two of the client's non-shared subscriptions overlap: a message may match several,
+    /// and the router sends one copy per match; the client gets one ([`copies`]).
+    overlapping: bool,
     /// Typed-topic state: the device's interface, event sequence numbers.
     fb: FbSession,
     /// Read verdicts by topic under the ACL in force, allocated at the first delivery
@@ -239,6 +244,10 @@ struct Rare {
     /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
     /// the PUBREC the router waits for.
     qos2_sent_as_qos1: BTreeSet<u16>,
+    /// The Subscription Identifier of each subscription that has one, by filter.
+    subscription_ids: BTreeMap<String, usize>,
+    /// Copies of messages matching several overlapping subscriptions ([`copies`]).
+    copies: copies::Copies,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: BTreeSet<(&'static str, String)>,
 }
