@@ -13,6 +13,14 @@
 //!
 //! The will topic is checked against the ACL when the client connects, so a client
 //! cannot use its will to publish where it may not publish itself.
+//!
+//! A will is published as the client set it: its user properties and every other
+//! property reach subscribers unaltered [MQTT-3.3.2-17] [MQTT-3.3.2-18]. The session
+//! number of the connection it belongs to (Sparkplug's `bdSeq` idea) is kept beside the
+//! will, never in it: in the delayed wills' bookkeeping here, the "will published" log
+//! line, and the device's registry record (`session`, `registry.rs`), which says which
+//! session went offline. (Wills used to carry it as a `fbbus-session` user property,
+//! which altered the application message.)
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
@@ -28,10 +36,6 @@ use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::identity::Owner;
 use crate::metrics::Metrics;
 use crate::store::Store;
-
-/// The MQTT 5 user property a will carries with its connection's session number, so a
-/// consumer can tell a late will from an old session (Sparkplug's `bdSeq`).
-pub const SESSION_PROPERTY: &str = "fbbus-session";
 
 /// A will as the connection holds it.
 #[derive(Debug, Clone)]
@@ -65,13 +69,33 @@ impl Will {
             delay: Duration::from_secs(delay as u64),
         }
     }
+
+    /// The client's DISCONNECT set a new Session Expiry Interval: the delay is again
+    /// min(will delay interval, session expiry) (MQTT 5 3.1.3.2.2, 3.14.2.2.2).
+    pub fn set_session_expiry(&mut self, session_expiry: u32) {
+        let interval = self
+            .properties
+            .as_ref()
+            .and_then(|p| p.delay_interval)
+            .unwrap_or(0);
+        self.delay = Duration::from_secs(interval.min(session_expiry) as u64);
+    }
+}
+
+/// A will waiting for its delay.
+struct Delayed {
+    owner: Owner,
+    /// The session number of the connection whose will it is (`session::table`).
+    session: u64,
+    task: AbortHandle,
 }
 
 /// Publishes wills and keeps the delayed ones until they are due.
 pub struct Wills {
     publisher: Arc<BrokerPublisher>,
-    /// By client id: the delayed wills' tasks, with whose session they are.
-    delayed: Mutex<HashMap<String, Vec<(Owner, AbortHandle)>>>,
+    /// By client id: the delayed wills' tasks, with whose identity and connection
+    /// (session number) they are.
+    delayed: Mutex<HashMap<String, Vec<Delayed>>>,
     metrics: Arc<Metrics>,
     /// Where delayed wills wait: finished (not fired) when the broker shuts down.
     tasks: Tasks,
@@ -134,14 +158,18 @@ impl Wills {
             return;
         };
         let waiting = tasks.len();
-        tasks.retain(|(of, task)| {
-            if of == owner {
-                task.abort();
+        tasks.retain(|d| {
+            if &d.owner == owner {
+                d.task.abort();
+                tracing::debug!(
+                    client_id,
+                    session = d.session,
+                    "delayed will cancelled by reconnect"
+                );
             }
-            of != owner
+            &d.owner != owner
         });
         if tasks.len() < waiting {
-            tracing::debug!(client_id, "delayed will cancelled by reconnect");
             if let Some(store) = self.store.get() {
                 store.write_now(vec![crate::store::Record::WillDone {
                     client: client_id.to_owned(),
@@ -187,14 +215,18 @@ impl Wills {
             .unwrap_or_else(PoisonError::into_inner)
             .entry(client_id.to_owned())
             .or_default()
-            .push((owner.clone(), task));
+            .push(Delayed {
+                owner: owner.clone(),
+                session,
+                task,
+            });
     }
 
     /// The delayed will `task` of `client_id` is due: it can no longer be cancelled.
     fn forget(&self, client_id: &str, task: tokio::task::Id) {
         let mut delayed = self.delayed.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(tasks) = delayed.get_mut(client_id) {
-            tasks.retain(|(_, t)| t.id() != task);
+            tasks.retain(|d| d.task.id() != task);
             if tasks.is_empty() {
                 delayed.remove(client_id);
             }
@@ -202,22 +234,17 @@ impl Wills {
     }
 
     fn publish(&self, client_id: &str, session: u64, will: Will) {
-        let mut properties = will
-            .properties
-            .map(|p| PublishProperties {
-                payload_format_indicator: p.payload_format_indicator,
-                message_expiry_interval: p.message_expiry_interval,
-                topic_alias: None,
-                response_topic: p.response_topic,
-                correlation_data: p.correlation_data,
-                user_properties: p.user_properties,
-                subscription_identifiers: Vec::new(),
-                content_type: p.content_type,
-            })
-            .unwrap_or_default();
-        properties
-            .user_properties
-            .push((SESSION_PROPERTY.to_owned(), session.to_string()));
+        // Exactly the client's properties: nothing added, nothing reordered.
+        let properties = will.properties.map(|p| PublishProperties {
+            payload_format_indicator: p.payload_format_indicator,
+            message_expiry_interval: p.message_expiry_interval,
+            topic_alias: None,
+            response_topic: p.response_topic,
+            correlation_data: p.correlation_data,
+            user_properties: p.user_properties,
+            subscription_identifiers: Vec::new(),
+            content_type: p.content_type,
+        });
         tracing::info!(client_id, session, topic = ?String::from_utf8_lossy(&will.topic), "will published");
         self.metrics.wills_published.inc();
         let qos = will.qos.min(1);
@@ -231,7 +258,7 @@ impl Wills {
                     payload: will.payload.clone(),
                     qos,
                     retain: will.retain,
-                    properties: Some(properties.clone()),
+                    properties: properties.clone(),
                     publisher: client_id.into(),
                 };
                 store.write_now(vec![crate::store::Record::Publish { seq, message }]);
@@ -246,7 +273,7 @@ impl Wills {
             // subscribers at-least-once delivery of the will, which is what a will needs.
             qos,
             retain: will.retain,
-            properties: Some(properties),
+            properties,
             publisher: client_id.to_owned(),
             stored: seq,
         });

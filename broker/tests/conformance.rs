@@ -173,6 +173,73 @@ fn more_unacknowledged_publications_than_the_receive_maximum_disconnect() {
     }
 }
 
+/// The Receive Maximum fbbus announced in CONNACK, exceeded with QoS 2 publications
+/// that stay in flight (never released): the client reads DISCONNECT 0x93 before the
+/// connection closes [MQTT-3.3.4-7], even though it kept sending and a PINGRESP was
+/// still queued when the broker decided to close.
+#[test]
+fn the_receive_maximum_disconnect_reaches_the_client_before_the_close() {
+    let broker = Broker::start();
+    let mut c = RawClient::connect(broker.port());
+    c.send(
+        &raw::Connect {
+            version: 5,
+            client_id: "flooder",
+            ..Default::default()
+        }
+        .bytes(),
+    );
+    let (byte1, body) = c.read_packet().expect("CONNACK");
+    assert_eq!((byte1, body[1]), (0x20, 0));
+    // CONNACK properties: find Receive Maximum (0x21).
+    let (mut at, end) = (3, 3 + body[2] as usize);
+    let mut receive_max = 65535u16;
+    while at < end {
+        let id = body[at];
+        at += 1;
+        match id {
+            0x21 => {
+                receive_max = u16::from_be_bytes([body[at], body[at + 1]]);
+                break;
+            }
+            0x13 | 0x22 => at += 2,
+            0x24 | 0x25 | 0x28 | 0x29 | 0x2A => at += 1,
+            0x11 | 0x27 => at += 4,
+            0x12 | 0x1A | 0x1C | 0x1F => {
+                at += 2 + u16::from_be_bytes([body[at], body[at + 1]]) as usize
+            }
+            other => panic!("CONNACK property {other:#x}"),
+        }
+    }
+    assert!(
+        receive_max < 1000,
+        "Receive Maximum {receive_max} announced"
+    );
+    // PINGREQ, then one QoS 2 PUBLISH more than allowed, all in one write, no PUBREL.
+    let mut burst = raw::PINGREQ.to_vec();
+    for pkid in 1..=receive_max + 1 {
+        burst.extend(raw::publish_v5("flood", None, 2, pkid, b"x"));
+    }
+    c.send(&burst);
+    let mut seen = Vec::new();
+    let disconnect = loop {
+        match c.read_packet() {
+            Some((0xE0, body)) => break body,
+            Some((byte1, _)) => seen.push(byte1),
+            None => panic!("closed without DISCONNECT; read {seen:x?}"),
+        }
+    };
+    assert_eq!(disconnect[0], 0x93, "Receive Maximum exceeded");
+    assert!(
+        c.closed_by_broker(),
+        "the broker closes after the DISCONNECT"
+    );
+    assert_eq!(
+        broker.metric("fbbus_disconnects_total{reason=\"protocol_error\"}"),
+        1.0
+    );
+}
+
 /// Lower-QoS deliveries are acknowledged to the router on the client's behalf: many more
 /// than the router's in-flight window must flow through a QoS 2 subscription.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -291,12 +358,29 @@ fn connect_v5(port: u16, id: &str, clean: bool, expiry: u32) -> (bool, RawClient
 }
 
 /// Subscribes at QoS 1, disconnects cleanly, and has another client publish while offline.
-async fn leave_a_message_behind(broker: &Broker, mut c: RawClient, topic: &str) {
+async fn leave_a_message_behind(broker: &Broker, c: RawClient, topic: &str) {
+    leave_a_message_behind_with(broker, c, topic, &raw::DISCONNECT).await
+}
+
+/// An MQTT 5 DISCONNECT (reason 0) with a Session Expiry Interval.
+fn disconnect_with_expiry(expiry: u32) -> Vec<u8> {
+    let mut body = vec![0x00, 0x05, 0x11];
+    body.extend_from_slice(&expiry.to_be_bytes());
+    raw::packet(0xE0, &body)
+}
+
+/// `leave_a_message_behind`, ending the connection with `disconnect`.
+async fn leave_a_message_behind_with(
+    broker: &Broker,
+    mut c: RawClient,
+    topic: &str,
+    disconnect: &[u8],
+) {
     let mut sub = raw::subscribe(5, 1, &[topic]);
     *sub.last_mut().unwrap() = 1;
     c.send(&sub);
     assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
-    c.send(&raw::DISCONNECT);
+    c.send(disconnect);
     assert!(c.closed_by_broker());
     let publisher = V4::connect(
         broker.port(),
@@ -356,6 +440,44 @@ async fn mqtt5_session_expiry_decides_how_long_a_session_lives() {
     let (present, mut c) = connect_v5(port, "se-short", false, 1);
     assert!(!present, "expired session resumed");
     assert!(next_publish_payload(&mut c).is_none());
+}
+
+/// MQTT 5 3.14.2.2.2: the Session Expiry Interval of DISCONNECT replaces CONNECT's; after
+/// a CONNECT with 0 a non-zero one is a Protocol Error [MQTT-3.14.2-2] (DISCONNECT 0x82).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn disconnect_replaces_the_session_expiry() {
+    let broker = Broker::start();
+    let port = broker.port();
+
+    // CONNECT 1 s, DISCONNECT 5 s: still there after 3 s, with what was published.
+    let (_, c) = connect_v5(port, "se-longer", false, 1);
+    leave_a_message_behind_with(&broker, c, "se/longer", &disconnect_with_expiry(5)).await;
+    tokio::time::sleep(Duration::from_millis(2700)).await;
+    let (present, mut c) = connect_v5(port, "se-longer", false, 1);
+    assert!(present, "DISCONNECT's 5 s replaced CONNECT's 1 s");
+    let body = next_publish_payload(&mut c).expect("the message published while offline");
+    assert!(body.ends_with(b"while offline"));
+    c.send(&disconnect_with_expiry(0));
+    assert!(c.closed_by_broker());
+
+    // CONNECT 300 s, DISCONNECT 0: the session ends with the connection.
+    let (_, c) = connect_v5(port, "se-shorter", false, 300);
+    leave_a_message_behind_with(&broker, c, "se/shorter", &disconnect_with_expiry(0)).await;
+    let (present, mut c) = connect_v5(port, "se-shorter", false, 300);
+    assert!(!present, "DISCONNECT's 0 ended the session at once");
+    assert!(next_publish_payload(&mut c).is_none(), "nothing was queued");
+
+    // CONNECT 0, DISCONNECT 5: a protocol error, answered with DISCONNECT 0x82, and the
+    // session still ends with the connection.
+    for clean in [true, false] {
+        let (_, mut c) = connect_v5(port, "se-zero-then-five", clean, 0);
+        c.send(&disconnect_with_expiry(5));
+        let (byte1, body) = c.read_packet().expect("DISCONNECT from the server");
+        assert_eq!((byte1, body[0]), (0xE0, 0x82), "Protocol Error");
+        assert!(c.closed_by_broker());
+        let (present, _c) = connect_v5(port, "se-zero-then-five", false, 0);
+        assert!(!present, "no session kept after CONNECT's expiry 0");
+    }
 }
 
 /// Reads PUBLISH packets for `within`: (RETAIN flag, payload) of each.
@@ -1006,4 +1128,150 @@ fn unusable_client_ids_are_refused() {
     for good in ["plc-1", "Förderband_1", "日本"] {
         assert_eq!(handshake(good), 0, "{good:?}");
     }
+}
+
+/// Server-to-client topic aliases (MQTT 5 3.3.2.3.4, policy in `session/aliases.rs`): a
+/// client announcing Topic Alias Maximum 2 gets topic + alias on a topic's first delivery,
+/// an empty topic + the alias after; a third topic goes with its full name and no alias;
+/// a client that announced none never sees an alias; a new connection starts over.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deliveries_use_topic_aliases_the_client_allows() {
+    let broker = Broker::start();
+    let port = broker.port();
+    let subscriber = |id: &'static str, alias_max: Option<u16>| {
+        let mut c = RawClient::connect(port);
+        assert_eq!(
+            c.handshake(&raw::Connect {
+                version: 5,
+                client_id: id,
+                clean: false,
+                session_expiry: Some(60),
+                topic_alias_max: alias_max,
+                ..Default::default()
+            }),
+            0
+        );
+        c
+    };
+    let mut aliased = subscriber("aliased", Some(2));
+    let mut plain = subscriber("plain", None);
+    for c in [&mut aliased, &mut plain] {
+        c.send(&raw::subscribe(5, 1, &["ta/#"]));
+        assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    }
+    let publisher = V4::connect(port, "ta-pub", None).await.unwrap();
+    let sends = ["ta/a", "ta/a", "ta/b", "ta/c", "ta/b", "ta/a"];
+    for (i, topic) in sends.iter().enumerate() {
+        publisher
+            .client
+            .publish(*topic, rumqttc::QoS::AtMostOnce, false, vec![i as u8])
+            .await
+            .unwrap();
+    }
+    let alias = |n: u16| {
+        let mut p = vec![0x23];
+        p.extend_from_slice(&n.to_be_bytes());
+        p
+    };
+    let expected: Vec<(&[u8], Vec<u8>)> = vec![
+        (b"ta/a", alias(1)),
+        (b"", alias(1)),
+        (b"ta/b", alias(2)),
+        (b"ta/c", vec![]),
+        (b"", alias(2)),
+        (b"", alias(1)),
+    ];
+    for (i, (topic, props)) in expected.iter().enumerate() {
+        let (byte1, body) = aliased.read_packet().expect("delivery");
+        let (t, _, p, payload) = raw::parse_publish_v5(byte1, &body);
+        assert_eq!(
+            (&t[..], &p, &payload[..]),
+            (*topic, props, &[i as u8][..]),
+            "delivery {i}"
+        );
+        let (byte1, body) = plain.read_packet().expect("delivery");
+        let (t, _, p, _) = raw::parse_publish_v5(byte1, &body);
+        assert_eq!((&t[..], &p[..]), (sends[i].as_bytes(), &[][..]), "no alias");
+    }
+    // Resumed session, new connection: aliases start over.
+    drop(aliased);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut again = subscriber("aliased", Some(2));
+    publisher
+        .client
+        .publish("ta/b", rumqttc::QoS::AtMostOnce, false, vec![9])
+        .await
+        .unwrap();
+    let (byte1, body) = again.read_packet().expect("delivery after reconnect");
+    let (t, _, p, _) = raw::parse_publish_v5(byte1, &body);
+    assert_eq!((&t[..], p), (&b"ta/b"[..], alias(1)));
+}
+
+/// MQTT 5 SUBSCRIBE of one filter with a Subscription Identifier.
+fn subscribe_with_id(pkid: u16, filter: &str, qos: u8, id: u8) -> Vec<u8> {
+    let mut body = pkid.to_be_bytes().to_vec();
+    body.extend_from_slice(&[2, 0x0B, id]);
+    body.extend_from_slice(&(filter.len() as u16).to_be_bytes());
+    body.extend_from_slice(filter.as_bytes());
+    body.push(qos);
+    raw::packet(0x82, &body)
+}
+
+/// A client whose subscriptions overlap gets one copy of a message matching several,
+/// with every matching subscription's identifier [MQTT-3.3.4-3] [MQTT-3.3.4-4], at the
+/// highest QoS [MQTT-3.3.4-2] (`session/copies.rs`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overlapping_subscriptions_get_one_copy_with_every_identifier() {
+    let broker = Broker::start();
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&raw::Connect {
+            version: 5,
+            client_id: "overlap",
+            ..Default::default()
+        }),
+        0
+    );
+    for (pkid, filter, qos, id) in [
+        (1, "a/+/c", 1, 1),
+        (2, "a/#", 1, 2),
+        (3, "q/+", 0, 3),
+        (4, "q/#", 1, 4),
+    ] {
+        c.send(&subscribe_with_id(pkid, filter, qos, id));
+        assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    }
+    let publisher = V4::connect(broker.port(), "overlap-pub", None)
+        .await
+        .unwrap();
+    for topic in ["a/b/c", "q/x", "a/x"] {
+        publisher
+            .client
+            .publish(topic, rumqttc::QoS::AtLeastOnce, false, topic)
+            .await
+            .unwrap();
+    }
+    let mut got = Vec::new();
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(800)))
+        .unwrap();
+    while let Some((byte1, body)) = c.read_packet() {
+        if byte1 & 0xF0 != 0x30 {
+            continue;
+        }
+        let (topic, pkid, props, _) = raw::parse_publish_v5(byte1, &body);
+        if pkid > 0 {
+            c.send(&[0x40, 0x02, (pkid >> 8) as u8, pkid as u8]);
+        }
+        got.push((String::from_utf8(topic).unwrap(), (byte1 >> 1) & 3, props));
+    }
+    assert_eq!(
+        got,
+        [
+            ("a/b/c".to_owned(), 1, vec![0x0B, 1, 0x0B, 2]),
+            ("q/x".to_owned(), 1, vec![0x0B, 3, 0x0B, 4]),
+            ("a/x".to_owned(), 1, vec![0x0B, 2]),
+        ],
+        "one copy each, every matching subscription's identifier, the highest QoS"
+    );
 }

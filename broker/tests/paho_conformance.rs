@@ -5,7 +5,9 @@
 //! Published, Retain Handling, subscription identifiers, overlapping subscriptions, client
 //! topic aliases, Maximum Packet Size, Receive Maximum, keep-alive 0, `$` topics, retained
 //! messages (shared subscriptions too), QoS 1/2 redelivery with DUP and the original packet
-//! id, request/response and user properties, payload format indicator.
+//! id, request/response and user properties, payload format indicator, will user
+//! properties, Session Expiry in DISCONNECT, server topic aliases, the server's Receive
+//! Maximum.
 //!
 //! The script itself is a report that exits 0 whatever the brokers do (run it by hand to
 //! compare fbbus with Mosquitto, `docs/conformance.md`). Here every fbbus row must be PASS,
@@ -19,7 +21,7 @@ use std::time::Duration;
 const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/conformance.py");
 
 /// The matrix has this many rows; fewer means checks were lost, not passed.
-const ROWS: usize = 34;
+const ROWS: usize = 40;
 
 #[test]
 fn every_row_of_the_paho_conformance_matrix_passes() {
@@ -69,5 +71,8 @@ fn every_row_of_the_paho_conformance_matrix_passes() {
         .iter()
         .filter(|row| row["results"]["fbbus"]["status"] == "PASS")
         .count();
-    assert!(passed >= 32, "{passed} PASS rows:\n{stdout}");
+    // Every row but 14b (a `$` filter refused, a product choice) is PASS: rows 8 and 9
+    // are INFO for a broker that sends a copy per overlapping subscription, which fbbus
+    // no longer does.
+    assert!(passed >= ROWS - 1, "{passed} PASS rows:\n{stdout}");
 }

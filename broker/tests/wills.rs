@@ -572,3 +572,50 @@ fn will_topic_outside_acl_refuses_connect() {
     }
     assert_eq!(broker.metric(denied), 2.0);
 }
+
+/// A will reaches MQTT 5 subscribers with exactly the User Properties the client set, in
+/// order, duplicates kept, and nothing added [MQTT-3.3.2-17] [MQTT-3.3.2-18]: the broker
+/// keeps the session number beside the will, not in it.
+#[test]
+fn will_user_properties_arrive_unaltered() {
+    let broker = Broker::start();
+    let mut sub = RawClient::connect(broker.port());
+    assert_eq!(
+        sub.handshake(&raw::Connect {
+            version: 5,
+            client_id: "props-watcher",
+            ..Default::default()
+        }),
+        0
+    );
+    sub.send(&raw::subscribe(5, 1, &["will/props"]));
+    assert_eq!(sub.read_packet().expect("SUBACK").0, 0x90);
+
+    let user = [("a", "1"), ("a", "2"), ("b", "x")];
+    let mut client = RawClient::connect(broker.port());
+    assert_eq!(
+        client.handshake(&raw::Connect {
+            version: 5,
+            client_id: "props-will",
+            will: Some(("will/props", b"gone")),
+            will_user_properties: &user,
+            ..Default::default()
+        }),
+        0
+    );
+    client.stream.shutdown(Shutdown::Both).unwrap();
+    drop(client);
+
+    let (byte1, body) = sub.read_packet().expect("the will");
+    assert_eq!(byte1 & 0xF0, 0x30, "a PUBLISH");
+    let (topic, _, props, payload) = raw::parse_publish_v5(byte1, &body);
+    assert_eq!(
+        (&topic[..], &payload[..]),
+        (&b"will/props"[..], &b"gone"[..])
+    );
+    assert_eq!(
+        props,
+        raw::user_properties(&user),
+        "the will's properties, byte for byte"
+    );
+}

@@ -82,6 +82,15 @@ impl End {
         }
     }
 
+    /// Whether the client may still be sending when the server ends the connection
+    /// because of what it sent: its socket is drained before it is closed ([`linger`]).
+    pub(super) fn client_at_fault(self) -> bool {
+        matches!(
+            self,
+            End::ProtocolError(_) | End::Malformed | End::Oversized
+        )
+    }
+
     /// Whether the router still holds this connection and must be told it ended.
     pub(super) fn router_link_alive(self) -> bool {
         !matches!(self, End::Takeover | End::Router)
@@ -119,6 +128,12 @@ impl Session {
         // would only delay its will. Its unwritten QoS 0 deliveries are lost, and counted;
         // QoS 1/2 ones stay with a persistent session for its return (`into_resume` above,
         // the router's queue).
+        // Packets queued but never tried (answers to the packets read just before a
+        // protocol error) do not make a socket stalled: one try without a timer first.
+        if self.io.unwritten() > 0 {
+            let io = &mut self.io;
+            let _ = std::future::poll_fn(|cx| std::task::Poll::Ready(io.poll_write_out(cx))).await;
+        }
         let stalled = self.io.unwritten() > 0;
         if stalled {
             let reason = match end {
@@ -221,7 +236,39 @@ impl Session {
             reason = end.reason().label(),
             "client disconnected"
         );
+        if !stalled && end.client_at_fault() {
+            linger(&mut self.io.stream).await;
+        }
     }
+}
+
+/// How long a socket the server closed is drained for the client's last packets.
+const LINGER: Duration = Duration::from_secs(1);
+/// How much of them is read, at most.
+const LINGER_BYTES: usize = 1 << 20;
+
+/// Reads and discards what the client still sends, until it closes its side (it read
+/// the DISCONNECT and the FIN after it), for at most [`LINGER`] and [`LINGER_BYTES`].
+///
+/// Closing a socket whose receive queue holds unread bytes makes the kernel send a reset
+/// instead of a FIN, and a reset can destroy what the client has not read yet: the
+/// DISCONNECT with the reason code (0x93 Receive Maximum exceeded, 0x82 Protocol Error,
+/// ...) would be lost exactly when the client kept sending, which is why the server ends
+/// the connection. Runs last in `close`: the will, the router and the gauges do not wait
+/// for it.
+async fn linger(stream: &mut Box<dyn crate::wire::framed::Stream>) {
+    use tokio::io::AsyncReadExt;
+    let mut buf = [0u8; 4096];
+    let mut read = 0usize;
+    let _ = timeout(LINGER, async {
+        while read < LINGER_BYTES {
+            match stream.read(&mut buf).await {
+                Ok(0) | Err(_) => return,
+                Ok(n) => read += n,
+            }
+        }
+    })
+    .await;
 }
 
 /// Publishes `will`, the client's or its profile's, as the publication it is: checked

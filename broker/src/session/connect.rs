@@ -168,6 +168,11 @@ impl Session {
             // runtime never pings (`Session::relax_keep_alive`).
             keep_alive: (keep_alive_s > 0 && fb.profile().is_none_or(|p| p.enforce_keep_alive))
                 .then(|| Duration::from_secs(keep_alive_s as u64).mul_f32(1.5)),
+            client_alias_max: properties
+                .as_ref()
+                .and_then(|p| p.topic_alias_max)
+                .unwrap_or(0),
+            aliases_out: None,
             client_max_packet: properties
                 .as_ref()
                 .and_then(|p| p.max_packet_size)
@@ -198,6 +203,7 @@ impl Session {
             wake_pending: false,
             subscriptions: BTreeMap::new(),
             special_subscriptions: false,
+            overlapping: false,
             fb,
             persistent,
             journal,

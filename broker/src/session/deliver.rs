@@ -10,6 +10,7 @@ use rumqttd::protocol::{
 };
 use rumqttd::Notification;
 
+use super::aliases::{Alias, OutAliases};
 use super::close::End;
 use super::redelivery::{self};
 use super::{Session, HOLD_LIMIT};
@@ -29,9 +30,13 @@ impl Session {
     /// time. Small messages (a line's usual traffic) still go out in one write per batch.
     pub(super) async fn deliver(&mut self) -> Result<(), End> {
         let mut unscheduled = false;
+        // With overlapping subscriptions the router's batch is read whole first, so the
+        // copies of one message are all known before one is chosen (`copies`).
+        let mut batch = Vec::new();
         loop {
             match self.link_rx.recv_deadline(std::time::Instant::now()) {
                 Ok(Some(Notification::Unschedule)) => unscheduled = true,
+                Ok(Some(notification)) if self.overlapping => batch.push(notification),
                 Ok(Some(notification)) => {
                     self.outbound(notification);
                     if self.io.write.len() >= WRITE_BATCH {
@@ -42,6 +47,18 @@ impl Session {
                 Ok(None) => {}
                 Err(LinkError::RecvTimeout(_)) => break,
                 Err(_) => return Err(self.router_dropped().await),
+            }
+        }
+        for notification in &batch {
+            if let Notification::Forward(forward) = notification {
+                self.announce_copy(&forward.publish);
+            }
+        }
+        for notification in batch {
+            self.outbound(notification);
+            if self.io.write.len() >= WRITE_BATCH {
+                self.route().await?;
+                self.write_out().await?;
             }
         }
         self.route().await?;
@@ -182,6 +199,21 @@ impl Session {
         if deliver && !self.may_read(&publish.topic) {
             deliver = false;
         }
+        // Overlapping subscriptions: one copy, with every matching subscription's id.
+        let mut properties = properties;
+        if let Some(ids) = self.one_copy(&publish, origin.as_ref()) {
+            match ids {
+                Some(ids) if deliver => {
+                    // MQTT 3.1.1 has no identifiers (nor properties to carry them).
+                    if self.version == crate::wire::codec::Version::V5 {
+                        properties
+                            .get_or_insert_with(Default::default)
+                            .subscription_identifiers = ids;
+                    }
+                }
+                _ => deliver = false,
+            }
+        }
         if retain_as_published {
             publish.retain = true;
         }
@@ -194,6 +226,13 @@ impl Session {
             (delivery.id, delivery.dup)
         } else {
             (0, false)
+        };
+        // Topic aliases, for deliveries that are sent (`aliases`).
+        let alias_topic = publish.topic.clone();
+        let alias = if deliver && self.client_alias_max > 0 {
+            self.topic_alias(&mut publish, &mut properties)
+        } else {
+            None
         };
         let (topic, payload, retain) = (
             publish.topic.clone(),
@@ -240,6 +279,9 @@ impl Session {
         match self.client_max_packet {
             Some(max) if size > max => {
                 self.io.write.truncate(before);
+                if let (Some(Alias::Set(_)), Some(aliases)) = (alias, self.aliases_out.as_mut()) {
+                    aliases.forget_last(&alias_topic);
+                }
                 if let Some(rare) = self.rare.as_mut() {
                     rare.qos2_sent_as_qos1.remove(&pkid);
                 }
@@ -274,6 +316,92 @@ impl Session {
                 }
             }
         }
+    }
+
+    /// The non-shared subscriptions matching `topic` when there are at least two (a
+    /// message the router sends once per match): how many, and the identifiers of those
+    /// that take it (No Local ones do not take the client's `own` messages). None with
+    /// fewer than two, or without overlapping subscriptions.
+    fn matching_copies(&self, topic: &[u8], own: bool) -> Option<(usize, Vec<usize>)> {
+        if !self.overlapping {
+            return None;
+        }
+        let topic = std::str::from_utf8(topic).ok()?;
+        let (mut copies, mut ids) = (0, Vec::new());
+        for (path, f) in &self.subscriptions {
+            if filter::is_shared(path) || !filter::filter_matches(path, topic) {
+                continue;
+            }
+            copies += 1;
+            if own && f.nolocal {
+                continue;
+            }
+            if let Some(id) = self
+                .rare
+                .as_ref()
+                .and_then(|r| r.subscription_ids.get(path))
+            {
+                ids.push(*id);
+            }
+        }
+        ids.sort_unstable();
+        (copies >= 2).then_some((copies, ids))
+    }
+
+    /// A copy of a live message is in the router batch being read (`deliver`).
+    fn announce_copy(&mut self, publish: &Publish) {
+        let Some(origin) = publish.origin.as_ref().filter(|_| !publish.retain) else {
+            return;
+        };
+        let own = origin.publisher == self.client_id;
+        if let Some((copies, _)) = self.matching_copies(&publish.topic, own) {
+            let (routed, _) = publish.qos_and_pkid();
+            let seq = origin.seq;
+            self.rare()
+                .copies
+                .announce(seq, &publish.topic, copies, routed);
+        }
+    }
+
+    /// For a live message matching several overlapping subscriptions: Some(Some(ids))
+    /// to send this copy with those Subscription Identifiers, Some(None) to drop it
+    /// (another copy carries the message). None: not such a message ([`super::copies`]).
+    fn one_copy(
+        &mut self,
+        publish: &Publish,
+        origin: Option<&origin::Origin>,
+    ) -> Option<Option<Vec<usize>>> {
+        let origin = origin.filter(|_| !publish.retain)?;
+        let own = origin.publisher == self.client_id;
+        let (copies, ids) = self.matching_copies(&publish.topic, own)?;
+        let (routed, _) = publish.qos_and_pkid();
+        let send =
+            self.rare()
+                .copies
+                .decide(origin.seq, &publish.topic, copies, routed, origin.qos);
+        Some(send.then_some(ids))
+    }
+
+    /// Puts this connection's topic alias on a delivery the client announced a Topic
+    /// Alias Maximum for (policy in [`super::aliases`]): a new alias goes with the topic,
+    /// a known one replaces it.
+    fn topic_alias(
+        &mut self,
+        publish: &mut Publish,
+        properties: &mut Option<PublishProperties>,
+    ) -> Option<Alias> {
+        let max = self.client_alias_max;
+        let aliases = match &mut self.aliases_out {
+            Some(a) => a,
+            none => none.insert(Box::new(OutAliases::new(max)?)),
+        };
+        let alias = aliases.alias(&publish.topic)?;
+        let (Alias::Set(n) | Alias::Use(n)) = alias;
+        properties.get_or_insert_with(Default::default).topic_alias = Some(n);
+        if let Alias::Use(_) = alias {
+            publish.topic = bytes::Bytes::new();
+        }
+        Some(alias)
     }
 
     /// What the client's subscription options say about one delivery: whether to send it

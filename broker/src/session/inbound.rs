@@ -10,7 +10,7 @@ use rumqttd::protocol::{
 use security::Identity;
 
 use super::close::End;
-use super::{Session, MAX_LOGGED_DENIALS};
+use super::{copies, Session, MAX_LOGGED_DENIALS};
 use crate::policy::origin;
 use crate::policy::typed::Refusal;
 use crate::policy::{Admission, Door, Publication, Stage};
@@ -122,10 +122,28 @@ impl Session {
                 self.io.queue(Packet::PingResp(PingResp));
                 Ok(())
             }
-            Packet::Disconnect(disconnect, _) => Err(End::Client {
-                with_will: disconnect.reason_code
-                    == DisconnectReasonCode::DisconnectWithWillMessage,
-            }),
+            Packet::Disconnect(disconnect, properties) => {
+                let expiry = properties.and_then(|p| p.session_expiry_interval);
+                if let Some(expiry) = expiry.filter(|_| self.version == Version::V5) {
+                    let Some(lifetime) = self.lifetime.on_disconnect(expiry) else {
+                        tracing::warn!(
+                            client_id = &*self.client_id,
+                            session_expiry = expiry,
+                            "DISCONNECT sets a Session Expiry Interval after CONNECT's 0; \
+                             protocol error"
+                        );
+                        return Err(End::ProtocolError(DisconnectReasonCode::ProtocolError));
+                    };
+                    self.lifetime = lifetime;
+                    if let Some(will) = self.will.as_mut() {
+                        will.set_session_expiry(expiry);
+                    }
+                }
+                Err(End::Client {
+                    with_will: disconnect.reason_code
+                        == DisconnectReasonCode::DisconnectWithWillMessage,
+                })
+            }
             Packet::Connect(..) => {
                 tracing::warn!(
                     client_id = &*self.client_id,
@@ -374,6 +392,21 @@ impl Session {
             }
         }
         self.store_subscribed(&granted, properties.as_ref().and_then(|p| p.id));
+        let id = properties.as_ref().and_then(|p| p.id);
+        if id.is_some()
+            || self
+                .rare
+                .as_ref()
+                .is_some_and(|r| !r.subscription_ids.is_empty())
+        {
+            let ids = &mut self.rare().subscription_ids;
+            for filter in &granted {
+                match id {
+                    Some(id) => ids.insert(filter.path.clone(), id),
+                    None => ids.remove(&filter.path),
+                };
+            }
+        }
         self.remember_subscriptions(granted.into_iter(), &[]);
         if refused.iter().all(Option::is_none) {
             self.to_router
@@ -423,7 +456,22 @@ impl Session {
         }
         for path in removed {
             self.subscriptions.remove(path);
+            if let Some(rare) = self.rare.as_mut() {
+                rare.subscription_ids.remove(path);
+            }
         }
+        let own: Vec<&str> = self
+            .subscriptions
+            .keys()
+            .map(String::as_str)
+            .filter(|f| !filter::is_shared(f))
+            .collect();
+        // Pairwise for the usual few filters; a client with hundreds is assumed to overlap.
+        self.overlapping = own.len() > 256
+            || own
+                .iter()
+                .enumerate()
+                .any(|(i, a)| own[i + 1..].iter().any(|b| copies::filters_overlap(a, b)));
         self.special_subscriptions = self.subscriptions.values().any(|f| {
             f.nolocal
                 || f.preserve_retain

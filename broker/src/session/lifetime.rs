@@ -7,7 +7,7 @@
 //! a v5 link is clean only for Clean Start with expiry 0; Clean Start with expiry > 0 first
 //! ends the old session with a purge link; the expiry task ([`expire_sessions`]) ends an
 //! idle session when due, guarded by the session number so a client that came back keeps
-//! its session.
+//! its session. The client's DISCONNECT may change the expiry ([`SessionLifetime::on_disconnect`]).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -57,6 +57,27 @@ impl SessionLifetime {
 }
 
 impl SessionLifetime {
+    /// MQTT 5 3.14.2.2.2: a Session Expiry Interval in the client's DISCONNECT replaces
+    /// the one of its CONNECT, for what happens once the connection ends: longer, shorter
+    /// (0 ends the session at once) or never (0xFFFFFFFF). None when the CONNECT's was 0
+    /// (or absent) and this one is not: a Protocol Error [MQTT-3.14.2-2], which the server
+    /// answers with DISCONNECT 0x82, as the spec says; the DISCONNECT is then not a valid
+    /// one (the will fires) and the session ends with the connection as its CONNECT said.
+    pub fn on_disconnect(self, session_expiry: u32) -> Option<SessionLifetime> {
+        let connect_was_zero = self.clean_link || self.expires_after == Some(Duration::ZERO);
+        match (connect_was_zero, session_expiry) {
+            (true, 0) => Some(self),
+            (true, _) => None,
+            (false, secs) => Some(SessionLifetime {
+                expires_after: match secs {
+                    u32::MAX => None,
+                    secs => Some(Duration::from_secs(secs as u64)),
+                },
+                ..self
+            }),
+        }
+    }
+
     /// What the router keeps of the session once its connection ends.
     pub fn remains(&self) -> Remains {
         if self.clean_link {
@@ -148,6 +169,39 @@ pub async fn expire_sessions(ctx: Arc<Context>, mut shutdown: watch::Receiver<bo
         }
         for (client_id, session) in ctx.sessions.due(tokio::time::Instant::now()) {
             end_idle_session(&ctx, &client_id, session).await;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn disconnect_replaces_the_connect_expiry() {
+        let kept = SessionLifetime::v5(false, 1);
+        assert_eq!(
+            kept.on_disconnect(5).unwrap().remains(),
+            Remains::Kept(Some(Duration::from_secs(5)))
+        );
+        assert_eq!(
+            kept.on_disconnect(0).unwrap().remains(),
+            Remains::Kept(Some(Duration::ZERO))
+        );
+        assert_eq!(
+            kept.on_disconnect(u32::MAX).unwrap().remains(),
+            Remains::Kept(None)
+        );
+        // Clean Start with an expiry: the new session may be given more or less.
+        let fresh = SessionLifetime::v5(true, 300);
+        assert_eq!(
+            fresh.on_disconnect(0).unwrap().expires_after,
+            Some(Duration::ZERO)
+        );
+        // CONNECT said 0 (Clean Start 1 or 0): only 0 may follow [MQTT-3.14.2-2].
+        for connect in [SessionLifetime::v5(true, 0), SessionLifetime::v5(false, 0)] {
+            assert_eq!(connect.on_disconnect(0), Some(connect));
+            assert_eq!(connect.on_disconnect(5), None);
         }
     }
 }

@@ -19,7 +19,9 @@
 //! refused filters; [`read_access`]: the access rules in force at each delivery),
 //! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
-//! session expiry), [`observer`] (who else is told of subscriptions), [`write`] (every
+//! session expiry), [`aliases`] (the topic aliases of deliveries), [`copies`] (one copy
+//! for overlapping subscriptions), [`observer`] (who else
+//! is told of subscriptions), [`write`] (every
 //! write to the client under its deadlines: liveness does not depend on the client
 //! reading). Bytes and packets are `wire`'s business.
 //!
@@ -29,8 +31,10 @@
 //! MQTT 3.1.1 and 5, and refusals with the right reason codes.
 
 pub mod ack_order;
+pub mod aliases;
 mod close;
 mod connect;
+pub mod copies;
 mod deliver;
 mod inbound;
 pub mod lifetime;
@@ -175,6 +179,10 @@ struct Session {
     /// QoS 1/2 publications routed and not yet acknowledged to the client: bounded by the
     /// Receive Maximum fbbus announces (MQTT 5 3.3.4).
     inflight_in: u16,
+    /// The client's Topic Alias Maximum (MQTT 5 3.1.2.11.5); 0: no aliases (and 3.1.1).
+    client_alias_max: u16,
+    /// The topic aliases of this connection's deliveries, from the first one ([`aliases`]).
+    aliases_out: Option<Box<aliases::OutAliases>>,
     /// The client's Maximum Packet Size (MQTT 5 3.1.2.11.4): larger packets are not sent.
     client_max_packet: Option<usize>,
     /// Acknowledgements to the router, kept in the order the router requires.
@@ -207,6 +215,9 @@ struct Session {
     subscriptions: BTreeMap<String, Filter>,
     /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
     special_subscriptions: bool,
+    /// Two of the client's non-shared subscriptions overlap: a message may match several,
+    /// and the router sends one copy per match; the client gets one ([`copies`]).
+    overlapping: bool,
     /// Typed-topic state: the device's interface, event sequence numbers.
     fb: FbSession,
     /// Read verdicts by topic under the ACL in force, allocated at the first delivery
@@ -243,6 +254,10 @@ struct Rare {
     /// QoS 2 deliveries sent at QoS 1 (published at QoS 1): the client's PUBACK becomes
     /// the PUBREC the router waits for.
     qos2_sent_as_qos1: BTreeSet<u16>,
+    /// The Subscription Identifier of each subscription that has one, by filter.
+    subscription_ids: BTreeMap<String, usize>,
+    /// Copies of messages matching several overlapping subscriptions ([`copies`]).
+    copies: copies::Copies,
     /// (action, topic) pairs already logged as denied, so a looping device logs once.
     logged_denials: BTreeSet<(&'static str, String)>,
     /// What was queued for a restored session when the broker stopped, still to be sent.

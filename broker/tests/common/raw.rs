@@ -47,6 +47,10 @@ pub struct Connect<'a> {
     pub max_packet_size: Option<u32>,
     /// MQTT 5 only: the client's Receive Maximum property.
     pub receive_maximum: Option<u16>,
+    /// MQTT 5 only: the client's Topic Alias Maximum property.
+    pub topic_alias_max: Option<u16>,
+    /// MQTT 5 only: the will's User Properties, in order.
+    pub will_user_properties: &'a [(&'a str, &'a str)],
 }
 
 impl Default for Connect<'_> {
@@ -62,6 +66,8 @@ impl Default for Connect<'_> {
             will_delay: None,
             max_packet_size: None,
             receive_maximum: None,
+            topic_alias_max: None,
+            will_user_properties: &[],
         }
     }
 }
@@ -97,20 +103,24 @@ impl Connect<'_> {
                 props.push(0x21);
                 props.extend_from_slice(&m.to_be_bytes());
             }
+            if let Some(m) = self.topic_alias_max {
+                props.push(0x22);
+                props.extend_from_slice(&m.to_be_bytes());
+            }
             body.push(props.len() as u8);
             body.extend_from_slice(&props);
         }
         string(self.client_id.as_bytes(), &mut body);
         if let Some((topic, payload)) = self.will {
             if self.version == 5 {
-                match self.will_delay {
-                    Some(d) => {
-                        body.push(5);
-                        body.push(0x18);
-                        body.extend_from_slice(&d.to_be_bytes());
-                    }
-                    None => body.push(0),
+                let mut props = Vec::new();
+                if let Some(d) = self.will_delay {
+                    props.push(0x18);
+                    props.extend_from_slice(&d.to_be_bytes());
                 }
+                props.extend_from_slice(&user_properties(self.will_user_properties));
+                remaining_length(props.len(), &mut body);
+                body.extend_from_slice(&props);
             }
             string(topic.as_bytes(), &mut body);
             string(payload, &mut body);
@@ -121,6 +131,41 @@ impl Connect<'_> {
         }
         packet(0x10, &body)
     }
+}
+
+/// MQTT 5 User Property entries (0x26), in order.
+pub fn user_properties(pairs: &[(&str, &str)]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for (k, v) in pairs {
+        out.push(0x26);
+        string(k.as_bytes(), &mut out);
+        string(v.as_bytes(), &mut out);
+    }
+    out
+}
+
+/// An MQTT 5 PUBLISH body split up: (topic, packet id, property bytes, payload).
+pub fn parse_publish_v5(byte1: u8, body: &[u8]) -> (Vec<u8>, u16, Vec<u8>, Vec<u8>) {
+    let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+    let topic = body[2..2 + topic_len].to_vec();
+    let mut at = 2 + topic_len;
+    let mut pkid = 0;
+    if (byte1 >> 1) & 3 > 0 {
+        pkid = u16::from_be_bytes([body[at], body[at + 1]]);
+        at += 2;
+    }
+    let (mut len, mut shift) = (0usize, 0);
+    loop {
+        let b = body[at];
+        at += 1;
+        len |= ((b & 0x7f) as usize) << shift;
+        shift += 7;
+        if b & 0x80 == 0 {
+            break;
+        }
+    }
+    let props = body[at..at + len].to_vec();
+    (topic, pkid, props, body[at + len..].to_vec())
 }
 
 pub fn publish_qos0(topic: &str, payload: &[u8]) -> Vec<u8> {

@@ -836,16 +836,17 @@ def c8(ctx):
     expect(got, "message not delivered")
     one_copy = len(got) == 1 and ids[0] == [1, 2]
     # [MQTT-3.3.4-5]: with several copies, each carries the id of its own subscription.
+    # Allowed, but not what clients expect: INFO (fbbus sends one copy, PASS).
     per_copy = len(got) == 2 and sorted(ids) == [[1], [2]]
     expect(one_copy or per_copy, desc)
-    return {"8": ("PASS", desc)}
+    return {"8": ("PASS" if one_copy else "INFO", desc)}
 
 
 # 9. Overlapping subscriptions without ids -------------------------------------------------------
 
 
-@check(("9", "Overlapping subscriptions (t/# QoS 0, t/x QoS 1), publish QoS 1: copies and QoS",
-        "[MQTT-3.3.4-2] (copies: INFO)"))
+@check(("9", "Overlapping subscriptions (t/# QoS 0, t/x QoS 1), publish QoS 1: one copy at QoS 1",
+        "[MQTT-3.3.4-2] (several copies: INFO)"))
 def c9(ctx):
     t = ctx.topic
     sub = ctx.connected("sub")
@@ -858,7 +859,8 @@ def c9(ctx):
     desc = f"{len(got)} cop{'y' if len(got) == 1 else 'ies'} at QoS {sorted(m['qos'] for m in got)}"
     # One copy at the maximum QoS of the matching subscriptions is a MUST; more are allowed.
     expect(any(m["qos"] == 1 for m in got), desc + ": none at the maximum QoS 1")
-    return {"9": ("INFO", desc)}
+    # One copy at the maximum QoS: PASS; extra copies are allowed: INFO.
+    return {"9": ("PASS" if len(got) == 1 else "INFO", desc)}
 
 
 # 10. Client topic alias ------------------------------------------------------------------------
@@ -1245,6 +1247,180 @@ def c20(ctx):
     expect(every == sorted(f"m{i}".encode() for i in range(10)),
            f"{desc}; union {len(set(every))} distinct of 10, {len(every) - len(set(every))} duplicate(s)")
     return {"20": ("PASS", desc)}
+
+
+# 21. Will properties ---------------------------------------------------------------------------------------
+
+
+@check(("21", "Will: User Properties reach subscribers unaltered and in order (nothing added)",
+        "[MQTT-3.3.2-17] [MQTT-3.3.2-18] 3.1.3.2"))
+def c21(ctx):
+    t = ctx.topic
+    sub = ctx.connected("sub")
+    sub.sub1(t, 1)
+    user = [("a", "1"), ("a", "2"), ("b", "x")]
+    dying = ctx.client("dying")
+    dying.c.will_set(t, "gone", qos=1, properties=make_props(PacketTypes.WILLMESSAGE, UserProperty=user))
+    rc, _ = dying.connect()
+    expect(rc == 0, f"CONNECT refused: {rc}")
+    # Lost without DISCONNECT: the will fires.
+    dying.c.loop_stop()
+    dying.c.socket().close()
+    got = sub.wait_messages(1, topic=t)
+    expect(got, "will not delivered")
+    seen = [tuple(p) for p in got[0]["props"].get("UserProperty", [])]
+    expect(seen == user, f"will User Properties {seen}, set {user}")
+
+
+# 22. Session Expiry Interval in DISCONNECT ------------------------------------------------------------------
+
+
+@check(("22a", "DISCONNECT Session Expiry 5 after CONNECT's 1: session kept past 3 s, offline message delivered",
+        "3.14.2.2.2 [MQTT-3.2.2-3]"),
+       ("22b", "DISCONNECT Session Expiry 0 after CONNECT's 300: the session ends at once",
+        "3.14.2.2.2 [MQTT-4.1.0-2]"),
+       ("22c", "DISCONNECT Session Expiry 5 after CONNECT's 0: server answers DISCONNECT 0x82 Protocol Error",
+        "[MQTT-3.14.2-2] 4.13"))
+def c22(ctx):
+    t = ctx.topic
+    results = {}
+    # 22a
+    sub = ctx.client("longer", clean=False)
+    rc, _ = sub.connect(session_expiry=1)
+    expect(rc == 0, f"CONNECT refused: {rc}")
+    sub.sub1(f"{t}/a", 1)
+    sub.c.disconnect(properties=make_props(PacketTypes.DISCONNECT, SessionExpiryInterval=5))
+    sub.disconnected.wait(WAIT)
+    sub.c.loop_stop()
+    pub = ctx.connected("pub")
+    pub.publish(f"{t}/a", "while-offline", qos=1)
+    time.sleep(3.0)
+    again = reconnect_as(ctx, sub)
+    rc, present = again.connect(session_expiry=0)
+    got = again.wait_messages(1, timeout=2.0)
+    again.disconnect()
+    problems = []
+    if not present:
+        problems.append("session present = 0: CONNECT's 1 s applied, not DISCONNECT's 5 s")
+    if not got:
+        problems.append("offline QoS 1 message not delivered")
+    results["22a"] = ("FAIL", "; ".join(problems)) if problems else ("PASS", "")
+    # 22b
+    sub = ctx.client("shorter", clean=False)
+    rc, _ = sub.connect(session_expiry=300)
+    expect(rc == 0, f"CONNECT refused: {rc}")
+    sub.sub1(f"{t}/b", 1)
+    sub.c.disconnect(properties=make_props(PacketTypes.DISCONNECT, SessionExpiryInterval=0))
+    sub.disconnected.wait(WAIT)
+    sub.c.loop_stop()
+    pub.publish(f"{t}/b", "while-offline", qos=1)
+    again = reconnect_as(ctx, sub)
+    rc, present = again.connect(session_expiry=0)
+    got = again.drain()
+    again.disconnect()
+    problems = []
+    if present:
+        problems.append("session present = 1 after DISCONNECT with expiry 0")
+    if got:
+        problems.append(f"old subscription still active: got {fmt_msgs(got)}")
+    results["22b"] = ("FAIL", "; ".join(problems)) if problems else ("PASS", "")
+    # 22c: raw, because paho closes its socket right after its DISCONNECT.
+    raw = RawClient(ctx)
+    _, rc = raw.connect(ctx.cid("zero"), clean_start=True, session_expiry=0)
+    expect(rc == 0, f"CONNACK reason {rc}")
+    raw.send(frame(0xE0, b"\x00" + properties((0x11, "!I", 5))))
+    try:
+        packet = raw.read()
+    except CheckFailed:
+        packet = None
+    if packet is None:
+        results["22c"] = ("FAIL", "no DISCONNECT from the server")
+    elif packet[0] != DISCONNECT or not packet[2] or packet[2][0] != 0x82:
+        results["22c"] = ("FAIL", f"packet type {packet[0]}, body {packet[2].hex()}")
+    else:
+        results["22c"] = ("PASS", "")
+    return results
+
+
+# 23. Topic aliases from the server ---------------------------------------------------------------------------
+
+
+@check(("23", "Server topic aliases: Topic Alias Maximum 5 resolves to every message's topic; none without",
+        "3.3.2.3.4 [MQTT-3.3.2-10] [MQTT-3.3.2-11]"))
+def c23(ctx):
+    t = ctx.topic
+    sub = ctx.connected("sub", TopicAliasMaximum=5)
+    sub.sub1(f"{t}/#", 0)
+    pub = ctx.connected("pub")
+    sends = [f"{t}/a", f"{t}/a", f"{t}/b", f"{t}/a", f"{t}/b"]
+    for i, topic in enumerate(sends):
+        pub.publish(topic, f"m{i}", qos=1)
+    got = sub.wait_messages(len(sends))
+    # paho-mqtt 2.2 does not resolve the aliases it receives (on_message gets the empty
+    # topic and the TopicAlias property): the check does, as an application would.
+    known, seen = {}, []
+    for m in got:
+        alias = m["props"].get("TopicAlias")
+        topic = m["topic"]
+        if alias is not None and topic:
+            known[alias] = topic
+        elif alias is not None:
+            expect(alias in known, f"alias {alias} used before it was set")
+            topic = known[alias]
+        seen.append((topic, m["payload"]))
+    expect(seen == [(topic, f"m{i}".encode()) for i, topic in enumerate(sends)], f"got {seen}")
+    aliases = [m["props"].get("TopicAlias") for m in got]
+    expect(not sub.disconnected.is_set(), f"subscriber disconnected: {sub.disconnect_reason}")
+    # Without a Topic Alias Maximum, no alias (row 10 checks the same for the publisher's).
+    plain = ctx.connected("plain")
+    plain.sub1(f"{t}/#", 0)
+    pub.publish(f"{t}/a", "plain", qos=1)
+    pub.publish(f"{t}/a", "plain", qos=1)
+    got = plain.wait_messages(2)
+    expect([m["topic"] for m in got] == [f"{t}/a"] * 2 and not any("TopicAlias" in m["props"] for m in got),
+           f"client without Topic Alias Maximum got {[(m['topic'], m['props'].get('TopicAlias')) for m in got]}")
+    return {"23": ("PASS", f"aliases {aliases}")}
+
+
+# 24. Receive Maximum of the server ---------------------------------------------------------------------------
+
+
+@check(("24", "Receive Maximum exceeded (QoS 2, no PUBREL): DISCONNECT 0x93 arrives before the close",
+        "[MQTT-3.3.4-7] 3.3.4 4.13"))
+def c24(ctx):
+    raw = RawClient(ctx)
+    raw.send(connect_packet(ctx.cid("flood")))
+    _, _, body = raw.expect_packet(CONNACK)
+    plen, at = read_varint(body, 2)
+    props, receive_max, i = body[at : at + plen], 65535, 0
+    while i < len(props):
+        pid = props[i]
+        i += 1
+        if pid == 0x21:
+            receive_max = struct.unpack("!H", props[i : i + 2])[0]
+            break
+        i += {0x13: 2, 0x22: 2, 0x24: 1, 0x25: 1, 0x28: 1, 0x29: 1, 0x2A: 1, 0x11: 4, 0x27: 4}.get(pid, 0)
+        if pid in (0x12, 0x1A, 0x1C, 0x1F):
+            i += 2 + struct.unpack("!H", props[i : i + 2])[0]
+    expect(receive_max < 2000, f"Receive Maximum {receive_max}: too many to send in a check")
+    burst = b"".join(
+        frame(0x34, utf8(f"{ctx.topic}/flood") + struct.pack("!H", pkid) + properties() + b"x")
+        for pkid in range(1, receive_max + 2)
+    )
+    raw.send(burst)
+    kinds = []
+    deadline = time.monotonic() + WAIT
+    while time.monotonic() < deadline:
+        try:
+            packet = raw.read(max(0.0, deadline - time.monotonic()))
+        except CheckFailed:
+            expect(False, f"closed without DISCONNECT after {len(kinds)} packets")
+        expect(packet is not None, f"no DISCONNECT in time ({len(kinds)} packets)")
+        if packet[0] == DISCONNECT:
+            reason = packet[2][0] if packet[2] else 0
+            expect(reason == 0x93, f"DISCONNECT reason {reason:#x}")
+            return {"24": ("PASS", f"Receive Maximum {receive_max}; DISCONNECT 0x93 after {len(kinds)} PUBREC")}
+        kinds.append(packet[0])
 
 
 # ---------------------------------------------------------------------------------------

@@ -188,6 +188,10 @@ pub struct Origin {
     pub retain: bool,
     /// The publishing client's id.
     pub publisher: std::sync::Arc<str>,
+    /// fbbus: the embedder's number for this publication, the same on every copy the
+    /// router makes of it (one per matching filter), so that a connection with several
+    /// matching subscriptions can send its client one copy (broker/src/session/copies.rs).
+    pub seq: u64,
     /// fbbus: the message's number in the broker's store (0: not stored), so a delivery's
     /// acknowledgement can be recorded against it.
     pub stored: u64,
