@@ -123,6 +123,12 @@ impl Session {
             .close_with(client_id, session, remains, |superseded| {
                 redeliveries.save(client_id, session, open, superseded)
             });
+        // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0), before
+        // the client sees its connection close: a client that reconnects at once finds no
+        // session. Later expiries are the expiry task's (`lifetime::expire_sessions`).
+        if self.lifetime.expires_after == Some(Duration::ZERO) {
+            end_idle_session(&self.ctx, &self.client_id, self.session).await;
+        }
         // A client whose socket did not take its last write (slow consumer, keep-alive
         // expired while a write waited) would not take a DISCONNECT either: waiting for it
         // would only delay its will. Its unwritten QoS 0 deliveries are lost, and counted;
@@ -170,8 +176,11 @@ impl Session {
                 });
             }
         }
-        if let Some(store) = self.ctx.store.clone() {
-            store.write(std::mem::take(&mut self.journal), false).await;
+        // Handed over without waiting: nothing here depends on it being written.
+        if let Some(store) = &self.ctx.store {
+            if !self.journal.is_empty() {
+                store.write_now(std::mem::take(&mut self.journal));
+            }
         }
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;
@@ -222,11 +231,6 @@ impl Session {
                     },
                 );
             }
-        }
-        // An expiry of 0 ends a kept session now (MQTT 5 Clean Start 0, expiry 0); later
-        // ones are the expiry task's (`lifetime::expire_sessions`).
-        if self.lifetime.expires_after == Some(Duration::ZERO) {
-            end_idle_session(&self.ctx, &self.client_id, self.session).await;
         }
         self.ctx.metrics.disconnected(end.reason());
         self.ctx.metrics.connections.dec();
