@@ -10,16 +10,20 @@
 //! endpoint has no authentication, and an admin bound to a plant network for Prometheus
 //! must not let that network retype the line's devices.
 
-use std::sync::Arc;
-
 use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use axum::extract::{ConnectInfo, Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 use axum::routing::{get, put};
-use axum::Router;
+use axum::{Extension, Router};
+use hyper::server::conn::http1;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
+use tokio::sync::Semaphore;
 
 use crate::health::Health;
 use crate::metrics::Metrics;
@@ -160,17 +164,88 @@ async fn put_profile(
     }
 }
 
+/// What one admin client may hold (`[admin]`): the admin plane must never take the file
+/// descriptors or the time the MQTT listeners need.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    pub max_connections: usize,
+    pub header_timeout: Duration,
+    pub connection_timeout: Duration,
+}
+
+impl From<&crate::config::AdminSection> for Limits {
+    fn from(a: &crate::config::AdminSection) -> Limits {
+        Limits {
+            max_connections: a.max_connections,
+            header_timeout: Duration::from_millis(a.header_timeout_ms),
+            connection_timeout: Duration::from_millis(a.connection_timeout_ms),
+        }
+    }
+}
+
+/// A request header larger than this closes the connection (hyper's read buffer).
+const MAX_HEADER_BYTES: usize = 64 * 1024;
+
 /// Serves the admin routes until `shutdown` resolves.
+///
+/// Its own accept loop rather than `axum::serve`, for the limits (issue 21): at most
+/// `max_connections` connections (one more is accepted and closed at once, counted in
+/// `fbbus_admin_connections_refused_total`, logged at most once a minute), a request
+/// header within `header_timeout` (a client that sends half a header and waits is
+/// closed), a header of at most 64 KiB, and every connection closed after
+/// `connection_timeout` whatever it does. 21,000 half-sent headers held the process's
+/// file descriptors before, and MQTT clients could no longer connect.
 pub async fn serve(
     socket: TcpListener,
+    limits: Limits,
     state: AdminState,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) {
-    let app = routes(state).into_make_service_with_connect_info::<SocketAddr>();
-    if let Err(e) = axum::serve(socket, app)
-        .with_graceful_shutdown(shutdown)
-        .await
-    {
-        tracing::error!(error = %e, "admin endpoint failed");
+    let metrics = Arc::clone(&state.metrics);
+    let app = routes(state);
+    let slots = Arc::new(Semaphore::new(limits.max_connections));
+    let mut last_warning: Option<Instant> = None;
+    tokio::pin!(shutdown);
+    loop {
+        let accepted = tokio::select! {
+            _ = &mut shutdown => return,
+            accepted = socket.accept() => accepted,
+        };
+        let (stream, peer) = match accepted {
+            Ok(accepted) => accepted,
+            Err(e) => {
+                // Out of file descriptors, most likely: wait a little instead of spinning.
+                tracing::warn!(error = %e, "admin endpoint: accept failed");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        let Ok(slot) = Arc::clone(&slots).try_acquire_owned() else {
+            metrics.admin_refused.inc();
+            if last_warning.is_none_or(|t| t.elapsed() >= Duration::from_secs(60)) {
+                last_warning = Some(Instant::now());
+                tracing::warn!(
+                    %peer,
+                    max_connections = limits.max_connections,
+                    "admin endpoint: connection limit reached; new connections are closed \
+                     (fbbus_admin_connections_refused_total)"
+                );
+            }
+            drop(stream);
+            continue;
+        };
+        let service = TowerToHyperService::new(app.clone().layer(Extension(ConnectInfo(peer))));
+        let metrics = Arc::clone(&metrics);
+        tokio::spawn(async move {
+            let _slot = slot;
+            metrics.admin_connections.inc();
+            let mut http = http1::Builder::new();
+            http.timer(TokioTimer::new())
+                .header_read_timeout(limits.header_timeout)
+                .max_buf_size(MAX_HEADER_BYTES);
+            let connection = http.serve_connection(TokioIo::new(stream), service);
+            let _ = tokio::time::timeout(limits.connection_timeout, connection).await;
+            metrics.admin_connections.dec();
+        });
     }
 }

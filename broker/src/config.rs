@@ -283,12 +283,21 @@ pub struct TlsSection {
 pub struct AdminSection {
     /// HTTP admin endpoint: /metrics, /healthz, /readyz.
     pub bind: SocketAddr,
+    /// Admin connections open at once at most; beyond, a new one is closed at once.
+    pub max_connections: usize,
+    /// A request's header must arrive within this; an admin connection lives at most
+    /// `connection_timeout_ms` (slow bodies, slow readers, idle keep-alive).
+    pub header_timeout_ms: u64,
+    pub connection_timeout_ms: u64,
 }
 
 impl Default for AdminSection {
     fn default() -> Self {
         AdminSection {
             bind: SocketAddr::from(([127, 0, 0, 1], 9883)),
+            max_connections: 64,
+            header_timeout_ms: 5_000,
+            connection_timeout_ms: 60_000,
         }
     }
 }
@@ -415,6 +424,21 @@ impl Config {
                 file,
                 "broker.max_packet_bytes",
                 "must be between 64 and 268435455 (the MQTT maximum)",
+            ));
+        }
+        let a = &self.admin;
+        if !(1..=4096).contains(&a.max_connections) {
+            return Err(invalid(
+                file,
+                "admin.max_connections",
+                "must be between 1 and 4096",
+            ));
+        }
+        if a.header_timeout_ms == 0 || a.connection_timeout_ms < a.header_timeout_ms {
+            return Err(invalid(
+                file,
+                "admin.header_timeout_ms",
+                "must be at least 1 and at most admin.connection_timeout_ms",
             ));
         }
         let p = &self.persistence;

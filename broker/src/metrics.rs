@@ -123,6 +123,9 @@ pub struct Metrics {
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
     pub bridge_retained_replayed: IntCounter,
+    /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
+    pub admin_connections: IntGauge,
+    pub admin_refused: IntCounter,
     /// The router's offline persistent sessions, which it updates itself
     /// (`RouterHooks::saved_sessions`); copied into the two metrics below at each scrape.
     pub router_sessions: Arc<SavedSessions>,
@@ -225,6 +228,14 @@ impl Metrics {
                 "Retained messages fetched from other lines when this line started importing a filter",
             ),
             connections,
+            admin_connections: gauge(
+                "fbbus_admin_connections",
+                "Admin HTTP connections open now ([admin] max_connections)",
+            ),
+            admin_refused: counter(
+                "fbbus_admin_connections_refused_total",
+                "Admin HTTP connections closed at once because [admin] max_connections were open",
+            ),
             typed_accepted: counter(
                 "fbbus_typed_messages_accepted_total",
                 "Publications on typed FB topics that matched their declaration and were routed",

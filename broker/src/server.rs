@@ -281,6 +281,7 @@ impl Broker {
             "admin endpoint",
             admin::serve(
                 admin_socket,
+                admin::Limits::from(&config.admin),
                 AdminState {
                     metrics: Arc::clone(&metrics),
                     health: Arc::clone(&health),
