@@ -857,9 +857,7 @@ impl FbSession {
             "undeclared"
         };
         fb.metrics
-            .typed_rejected
-            .with_label_values(&[device, &port, rejection.refusal.label()])
-            .inc();
+            .typed_refused(device, &port, rejection.refusal.label());
         if self.logged.len() < 1024
             && self
                 .logged
