@@ -170,3 +170,34 @@ async fn refused_declaration_lists_every_error_and_is_not_routed() {
         .expect("a record once a declaration is accepted");
     assert_eq!(topic, "fbbus/devices/conv-b");
 }
+
+/// Issue 21: a large bad declaration is answered with a summary of at most 4 KiB, not an
+/// echo of everything wrong in it (a 64 KB one used to make an 821 KB diagnostic).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_large_bad_declaration_gets_a_bounded_answer() {
+    let broker = Broker::start();
+    let mut sub = observer(&broker, "watch", &["fbbus/diag/big"]).await;
+    // Each error names the port's type, and every type is a 6,000-character invention.
+    let ports: serde_json::Map<String, Value> = (0..10)
+        .map(|i| (format!("P{i}"), json!(format!("T{i}{}", "ü".repeat(3000)))))
+        .collect();
+    let bad = json!({"fbs": {"FB": {"data_out": ports}}}).to_string();
+    assert!(bad.len() > 40_000);
+    let mut dev = Dev::connect(broker.port(), 5, "big");
+    assert_eq!(dev.declare(&bad), REFUSED);
+    let topic = "fbbus/diag/big";
+    let bytes = common::fb::next_on(&mut sub, topic, WAIT)
+        .await
+        .expect("the declaration's answer");
+    assert!(bytes.len() <= 4096, "answer of {} bytes", bytes.len());
+    let answer: Value = serde_json::from_slice(&bytes).unwrap();
+    assert_eq!(
+        (
+            answer["kind"].as_str(),
+            answer["ok"].as_bool(),
+            answer["truncated"].as_bool()
+        ),
+        (Some("declaration"), Some(false), Some(true))
+    );
+    assert!(answer["errors"].as_array().is_some_and(|e| !e.is_empty()));
+}

@@ -816,7 +816,9 @@ impl FbSession {
                 );
                 self.outbox.push(BrokerMessage::broker(
                     topic::diag(&self.device),
-                    json!({"kind": "declaration", "ok": false, "errors": errors}).to_string(),
+                    // Every declaration is answered (the device waits for it), within the
+                    // diagnostics' size cap.
+                    bounded_diag(json!({"kind": "declaration", "ok": false, "errors": errors})),
                     false,
                 ));
                 // Counted and answered here; `rejected` must not describe it a second time.
@@ -891,10 +893,90 @@ impl FbSession {
             self.diag_budget -= 1.0;
             self.outbox.push(BrokerMessage::broker(
                 topic::diag(&self.device),
-                body.to_string(),
+                bounded_diag(body),
                 false,
             ));
         }
+    }
+}
+
+/// The most a diagnostic carries, in bytes: a summary of what was wrong, not an echo of a
+/// large bad input (issue 21: a 64 KB bad declaration made an 821 KB diagnostic).
+pub const DIAG_MAX_BYTES: usize = 4096;
+
+/// `body` as text of at most [`DIAG_MAX_BYTES`]: long strings are cut (at a character
+/// boundary) and long lists keep their first entries, with `truncated: true`; if that
+/// is still too long, only the kind, reason and code remain.
+fn bounded_diag(mut body: serde_json::Value) -> String {
+    let text = body.to_string();
+    if text.len() <= DIAG_MAX_BYTES {
+        return text;
+    }
+    fn shorten(v: &mut serde_json::Value) {
+        match v {
+            serde_json::Value::String(s) if s.len() > 256 => {
+                let mut end = 256;
+                while !s.is_char_boundary(end) {
+                    end -= 1;
+                }
+                let more = s.len() - end;
+                s.truncate(end);
+                s.push_str(&format!("... ({more} bytes more)"));
+            }
+            serde_json::Value::Array(a) => {
+                a.truncate(8);
+                a.iter_mut().for_each(shorten);
+            }
+            serde_json::Value::Object(o) => o.values_mut().for_each(shorten),
+            _ => {}
+        }
+    }
+    shorten(&mut body);
+    if let Some(o) = body.as_object_mut() {
+        o.insert("truncated".into(), true.into());
+    }
+    let text = body.to_string();
+    if text.len() <= DIAG_MAX_BYTES {
+        return text;
+    }
+    serde_json::json!({
+        "kind": body.get("kind"),
+        "reason": body.get("reason"),
+        "code": body.get("code"),
+        "truncated": true,
+    })
+    .to_string()
+}
+
+#[cfg(test)]
+mod diag_tests {
+    use super::*;
+
+    #[test]
+    fn diagnostics_are_bounded_and_cut_at_character_boundaries() {
+        let small = serde_json::json!({"kind": "rejected", "detail": "x"});
+        assert_eq!(bounded_diag(small.clone()), small.to_string());
+        let errors: Vec<String> = (0..5000)
+            .map(|i| format!("port {i}: é{}", "ü".repeat(300)))
+            .collect();
+        let big = serde_json::json!({
+            "kind": "declaration_refused",
+            "reason": "invalid",
+            "errors": errors,
+            "detail": "ß".repeat(100_000),
+        });
+        let text = bounded_diag(big);
+        assert!(text.len() <= DIAG_MAX_BYTES, "{}", text.len());
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(v["truncated"], true);
+        assert_eq!(v["kind"], "declaration_refused");
+        let wide: Vec<String> = (0..100)
+            .map(|i| format!("{i}{}", "a".repeat(250)))
+            .collect();
+        let text = bounded_diag(
+            serde_json::json!({"kind": "k", "a": wide.clone(), "b": wide.clone(), "c": wide}),
+        );
+        assert!(text.len() <= DIAG_MAX_BYTES);
     }
 }
 
