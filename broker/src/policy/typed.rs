@@ -948,6 +948,20 @@ fn bounded_diag(mut body: serde_json::Value) -> String {
     .to_string()
 }
 
+fn refuse(refusal: Refusal, detail: impl Into<String>) -> Check {
+    Check::Refused(Rejection {
+        refusal,
+        detail: detail.into(),
+    })
+}
+
+fn now_us() -> u64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .unwrap_or(0)
+}
+
 #[cfg(test)]
 mod diag_tests {
     use super::*;
@@ -978,18 +992,4 @@ mod diag_tests {
         );
         assert!(text.len() <= DIAG_MAX_BYTES);
     }
-}
-
-fn refuse(refusal: Refusal, detail: impl Into<String>) -> Check {
-    Check::Refused(Rejection {
-        refusal,
-        detail: detail.into(),
-    })
-}
-
-fn now_us() -> u64 {
-    SystemTime::now()
-        .duration_since(SystemTime::UNIX_EPOCH)
-        .map(|d| d.as_micros() as u64)
-        .unwrap_or(0)
 }
