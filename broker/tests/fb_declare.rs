@@ -201,3 +201,39 @@ async fn a_large_bad_declaration_gets_a_bounded_answer() {
     );
     assert!(answer["errors"].as_array().is_some_and(|e| !e.is_empty()));
 }
+
+/// Issue 21: a declaration sent at QoS 2 completes with PUBCOMP 0x00 (success), not
+/// 0x92 (packet identifier not found): it was consumed, not refused.
+#[test]
+fn a_qos2_declaration_completes_with_success() {
+    use common::raw::{self, Connect, RawClient};
+    let broker = Broker::start();
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(
+        c.handshake(&Connect {
+            version: 5,
+            client_id: "q2-dev",
+            ..Default::default()
+        }),
+        0
+    );
+    c.send(&raw::publish_v5(
+        "fbbus/declare/q2-dev",
+        None,
+        2,
+        7,
+        CONV.as_bytes(),
+    ));
+    let (b, body) = c.read_packet().expect("PUBREC");
+    assert_eq!(b, 0x50);
+    assert!(body.len() < 3 || body[2] == 0, "PUBREC reason {body:?}");
+    c.send(&raw::packet(0x62, &7u16.to_be_bytes()));
+    let (b, body) = c.read_packet().expect("PUBCOMP");
+    assert_eq!(b, 0x70);
+    assert_eq!(u16::from_be_bytes([body[0], body[1]]), 7);
+    assert!(
+        body.len() < 3 || body[2] == 0,
+        "PUBCOMP reason {:#x}",
+        body[2]
+    );
+}

@@ -258,8 +258,8 @@ impl Session {
                     },
                     None,
                 ));
-                // The PUBREL is answered here, like a refused one's: the router never saw it.
-                self.rare().refused_qos2.insert(pkid);
+                // Its PUBREL is answered here with success (`inbound`, PubRel): the router
+                // never saw it, and it is not a refused one.
             }
             _ => {}
         }
