@@ -528,3 +528,53 @@ async fn rejection_diagnostics_are_rate_limited() {
         diags.len()
     );
 }
+
+/// Issue 21: subscribers of `fb/` get canonical JSON whatever valid JSON the device sent
+/// (whitespace, exponents), and a `REAL` is one value in every encoding: `1e-50`, which
+/// rounds to 0 as an `f32`, is 0 on `fb/` as on `fbdk/`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fb_subscribers_get_canonical_json_and_one_value_in_every_encoding() {
+    let broker = Broker::start();
+    let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/canon"]).await;
+    let mut sub = observer(&broker, "sub", &["fb/canon/#", "fbdk/canon/#"]).await;
+    let dev = V4::connect(broker.port(), "canon", None).await.unwrap();
+    let qos1 = rumqttc::QoS::AtLeastOnce;
+    let declaration = r#"{"fbs": {"M": {"data_out": {"N": "INT", "R": "REAL", "B": "BOOL"}}}}"#;
+    dev.client
+        .publish("fbbus/declare/canon", qos1, false, declaration)
+        .await
+        .unwrap();
+    let answer = diag(&mut diag_sub, "canon", "declaration", &broker).await;
+    assert_eq!(answer["ok"], true, "{answer}");
+    for (port, sent, canonical) in [
+        ("N", " 5 ", "5"),
+        ("N", "5\n", "5"),
+        ("B", "true ", "true"),
+        ("R", "1e-50", "0.0"),
+        ("R", "2.50", "2.5"),
+    ] {
+        let topic = format!("fb/canon/M/{port}");
+        dev.client.publish(&topic, qos1, false, sent).await.unwrap();
+        // Both copies, in whichever order they come.
+        let mut copies = std::collections::BTreeMap::new();
+        while copies.len() < 2 {
+            let p = sub
+                .next_publish(WAIT)
+                .await
+                .expect("the fb/ and fbdk/ copies");
+            copies.insert(p.topic.clone(), p.payload.to_vec());
+        }
+        assert_eq!(
+            String::from_utf8_lossy(&copies[&topic]),
+            canonical,
+            "{port} sent as {sent:?}"
+        );
+        if sent == "1e-50" {
+            // fbdk REAL: tag 0x4A, then the f32, big-endian: 0.
+            assert_eq!(
+                copies[&format!("fbdk/canon/M/{port}")],
+                vec![0x4A, 0, 0, 0, 0]
+            );
+        }
+    }
+}
