@@ -71,6 +71,68 @@ pub struct DeclarationError {
 pub const MAX_FBS: usize = 256;
 pub const MAX_PORTS: usize = 256;
 
+/// The first key that appears twice in one JSON object of `payload` (valid JSON), if any.
+fn duplicate_key(payload: &[u8]) -> Option<String> {
+    use serde::de::{DeserializeSeed, MapAccess, SeqAccess, Visitor};
+
+    struct Walk<'a>(&'a mut Option<String>);
+
+    impl<'de> DeserializeSeed<'de> for Walk<'_> {
+        type Value = ();
+        fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+            d.deserialize_any(self)
+        }
+    }
+
+    impl<'de> Visitor<'de> for Walk<'_> {
+        type Value = ();
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("JSON")
+        }
+        fn visit_bool<E>(self, _: bool) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_i64<E>(self, _: i64) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_u64<E>(self, _: u64) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_f64<E>(self, _: f64) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_str<E>(self, _: &str) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_unit<E>(self) -> Result<(), E> {
+            Ok(())
+        }
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+            let found = self.0;
+            while seq.next_element_seed(Walk(&mut *found))?.is_some() {}
+            Ok(())
+        }
+        fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+            let found = self.0;
+            let mut seen = std::collections::HashSet::new();
+            while let Some(key) = map.next_key::<String>()? {
+                if found.is_none() && seen.contains(&key) {
+                    *found = Some(key);
+                } else {
+                    seen.insert(key);
+                }
+                map.next_value_seed(Walk(&mut *found))?;
+            }
+            Ok(())
+        }
+    }
+
+    let mut found = None;
+    let mut de = serde_json::Deserializer::from_slice(payload);
+    let _ = Walk(&mut found).deserialize(&mut de);
+    found
+}
+
 /// An IEC 61131-3 identifier: a letter or `_`, then letters, digits and `_`. Names become
 /// topic levels, so this also keeps `/`, `+`, `#` and `$` out of them.
 pub fn is_identifier(name: &str) -> bool {
@@ -83,11 +145,24 @@ pub fn is_identifier(name: &str) -> bool {
 impl Declaration {
     /// Parses a birth payload (JSON). Syntax errors say where they are.
     pub fn from_json(payload: &[u8]) -> Result<Declaration, DeclarationError> {
-        serde_json::from_slice(payload).map_err(|e| DeclarationError {
+        let declaration = serde_json::from_slice(payload).map_err(|e| DeclarationError {
             fb: None,
             port: None,
             error: format!("not a valid interface declaration: {e}"),
-        })
+        })?;
+        // serde keeps the last of two equal keys: a declaration naming an FB or a port twice
+        // would silently lose one (issue 21). Refused instead.
+        if let Some(key) = duplicate_key(payload) {
+            return Err(DeclarationError {
+                fb: None,
+                port: None,
+                error: format!(
+                    "`{key}` appears twice in one JSON object: every FB, port and key is \
+                     named once"
+                ),
+            });
+        }
+        Ok(declaration)
     }
 
     /// Checks every FB and port and returns the typed interface, or every mistake found.
@@ -288,6 +363,28 @@ mod tests {
 
     fn decl(json: &str) -> Declaration {
         Declaration::from_json(json.as_bytes()).unwrap()
+    }
+
+    #[test]
+    fn a_name_given_twice_is_refused_not_merged() {
+        for json in [
+            r#"{"fbs":{"A":{"data_out":{"X":"INT"}},"A":{"data_out":{"Y":"INT"}}}}"#,
+            r#"{"fbs":{"A":{"data_out":{"X":"INT","X":"BOOL"}}}}"#,
+            r#"{"fbs":{"A":{"events_out":{"E":{"with":[]}},"events_out":{}}}}"#,
+        ] {
+            let e = Declaration::from_json(json.as_bytes()).unwrap_err();
+            let twice = e.error.contains("appears twice") || e.error.contains("duplicate field");
+            assert!(twice, "{json}: {e}");
+        }
+        // The same name in different objects is fine.
+        assert!(Declaration::from_json(
+            br#"{"fbs":{"A":{"data_out":{"X":"INT"}},"B":{"data_out":{"X":"INT"}}}}"#
+        )
+        .is_ok());
+        assert_eq!(
+            duplicate_key(b"[{\"a\":1},{\"a\":2,\"a\":3}]").as_deref(),
+            Some("a")
+        );
     }
 
     #[test]
