@@ -61,6 +61,11 @@ impl Message {
 #[derive(Clone)]
 pub struct BrokerPublisher {
     queue: mpsc::UnboundedSender<Message>,
+    /// Where the broker's retained messages are kept across a restart, as a client's are
+    /// (`store`): the clearing of a retyped port's retained value, a retained will. Not
+    /// its own `fbbus/` records: the registry is their source and publishes them again at
+    /// start (a stored copy put back after it would bring back a stale status).
+    store: Arc<std::sync::OnceLock<Arc<crate::store::Store>>>,
 }
 
 impl BrokerPublisher {
@@ -95,18 +100,50 @@ impl BrokerPublisher {
                 }
             }
         });
-        Arc::new(BrokerPublisher { queue })
+        Arc::new(BrokerPublisher {
+            queue,
+            store: Arc::default(),
+        })
+    }
+
+    /// Stores the broker's retained messages in `store` from now on.
+    pub fn set_store(&self, store: Arc<crate::store::Store>) {
+        let _ = self.store.set(store);
     }
 
     /// A publisher whose messages go to the returned queue instead of a router (tests).
     #[cfg(test)]
     pub fn detached() -> (Arc<BrokerPublisher>, mpsc::UnboundedReceiver<Message>) {
         let (queue, messages) = mpsc::unbounded_channel();
-        (Arc::new(BrokerPublisher { queue }), messages)
+        let publisher = BrokerPublisher {
+            queue,
+            store: Arc::default(),
+        };
+        (Arc::new(publisher), messages)
     }
 
     /// Queues `message`; it is published after every message queued before it.
-    pub fn publish(&self, message: Message) {
+    pub fn publish(&self, mut message: Message) {
+        if let Some(store) = self.store.get() {
+            let own = message
+                .topic
+                .starts_with(fb_bridge::topic::BROKER_NAMESPACE.as_bytes());
+            if message.retain && message.stored == 0 && !own {
+                let seq = store.number();
+                message.stored = seq;
+                store.write_now(vec![crate::store::Record::Publish {
+                    seq,
+                    message: crate::store::Message {
+                        topic: message.topic.clone(),
+                        payload: message.payload.clone(),
+                        qos: message.qos.min(1),
+                        retain: true,
+                        properties: message.properties.clone(),
+                        publisher: message.publisher.as_str().into(),
+                    },
+                }]);
+            }
+        }
         // Fails only once the task ended with the router, when nothing can be published.
         let _ = self.queue.send(message);
     }

@@ -139,6 +139,9 @@ impl Broker {
         } else {
             (None, Restore::default())
         };
+        if let Some(store) = &store {
+            publisher.set_store(Arc::clone(store));
+        }
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
         let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker))

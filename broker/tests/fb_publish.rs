@@ -7,7 +7,7 @@
 
 mod common;
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use serde_json::json;
 
@@ -577,4 +577,45 @@ async fn fb_subscribers_get_canonical_json_and_one_value_in_every_encoding() {
             );
         }
     }
+}
+
+/// Issue 21: an empty retained publication on a typed port clears its retained value, as
+/// MQTT defines (it was refused as ill-typed); a re-declaration that retypes or removes a
+/// port clears its retained value, so a new subscriber never gets an ill-typed one; both
+/// hold across a crash of the broker (the store keeps the clearing too).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retained_typed_values_are_cleared_by_an_empty_publication_and_by_a_retype() {
+    let mut broker = Broker::start();
+    let mut dev = Dev::connect(broker.port(), 5, "ret");
+    assert_eq!(
+        dev.declare(r#"{"fbs": {"M": {"data_out": {"N": "INT", "K": "INT"}}}}"#),
+        0
+    );
+    assert_eq!(dev.publish_retained("fb/ret/M/N", b"5"), 0);
+    assert_eq!(dev.publish_retained("fb/ret/M/K", b"6"), 0);
+    let retained = |broker: &Broker, topic: &'static str| {
+        let port = broker.port();
+        async move {
+            let mut sub = V4::connect(port, "late", None).await.unwrap();
+            sub.subscribe(topic).await;
+            sub.next_publish(Duration::from_millis(700))
+                .await
+                .map(|p| p.payload.to_vec())
+        }
+    };
+    assert_eq!(retained(&broker, "fb/ret/M/N").await, Some(b"5".to_vec()));
+    // MQTT: an empty retained message clears it; accepted (PUBACK 0x00), not 0x99.
+    assert_eq!(dev.publish_retained("fb/ret/M/N", b""), 0);
+    assert_eq!(retained(&broker, "fb/ret/M/N").await, None);
+    // K becomes a BOOL: its INT value must not reach a new subscriber.
+    assert_eq!(
+        dev.declare(r#"{"fbs": {"M": {"data_out": {"N": "INT", "K": "BOOL"}}}}"#),
+        0
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(retained(&broker, "fb/ret/M/K").await, None);
+    drop(dev);
+    broker.restart("KILL");
+    assert_eq!(retained(&broker, "fb/ret/M/N").await, None, "after a crash");
+    assert_eq!(retained(&broker, "fb/ret/M/K").await, None, "after a crash");
 }

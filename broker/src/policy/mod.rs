@@ -128,7 +128,15 @@ impl PublishPolicy {
         // 2. Typed check. A message from another line is checked like a local one,
         // against its device's declaration as its own line's record gave it (the bus door
         // imports nothing for a device without one: `bridge::import`).
-        let routes = match publisher.check(&self.typed, topic, payload) {
+        let cleared = match retain && payload.is_empty() {
+            true => publisher.clear_retained(topic),
+            false => None,
+        };
+        let check = match cleared {
+            Some(check) => check,
+            None => publisher.check(&self.typed, topic, payload),
+        };
+        let routes = match check {
             Check::Pass => None,
             Check::Route(routes) => Some(routes),
             Check::Consumed => return Admission::Consumed,

@@ -355,6 +355,23 @@ impl FbSession {
         }
     }
 
+    /// An empty retained publication on one of this device's declared typed ports: it
+    /// clears the port's retained value (MQTT 3.3.1.3), in every namespace, so a new
+    /// subscriber of any encoding no longer gets the old value. None for anything else,
+    /// which [`FbSession::check`] decides as usual.
+    pub fn clear_retained(&self, topic: &str) -> Option<Check> {
+        let typed = TypedTopic::parse(topic)?;
+        if typed.device != self.device || !self.identity_verified() {
+            return None;
+        }
+        self.interface.as_ref()?.output(typed.fb, typed.port)?;
+        let routes = std::iter::once(Encoding::Json)
+            .chain(Encoding::ALL.into_iter().filter(|e| *e != Encoding::Json))
+            .map(|e| (typed.in_encoding(e), Bytes::new()))
+            .collect();
+        Some(Check::Route(routes))
+    }
+
     /// Checks one publication (ACL already passed) and says what to route.
     pub fn check(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
         let check = self.decide(fb, topic, payload);
@@ -787,6 +804,19 @@ impl FbSession {
         match validated {
             Ok(interface) => {
                 let fbs = interface.fbs.len();
+                // A port the new declaration removes or retypes: its retained value would
+                // be ill-typed for a new subscriber. Cleared in every namespace.
+                let old = fb.registry.get(&self.device).map(|r| r.interface);
+                if let Some(old) = old {
+                    for (f, p) in old.outputs() {
+                        if interface.output(f, p) != old.output(f, p) {
+                            for e in Encoding::ALL {
+                                let topic = format!("{}/{}/{f}/{p}", e.namespace(), self.device);
+                                self.outbox.push(BrokerMessage::broker(topic, "", true));
+                            }
+                        }
+                    }
+                }
                 self.interface = Some(fb.registry.declare(&self.device, self.session, interface));
                 self.activity = fb.registry.activity(&self.device);
                 fb.metrics
