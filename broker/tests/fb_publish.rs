@@ -619,3 +619,23 @@ async fn retained_typed_values_are_cleared_by_an_empty_publication_and_by_a_rety
     assert_eq!(retained(&broker, "fb/ret/M/N").await, None, "after a crash");
     assert_eq!(retained(&broker, "fb/ret/M/K").await, None, "after a crash");
 }
+
+/// Issue 21: a STRING with a NUL character is refused (PUBACK 0x99), in JSON as in fbdk:
+/// C runtimes would end the string there, and subscribers would disagree on the value.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_string_with_nul_is_refused_in_every_encoding() {
+    let broker = Broker::start();
+    let mut dev = Dev::connect(broker.port(), 5, "nul");
+    assert_eq!(
+        dev.declare(r#"{"fbs": {"M": {"data_out": {"S": "STRING"}}}}"#),
+        0
+    );
+    assert_eq!(dev.publish("fb/nul/M/S", br#""a\u0000b""#), 0x99);
+    // fbdk STRING: tag 0x50, u16 length, bytes.
+    assert_eq!(
+        dev.publish("fbdk/nul/M/S", &[0x50, 0, 3, b'a', 0, b'b']),
+        0x99
+    );
+    assert_eq!(dev.publish("fb/nul/M/S", br#""ab""#), 0);
+    assert_eq!(dev.publish("fbdk/nul/M/S", &[0x50, 0, 2, b'a', b'b']), 0);
+}

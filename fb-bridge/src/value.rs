@@ -66,6 +66,10 @@ pub enum TypeError {
     Element { index: usize, error: Box<TypeError> },
     #[error("{0} is longer than {MAX_STRING_LEN} units")]
     TooLong(ElementaryType),
+    /// A NUL character: 4diac FORTE and other C runtimes end a string there, so one
+    /// message would mean two values (issue 21). Refused in every encoding.
+    #[error("{0} contains a NUL character, which C runtimes (4diac FORTE) take as its end")]
+    Nul(ElementaryType),
 }
 
 impl Value {
@@ -161,6 +165,8 @@ impl Value {
             Value::String(s) if s.len() > MAX_STRING_LEN => {
                 Err(TypeError::TooLong(ElementaryType::String))
             }
+            Value::String(s) if s.contains('\0') => Err(TypeError::Nul(ElementaryType::String)),
+            Value::WString(s) if s.contains('\0') => Err(TypeError::Nul(ElementaryType::WString)),
             Value::WString(s) if s.encode_utf16().count() > MAX_STRING_LEN => {
                 Err(TypeError::TooLong(ElementaryType::WString))
             }
@@ -182,6 +188,19 @@ impl Value {
 mod tests {
     use super::*;
     use ElementaryType as T;
+
+    #[test]
+    fn strings_with_nul_are_refused() {
+        for (v, t) in [
+            (Value::String("a\0b".into()), T::String),
+            (Value::WString("\0".into()), T::WString),
+        ] {
+            assert_eq!(v.check(DataType::Elementary(t)), Err(TypeError::Nul(t)));
+        }
+        assert!(Value::String("ab".into())
+            .check(DataType::Elementary(T::String))
+            .is_ok());
+    }
 
     #[test]
     fn check_accepts_the_declared_type_only() {
