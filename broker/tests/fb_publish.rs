@@ -548,6 +548,7 @@ async fn fb_subscribers_get_canonical_json_and_one_value_in_every_encoding() {
     assert_eq!(answer["ok"], true, "{answer}");
     for (port, sent, canonical) in [
         ("N", " 5 ", "5"),
+        ("N", "-0", "0"),
         ("N", "5\n", "5"),
         ("B", "true ", "true"),
         ("R", "1e-50", "0.0"),

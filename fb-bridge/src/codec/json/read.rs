@@ -182,6 +182,10 @@ pub(super) fn scalar_from_token(token: Token<'_>, t: ElementaryType) -> Result<V
 fn integer(token: Token<'_>, t: ElementaryType) -> Result<i128, TypeError> {
     match token {
         Token::Int(n) => Ok(n),
+        // `-0` is a JSON integer, but `serde_json` reads it as the float -0.0 to keep its
+        // sign (issue 21: it was refused). Every spelling it reads that way (`-0`, `-0.0`,
+        // `-0e0`) is the integer 0.
+        Token::Float(x) if x == 0.0 && x.is_sign_negative() => Ok(0),
         Token::Float(x) => {
             // Integers just below i64::MIN round to exactly -2^63, so that counts as beyond.
             let beyond_64_bits = x <= -(2f64.powi(63)) || x >= 2f64.powi(64);
@@ -299,6 +303,24 @@ mod tests {
     use super::super::tests::{decoded, is_mismatch, out_of_range, type_error};
     use super::*;
     use crate::types::ElementaryType as T;
+
+    #[test]
+    fn minus_zero_is_the_integer_zero() {
+        use crate::codec::json::tests::decode_text;
+        for t in [
+            T::Sint,
+            T::Int,
+            T::Dint,
+            T::Lint,
+            T::Usint,
+            T::Ulint,
+            T::Byte,
+        ] {
+            let m = decode_text("-0", DataType::Elementary(t)).expect("-0 is an integer");
+            let zero = decode_text("0", DataType::Elementary(t)).unwrap();
+            assert_eq!(m, zero, "{t}");
+        }
+    }
 
     #[test]
     fn integers_are_strict_about_range_and_kind() {
