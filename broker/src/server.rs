@@ -164,6 +164,7 @@ impl Broker {
                 Arc::clone(&metrics),
             )
             .with_fbdk_max_payload(config.fb.fbdk_max_payload)
+            .with_max_packet(config.broker.max_packet_bytes)
             .with_profiles(Arc::clone(&profiles)),
         );
         // Who is told of subscriptions: typed-topic re-encoding, and the bus bridge, whose

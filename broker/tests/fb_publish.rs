@@ -640,3 +640,43 @@ async fn a_string_with_nul_is_refused_in_every_encoding() {
     assert_eq!(dev.publish("fb/nul/M/S", br#""ab""#), 0);
     assert_eq!(dev.publish("fbdk/nul/M/S", &[0x50, 0, 2, b'a', b'b']), 0);
 }
+
+/// Issue 21: a re-encoded copy larger than `max_packet_bytes` is not made (counted, and
+/// described to the publisher), while the copies that fit are delivered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reencoded_copy_over_max_packet_bytes_is_not_made() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_packet_bytes = 1024\n[fb]\nfbdk_max_payload = 0\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/amp"]).await;
+    let mut sub = observer(&broker, "sub", &["fb/amp/#", "fbdk/amp/#"]).await;
+    let mut dev = Dev::connect(broker.port(), 5, "amp");
+    assert_eq!(
+        dev.declare(r#"{"fbs": {"M": {"data_out": {"A": "ARRAY [150] OF LREAL"}}}}"#),
+        0
+    );
+    // 301 bytes of JSON; 150 x 9 bytes in fbdk.
+    let values = vec!["1"; 150].join(",");
+    assert_eq!(
+        dev.publish("fb/amp/M/A", format!("[{values}]").as_bytes()),
+        0
+    );
+    let got = sub.next_publish(WAIT).await.expect("the fb/ copy");
+    assert_eq!(got.topic, "fb/amp/M/A");
+    assert!(
+        sub.next_publish(std::time::Duration::from_millis(700))
+            .await
+            .is_none(),
+        "no fbdk copy over max_packet_bytes"
+    );
+    let why = diag(&mut diag_sub, "amp", "not_reencoded", &broker).await;
+    assert!(why.to_string().contains("max_packet_bytes"), "{why}");
+    assert_eq!(
+        broker.metric("fbbus_typed_messages_not_reencoded_total{namespace=\"fbdk\"}"),
+        1.0
+    );
+}

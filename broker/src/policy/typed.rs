@@ -115,6 +115,8 @@ pub struct FbTopics {
     pub fbdk_unit: fbdk::TimeUnit,
     /// The largest `fbdk/` payload delivered (0: no limit); see [`FORTE_RECEIVE_BUFFER`].
     fbdk_max_payload: usize,
+    /// `[broker] max_packet_bytes`: a re-encoded copy must fit it as any packet must.
+    max_packet: usize,
     /// The device profiles (`[fb] profiles_dir`).
     pub profiles: Arc<Profiles>,
     /// The connections speaking for each topics-only device.
@@ -148,6 +150,7 @@ impl FbTopics {
             anonymous_devices,
             fbdk_unit,
             fbdk_max_payload: FORTE_RECEIVE_BUFFER,
+            max_packet: usize::MAX,
             profiles: Arc::new(Profiles::none()),
             speakers: Speakers::default(),
             publisher,
@@ -160,6 +163,13 @@ impl FbTopics {
     /// (0: no limit).
     pub fn with_fbdk_max_payload(mut self, bytes: usize) -> FbTopics {
         self.fbdk_max_payload = bytes;
+        self
+    }
+
+    /// `[broker] max_packet_bytes`: a re-encoded copy whose PUBLISH would be larger is not
+    /// routed (a 60 KB message on an `ARRAY [30000] OF TIME` became 240 KB in `fbdk`).
+    pub fn with_max_packet(mut self, bytes: usize) -> FbTopics {
+        self.max_packet = bytes;
         self
     }
 
@@ -658,7 +668,20 @@ impl FbSession {
                 self.not_reencoded(fb, &typed.in_encoding(e), e.namespace(), typed, &why);
                 continue;
             }
-            routes.push((typed.in_encoding(e), bytes));
+            // A copy larger than any packet this broker takes (its topic, a packet id and
+            // a few header bytes besides) is not made: no subscriber was promised more.
+            let topic = typed.in_encoding(e);
+            if bytes.len() + topic.len() + 16 > fb.max_packet {
+                let why = format!(
+                    "{} bytes in {}, more than [broker] max_packet_bytes ({})",
+                    bytes.len(),
+                    e.namespace(),
+                    fb.max_packet
+                );
+                self.not_reencoded(fb, &topic, e.namespace(), typed, &why);
+                continue;
+            }
+            routes.push((topic, bytes));
         }
         for (profile, i) in feeds {
             if let Some(route) = self.feed(fb, profile, i, typed, port, &message) {
