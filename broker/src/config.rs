@@ -148,6 +148,9 @@ pub struct BrokerSection {
     /// Packets read from one connection before they are handed to the router as a batch;
     /// also the MQTT 5 receive maximum the broker announces.
     pub max_inflight: u16,
+    /// Subscriptions one connection holds at most; a SUBSCRIBE beyond is refused for the
+    /// filters over the limit (MQTT 5: 0x97 Quota exceeded; 3.1.1: 0x80).
+    pub max_subscriptions_per_client: usize,
     /// Time a new TCP connection has to send CONNECT.
     pub connect_timeout_ms: u64,
     /// Longest keep-alive an MQTT 5 client may use; one asking for more, or for none, is
@@ -186,6 +189,7 @@ impl Default for BrokerSection {
             max_connections: 4096,
             max_packet_bytes: 64 * 1024,
             max_inflight: 100,
+            max_subscriptions_per_client: 1000,
             connect_timeout_ms: 5_000,
             max_keep_alive_s: 65_535,
             router_segment_bytes: 4 * 1024 * 1024,
@@ -454,6 +458,13 @@ impl Config {
                 file,
                 "persistence.dir",
                 "must name a directory (or set persistence.enabled = false)",
+            ));
+        }
+        if b.max_subscriptions_per_client == 0 {
+            return Err(invalid(
+                file,
+                "broker.max_subscriptions_per_client",
+                "must be at least 1",
             ));
         }
         if b.max_inflight == 0 {

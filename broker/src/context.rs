@@ -39,6 +39,8 @@ pub struct Context {
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,
+    /// `[broker] max_subscriptions_per_client`.
+    pub max_subscriptions: usize,
     /// `broker.max_keep_alive_s` (see `session::connect::keep_alive`).
     pub max_keep_alive: u16,
     pub connect_timeout: Duration,

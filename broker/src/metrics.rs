@@ -125,6 +125,8 @@ pub struct Metrics {
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
     pub bridge_retained_replayed: IntCounter,
+    /// Requests refused at a limit, by limit (`subscriptions_per_client`, ...).
+    pub limit_refusals: IntCounterVec,
     /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
     pub admin_connections: IntGauge,
     pub admin_refused: IntCounter,
@@ -230,6 +232,12 @@ impl Metrics {
                 "Retained messages fetched from other lines when this line started importing a filter",
             ),
             connections,
+            limit_refusals: counter_vec(
+                "fbbus_limit_refusals_total",
+                "Requests refused because a configured limit was reached, by limit \
+                 (subscriptions_per_client)",
+                &["limit"],
+            ),
             admin_connections: gauge(
                 "fbbus_admin_connections",
                 "Admin HTTP connections open now ([admin] max_connections)",

@@ -346,6 +346,7 @@ impl Session {
     ) {
         let v5 = self.version == Version::V5;
         let mut refused = Vec::with_capacity(subscribe.filters.len());
+        let mut held = self.subscriptions.len();
         for filter in &subscribe.filters {
             let verdict = if !filter::valid_filter(&filter.path) {
                 Some(if v5 {
@@ -365,6 +366,31 @@ impl Session {
                 } else {
                     SubscribeReasonCode::Failure
                 })
+            } else if !self.subscriptions.contains_key(&filter.path)
+                && held >= self.ctx.max_subscriptions
+            {
+                self.ctx
+                    .metrics
+                    .limit_refusals
+                    .with_label_values(&["subscriptions_per_client"])
+                    .inc();
+                let first = self
+                    .rare()
+                    .logged_denials
+                    .insert(("max_subscriptions_per_client", String::new()));
+                if first {
+                    tracing::warn!(
+                        client_id = &*self.client_id,
+                        limit = self.ctx.max_subscriptions,
+                        "SUBSCRIBE beyond [broker] max_subscriptions_per_client refused \
+                         (logged once per connection; fbbus_limit_refusals_total)"
+                    );
+                }
+                Some(if v5 {
+                    SubscribeReasonCode::QuotaExceeded
+                } else {
+                    SubscribeReasonCode::Failure
+                })
             } else if filter::is_dollar(&filter.path) && !filter::is_shared(&filter.path) {
                 // fbbus publishes nothing under `$` topics yet, and rumqttd's router drops a
                 // connection that subscribes to one: refuse the filter, keep the client.
@@ -376,6 +402,9 @@ impl Session {
             } else {
                 None
             };
+            if verdict.is_none() && !self.subscriptions.contains_key(&filter.path) {
+                held += 1;
+            }
             refused.push(verdict);
         }
 
