@@ -234,17 +234,6 @@ impl Wills {
     }
 
     fn publish(&self, client_id: &str, session: u64, will: Will) {
-        // Exactly the client's properties: nothing added, nothing reordered.
-        let properties = will.properties.map(|p| PublishProperties {
-            payload_format_indicator: p.payload_format_indicator,
-            message_expiry_interval: p.message_expiry_interval,
-            topic_alias: None,
-            response_topic: p.response_topic,
-            correlation_data: p.correlation_data,
-            user_properties: p.user_properties,
-            subscription_identifiers: Vec::new(),
-            content_type: p.content_type,
-        });
         tracing::info!(client_id, session, topic = ?String::from_utf8_lossy(&will.topic), "will published");
         self.metrics.wills_published.inc();
         let qos = will.qos.min(1);
@@ -253,19 +242,15 @@ impl Wills {
         let seq = match self.store.get().filter(|s| s.stores(qos, will.retain)) {
             Some(store) => {
                 let seq = store.number();
-                let message = crate::store::Message {
-                    topic: will.topic.clone(),
-                    payload: will.payload.clone(),
-                    qos,
-                    retain: will.retain,
-                    properties: properties.clone(),
-                    publisher: client_id.into(),
-                };
+                let mut message = stored_will(client_id, &will);
+                message.qos = qos;
                 store.write_now(vec![crate::store::Record::Publish { seq, message }]);
                 seq
             }
             None => 0,
         };
+        // Exactly the client's properties: nothing added, nothing reordered.
+        let properties = will.properties.map(publish_properties);
         self.publisher.publish(Message {
             topic: will.topic,
             payload: will.payload,
@@ -287,16 +272,21 @@ fn stored_will(client_id: &str, will: &Will) -> crate::store::Message {
         payload: will.payload.clone(),
         qos: will.qos,
         retain: will.retain,
-        properties: will.properties.clone().map(|p| PublishProperties {
-            payload_format_indicator: p.payload_format_indicator,
-            message_expiry_interval: p.message_expiry_interval,
-            topic_alias: None,
-            response_topic: p.response_topic,
-            correlation_data: p.correlation_data,
-            user_properties: p.user_properties,
-            subscription_identifiers: Vec::new(),
-            content_type: p.content_type,
-        }),
+        properties: will.properties.clone().map(publish_properties),
         publisher: client_id.into(),
+    }
+}
+
+/// A will's properties as the PUBLISH that carries it has them (no delay, no alias).
+fn publish_properties(p: LastWillProperties) -> PublishProperties {
+    PublishProperties {
+        payload_format_indicator: p.payload_format_indicator,
+        message_expiry_interval: p.message_expiry_interval,
+        topic_alias: None,
+        response_topic: p.response_topic,
+        correlation_data: p.correlation_data,
+        user_properties: p.user_properties,
+        subscription_identifiers: Vec::new(),
+        content_type: p.content_type,
     }
 }
