@@ -98,8 +98,8 @@ struct Common {
     #[arg(long, global = true)]
     allow_remote: bool,
     /// Directory for report.json, batches.csv, batches.jtl and the SVG charts (compare:
-    /// compare.txt; compare bridge: bridge.txt). Default: target/loadtest/<scenario>,
-    /// outside the source tree.
+    /// compare.txt; compare bridge: bridge.txt; compare persistence: persistence.txt).
+    /// Default: target/loadtest/<scenario>, outside the source tree.
     #[arg(long, global = true, value_name = "DIR")]
     out: Option<PathBuf>,
 }

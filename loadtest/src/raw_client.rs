@@ -4,7 +4,9 @@
 //!
 //! The packets are [`wire`]'s (the campaigns' byte-level encoder); this module only
 //! adds the waits (CONNACK, SUBACK) and a reader that hands out whole packets from one
-//! reusable buffer. QoS 0 only; nothing here retries or reconnects: a drop is a result.
+//! reusable buffer. QoS 0, and for `compare persistence` the pieces of QoS 1 (persistent
+//! sessions, PUBLISH with a packet id, PUBACK); nothing here retries or reconnects: a drop
+//! is a result.
 
 use std::io;
 use std::net::SocketAddr;
@@ -29,14 +31,62 @@ pub fn connect_packet(client_id: &str, credentials: Option<(&str, &str)>) -> Vec
     c.encode()
 }
 
+/// CONNECT, MQTT 3.1.1, anonymous, with clean session `clean` (false: a persistent
+/// session, kept by the broker after the connection ends).
+pub fn connect_session_packet(client_id: &str, clean: bool) -> Vec<u8> {
+    let mut c = wire::Connect::new(wire::V311, client_id.as_bytes());
+    c.keep_alive = KEEP_ALIVE_SECS;
+    c.clean = clean;
+    c.encode()
+}
+
 /// SUBSCRIBE to one filter at QoS 0.
 pub fn subscribe_packet(packet_id: u16, filter: &str) -> Vec<u8> {
+    subscribe_qos_packet(packet_id, filter, 0)
+}
+
+/// SUBSCRIBE to one filter at `qos`.
+pub fn subscribe_qos_packet(packet_id: u16, filter: &str, qos: u8) -> Vec<u8> {
     wire::subscribe(
         wire::V311,
         packet_id,
         &Props::new(),
-        &[(filter.as_bytes().to_vec(), 0)],
+        &[(filter.as_bytes().to_vec(), qos)],
     )
+}
+
+/// PUBLISH at QoS 1 with packet id `pid` (not 0), optionally retained; the payload is
+/// the packet's tail, as in [`publish_packet`].
+pub fn publish_qos1_packet(topic: &str, pid: u16, retain: bool, payload: &[u8]) -> Vec<u8> {
+    wire::publish(
+        wire::V311,
+        topic.as_bytes(),
+        1,
+        retain,
+        false,
+        pid,
+        &Props::new(),
+        payload,
+    )
+}
+
+/// PUBACK for packet id `pid`.
+pub fn puback_packet(pid: u16) -> [u8; 4] {
+    let [hi, lo] = pid.to_be_bytes();
+    [0x40, 0x02, hi, lo]
+}
+
+/// The packet id of a QoS 1/2 PUBLISH or of a PUBACK; None for anything else.
+pub fn packet_id(header: u8, body: &[u8]) -> Option<u16> {
+    match header >> 4 {
+        3 if (header >> 1) & 3 > 0 => {
+            let topic_len = u16::from_be_bytes([*body.first()?, *body.get(1)?]) as usize;
+            let at = 2 + topic_len;
+            Some(u16::from_be_bytes([*body.get(at)?, *body.get(at + 1)?]))
+        }
+        4 => Some(u16::from_be_bytes([*body.first()?, *body.get(1)?])),
+        _ => None,
+    }
 }
 
 /// PUBLISH at QoS 0, no retain. The payload is the packet's tail, so callers can rewrite
@@ -64,6 +114,25 @@ pub async fn connect(
     client_id: &str,
     credentials: Option<(&str, &str)>,
 ) -> Result<TcpStream, Error> {
+    let packet = connect_packet(client_id, credentials);
+    Ok(connect_with(addr, client_id, &packet).await?.0)
+}
+
+/// Like [`connect`], anonymous, with clean session `clean`; also returns the CONNACK's
+/// session-present flag (a persistent session the broker kept).
+pub async fn connect_session(
+    addr: SocketAddr,
+    client_id: &str,
+    clean: bool,
+) -> Result<(TcpStream, bool), Error> {
+    connect_with(addr, client_id, &connect_session_packet(client_id, clean)).await
+}
+
+async fn connect_with(
+    addr: SocketAddr,
+    client_id: &str,
+    packet: &[u8],
+) -> Result<(TcpStream, bool), Error> {
     let connect_error = |reason: String| Error::Connect {
         id: client_id.to_owned(),
         address: addr.to_string(),
@@ -74,7 +143,7 @@ pub async fn connect(
         .map_err(|e| connect_error(e.to_string()))?;
     stream.set_nodelay(true)?;
     stream
-        .write_all(&connect_packet(client_id, credentials))
+        .write_all(packet)
         .await
         .map_err(|e| connect_error(format!("sending CONNECT: {e}")))?;
     let mut ack = [0u8; 4];
@@ -95,12 +164,20 @@ pub async fn connect(
             reason: format!("CONNACK return code {}", ack[3]),
         });
     }
-    Ok(stream)
+    Ok((stream, ack[2] & 1 == 1))
 }
 
 /// Subscribes to `filter` at QoS 0 and waits for a SUBACK that grants it.
 pub async fn subscribe(stream: &mut TcpStream, filter: &str) -> Result<(), Error> {
-    stream.write_all(&subscribe_packet(1, filter)).await?;
+    subscribe_qos(stream, filter, 0).await.map(|_| ())
+}
+
+/// Subscribes to `filter` at `qos` and waits for a SUBACK that grants it; returns the
+/// QoS granted.
+pub async fn subscribe_qos(stream: &mut TcpStream, filter: &str, qos: u8) -> Result<u8, Error> {
+    stream
+        .write_all(&subscribe_qos_packet(1, filter, qos))
+        .await?;
     let mut ack = [0u8; 5];
     stream.read_exact(&mut ack).await?;
     let refused = |reason: String| Error::Refused {
@@ -120,7 +197,7 @@ pub async fn subscribe(stream: &mut TcpStream, filter: &str) -> Result<(), Error
             "SUBACK refused the subscription to {filter} (check the broker's access rules)"
         )));
     }
-    Ok(())
+    Ok(ack[4])
 }
 
 /// Reads whole MQTT packets from a stream with one reusable buffer: one `read` syscall per
@@ -140,6 +217,16 @@ impl PacketReader {
             start: 0,
             end: 0,
         }
+    }
+
+    /// The connection back; whatever was read and not handed out is dropped.
+    pub fn into_inner(self) -> TcpStream {
+        self.stream
+    }
+
+    /// The connection, to write on it between reads (acknowledgements).
+    pub fn get_mut(&mut self) -> &mut TcpStream {
+        &mut self.stream
     }
 
     /// One read from the socket; 0 means the peer closed it. Cancel-safe.
@@ -212,5 +299,17 @@ mod tests {
             "keep-alive"
         );
         assert_eq!(wire::varint(321), vec![0xC1, 0x02]);
+        let q = publish_qos1_packet("bench/t", 513, true, &[7u8; 32]);
+        assert_eq!(q[0], 0x33, "QoS 1, retain");
+        assert_eq!(packet_id(q[0], &q[2..]), Some(513));
+        assert_eq!(publish_payload(q[0], &q[2..]), Some(&[7u8; 32][..]));
+        let a = puback_packet(513);
+        assert_eq!(packet_id(a[0], &a[2..]), Some(513));
+        assert_eq!(packet_id(p[0], &p[2..]), None, "QoS 0 has no packet id");
+        assert_eq!(
+            connect_session_packet("id", false)[9],
+            0x00,
+            "no clean session"
+        );
     }
 }

@@ -313,3 +313,93 @@ fn quick_bridge_over_tcp_and_mutual_tls_alternates_and_reports_the_ratio() {
         );
     }
 }
+
+/// `compare persistence --quick`: QoS 1 throughput and latency into a persistent
+/// subscriber on fbbus with its store off and under each fsync policy (and Mosquitto with
+/// and without persistence where installed; CI requires it), then a restart on the store:
+/// every message delivered, every retained message and the sampled session back, fbbus's
+/// `store restored` figures read from its log, and the goal lines.
+#[test]
+fn quick_persistence_measures_the_store_and_the_restart() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let with_mosquitto =
+        std::path::Path::new("/usr/sbin/mosquitto").is_file() || require("mosquitto");
+    let mut args = vec!["compare", "persistence", "--quick", "--fbbus", fbbus];
+    if !with_mosquitto {
+        eprintln!("mosquitto not installed: fbbus's setups only");
+        args.extend(["--brokers", "fbbus"]);
+    }
+    let started = Instant::now();
+    let run = loadtest(&args, &[]);
+    let elapsed = started.elapsed();
+    assert!(run.success, "compare persistence failed\n{}", run.context());
+    let mut setups = vec!["fbbus-off", "fbbus-always", "fbbus-every100ms", "fbbus-os"];
+    if with_mosquitto {
+        setups.extend(["mosquitto-persist", "mosquitto-nopersist"]);
+    }
+    let rows = |setup: &str| -> Vec<&str> {
+        run.stdout
+            .lines()
+            .filter(|l| l.trim_start().starts_with(&format!("{setup} ")))
+            .collect()
+    };
+    for setup in &setups {
+        let rows = rows(setup);
+        // --quick: 10 x 500 in the burst, 10 x 1,000 msg/s x 1 s for latency.
+        assert!(
+            rows.iter().any(|r| r.contains(" 5000/5000 ")),
+            "{setup}: the burst was not delivered in full\n{}",
+            run.context()
+        );
+        assert!(
+            rows.iter().any(|r| r.contains(" 10000/10000 ")),
+            "{setup}: the latency run was not delivered in full\n{}",
+            run.context()
+        );
+    }
+    // The restart, with the store on: 2,000 retained messages, 50 sessions with 3 queued
+    // each, all back; fbbus's own log line read.
+    let mut persistent = vec!["fbbus-always", "fbbus-every100ms", "fbbus-os"];
+    if with_mosquitto {
+        persistent.push("mosquitto-persist");
+    }
+    for setup in persistent {
+        let restart = rows(setup)
+            .into_iter()
+            .find(|r| r.contains("2000/2000"))
+            .unwrap_or_else(|| panic!("{setup}: no restart row\n{}", run.context()));
+        assert!(restart.contains("present, 3/3"), "{setup}: {restart}");
+        if setup.starts_with("fbbus") {
+            assert!(restart.contains("2000/50/150"), "{setup}: {restart}");
+        }
+    }
+    assert!(
+        !rows("fbbus-off").iter().any(|r| r.contains("2000/2000")),
+        "a broker without persistence has no restart row\n{}",
+        run.context()
+    );
+    let goals: Vec<&str> = run
+        .stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("== goals"))
+        .collect();
+    assert!(
+        goals
+            .iter()
+            .any(|l| l.contains(">= 0.7x fbbus-off") && l.contains('x')),
+        "{}",
+        run.context()
+    );
+    assert!(
+        goals
+            .iter()
+            .any(|l| l.starts_with("restart of fbbus-every100ms")),
+        "{}",
+        run.context()
+    );
+    assert_eq!(run.file("persistence.txt"), run.stdout);
+    assert!(
+        elapsed < Duration::from_secs(60),
+        "the quick smoke run took {elapsed:?}"
+    );
+}

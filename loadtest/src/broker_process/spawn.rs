@@ -1,8 +1,12 @@
 //! Brokers the harness starts itself (`fbbus-loadtest compare`): fbbus, Mosquitto and raw
 //! rumqttd, each a child process of its own on free 127.0.0.1 ports, so its resident
 //! memory is its own. [`Running`] kills the process when dropped, also when a scenario
-//! panics; raw rumqttd also exits when the harness dies (it watches its stdin).
+//! panics; raw rumqttd also exits when the harness dies (it watches its stdin). For
+//! `compare persistence` a broker can also be stopped with SIGTERM
+//! ([`Running::terminate`]) and started again on the same ports, config and store
+//! ([`Running::respawn`]).
 
+use std::ffi::OsString;
 use std::fmt;
 use std::net::{SocketAddr, TcpListener};
 use std::path::{Path, PathBuf};
@@ -56,6 +60,22 @@ pub struct AuthFiles {
     pub probe: (String, String),
 }
 
+/// What a broker keeps across a restart (`compare persistence`). Without one
+/// ([`Spec::persistence`] `None`), fbbus runs with its defaults (its store on, in the
+/// broker's temporary directory) and Mosquitto with `persistence false`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Persistence {
+    /// fbbus: `[persistence] enabled = false`; Mosquitto: `persistence false`.
+    Off,
+    /// fbbus: `[persistence] enabled = true`, `dir` = `store/` in the broker's temporary
+    /// directory, this `fsync` policy (`"always"`, `"every 100 ms"`, `"os"`; None: fbbus's
+    /// default), and the store's `store restored` line in the log
+    /// (`[log] level = "warn,broker::store=info"`). Mosquitto: `persistence true`,
+    /// `persistence_location` = `mosquitto-store/` in its temporary directory, the default
+    /// `autosave_interval` (the policy does not apply).
+    On { fsync: Option<String> },
+}
+
 /// What to start.
 pub struct Spec<'a> {
     pub kind: Kind,
@@ -70,6 +90,10 @@ pub struct Spec<'a> {
     pub auth: Option<&'a AuthFiles>,
     /// fbbus: its `[auth] acl_file`.
     pub acl: Option<&'a Path>,
+    /// fbbus and Mosquitto: what they keep across a restart (None: see [`Persistence`]).
+    pub persistence: Option<&'a Persistence>,
+    /// Mosquitto: lines added to its `mosquitto.conf` (`max_inflight_messages 100`).
+    pub mosquitto_lines: &'a [String],
 }
 
 /// A broker child process; killed and reaped on drop.
@@ -82,7 +106,10 @@ pub struct Running {
     /// Held open so that `serve-rumqttd` exits by itself if the harness dies.
     _stdin: Option<ChildStdin>,
     log: PathBuf,
-    _dir: tempfile::TempDir,
+    /// What was started, for [`Running::respawn`].
+    program: PathBuf,
+    args: Vec<OsString>,
+    dir: tempfile::TempDir,
 }
 
 impl Running {
@@ -112,6 +139,83 @@ impl Running {
     /// Its log file (stdout and stderr); removed with the process's directory on drop.
     pub fn log_path(&self) -> &Path {
         &self.log
+    }
+
+    /// Its temporary directory: config, log and (with [`Persistence::On`]) its store,
+    /// `store/` (fbbus) or `mosquitto-store/` (Mosquitto).
+    pub fn dir(&self) -> &Path {
+        self.dir.path()
+    }
+
+    /// Stops the broker with SIGTERM, as systemd does, and waits up to `within` for it to
+    /// exit (then kills it). Its directory (config, store, log) stays, for
+    /// [`Running::respawn`]. Returns how long it took to exit.
+    pub fn terminate(&mut self, within: Duration) -> Result<Duration, Error> {
+        let started = Instant::now();
+        if self.child.try_wait()?.is_none() {
+            let pid = libc::pid_t::try_from(self.child.id())
+                .map_err(|_| Error::Process("pid out of range".into()))?;
+            // SAFETY: kill(2) on our own child's pid, which is not reaped yet (try_wait
+            // said it runs), so the pid cannot have been reused.
+            if unsafe { libc::kill(pid, libc::SIGTERM) } != 0 {
+                return Err(Error::Process(format!(
+                    "SIGTERM to {}: {}",
+                    self.kind,
+                    std::io::Error::last_os_error()
+                )));
+            }
+        }
+        loop {
+            if let Some(status) = self.child.try_wait()? {
+                if !status.success() && status.code().is_some() {
+                    return Err(Error::Process(format!(
+                        "{} exited with {status} on SIGTERM; {}",
+                        self.kind,
+                        self.log_tail()
+                    )));
+                }
+                return Ok(started.elapsed());
+            }
+            if started.elapsed() > within {
+                let _ = self.child.kill();
+                let _ = self.child.wait();
+                return Err(Error::Process(format!(
+                    "{} did not exit within {within:?} of SIGTERM (killed)",
+                    self.kind
+                )));
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+
+    /// Starts the same program again, with the same config, ports and directory (its
+    /// store), after [`Running::terminate`]; returns as soon as the process is spawned:
+    /// the caller decides when it is ready. Its log is appended to.
+    pub fn respawn(&mut self) -> Result<(), Error> {
+        if self.child.try_wait()?.is_none() {
+            return Err(Error::Process(format!("{} is still running", self.kind)));
+        }
+        let log = std::fs::OpenOptions::new().append(true).open(&self.log)?;
+        let mut command = Command::new(&self.program);
+        command
+            .args(&self.args)
+            .stdin(if self.kind == Kind::Rumqttd {
+                Stdio::piped()
+            } else {
+                Stdio::null()
+            })
+            .stdout(log.try_clone()?)
+            .stderr(log);
+        let mut child = command.spawn().map_err(|e| {
+            Error::Process(format!(
+                "cannot start {} ({}): {e}",
+                self.kind,
+                self.program.display()
+            ))
+        })?;
+        self._stdin = child.stdin.take();
+        self.child = child;
+        Ok(())
     }
 
     /// The last lines of its log (stdout and stderr), joined with ` | `.
@@ -187,20 +291,32 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
             let admin_addr = SocketAddr::from(([127, 0, 0, 1], free_port()?));
             admin = Some(admin_addr);
             let path = dir.path().join("fbbus.toml");
-            std::fs::write(&path, fbbus_config(spec, addr, admin_addr)?)?;
+            std::fs::write(&path, fbbus_config(spec, dir.path(), addr, admin_addr)?)?;
             let mut c = Command::new(spec.program);
             c.arg("serve").arg("--config").arg(&path);
             c
         }
         Kind::Mosquitto | Kind::MosquittoDefault => {
             let nodelay = kind == Kind::Mosquitto;
+            let persist = matches!(spec.persistence, Some(Persistence::On { .. }));
             let mut config = format!(
                 "listener {port} 127.0.0.1\n\
                  set_tcp_nodelay {nodelay}\n\
                  max_queued_messages 100000\n\
-                 persistence false\n\
+                 persistence {persist}\n\
                  log_dest none\n"
             );
+            if persist {
+                // Started as root, Mosquitto writes its database as user `mosquitto`.
+                let store = dir.path().join("mosquitto-store");
+                std::fs::create_dir(&store)?;
+                set_mode(&store, 0o777)?;
+                config.push_str(&format!("persistence_location {}/\n", store.display()));
+            }
+            for line in spec.mosquitto_lines {
+                config.push_str(line);
+                config.push('\n');
+            }
             match spec.auth {
                 Some(a) => {
                     let file = a.mosquitto.as_ref().ok_or_else(|| {
@@ -257,7 +373,9 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
         child,
         _stdin: stdin,
         log,
-        _dir: dir,
+        program: spec.program.to_path_buf(),
+        args: command.get_args().map(|a| a.to_os_string()).collect(),
+        dir,
     };
     let deadline = Instant::now() + READY_WITHIN;
     loop {
@@ -288,7 +406,12 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
 
 /// fbbus's generated config: its defaults, one loopback listener, `max_connections`
 /// above every scenario's count, warnings only in the log.
-fn fbbus_config(spec: &Spec<'_>, addr: SocketAddr, admin: SocketAddr) -> Result<String, Error> {
+fn fbbus_config(
+    spec: &Spec<'_>,
+    dir: &Path,
+    addr: SocketAddr,
+    admin: SocketAddr,
+) -> Result<String, Error> {
     let mut config = String::from("[broker]\nmax_connections = 10100\n");
     for option in spec.broker_keys {
         config.push_str(option);
@@ -315,8 +438,25 @@ fn fbbus_config(spec: &Spec<'_>, addr: SocketAddr, admin: SocketAddr) -> Result<
         config.push_str("\n[auth]\n");
         config.push_str(&auth);
     }
+    let mut level = "warn";
+    match spec.persistence {
+        None => {}
+        Some(Persistence::Off) => config.push_str("\n[persistence]\nenabled = false\n"),
+        Some(Persistence::On { fsync }) => {
+            let store = dir.join("store");
+            config.push_str(&format!(
+                "\n[persistence]\nenabled = true\ndir = \"{}\"\n",
+                store.display()
+            ));
+            if let Some(fsync) = fsync {
+                config.push_str(&format!("fsync = \"{fsync}\"\n"));
+            }
+            // The `store restored retained=... read_ms=... put_back_ms=...` line.
+            level = "warn,broker::store=info";
+        }
+    }
     config.push_str(&format!(
-        "\n[admin]\nbind = \"{admin}\"\n\n[log]\nlevel = \"warn\"\n"
+        "\n[admin]\nbind = \"{admin}\"\n\n[log]\nlevel = \"{level}\"\n"
     ));
     config.push_str(spec.tables);
     Ok(config)

@@ -13,6 +13,7 @@
 mod auth;
 mod bridge;
 mod fb;
+mod persistence;
 mod scenarios;
 mod table;
 
@@ -83,6 +84,45 @@ enum FbbusOnly {
         /// Messages in each burst (default 40000; --quick 2000).
         #[arg(long, value_name = "N")]
         burst: Option<usize>,
+    },
+    /// fbbus's store (issue 17) beside Mosquitto's persistence: QoS 1 burst throughput and
+    /// steady latency into a persistent subscriber with fbbus's persistence off and with
+    /// fsync "always", "every 100 ms" (the default) and "os", Mosquitto with persistence
+    /// true and false; and the restart time with 100,000 retained messages and 1,000
+    /// persistent sessions (SIGTERM, start again on the same store).
+    Persistence {
+        /// Small sizes (a smoke test, not a measurement).
+        #[arg(long)]
+        quick: bool,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+        /// The mosquitto binary. Default: /usr/sbin/mosquitto, else PATH.
+        #[arg(long, value_name = "PATH")]
+        mosquitto: Option<PathBuf>,
+        /// Brokers to run, comma-separated: fbbus (its four setups), mosquitto (its two).
+        /// Default: both.
+        #[arg(long, value_delimiter = ',', value_name = "LIST")]
+        brokers: Vec<String>,
+        /// Measurements, comma-separated: throughput, latency, restart. Default: all.
+        #[arg(long, value_delimiter = ',', value_name = "LIST")]
+        scenarios: Vec<String>,
+        /// Runs of each measurement per setup, alternating setups round by round; the
+        /// ratios use each setup's median.
+        #[arg(long, default_value_t = 1, value_name = "N")]
+        rounds: u32,
+        /// QoS 1 messages per publisher in the burst (default 10000; --quick 500).
+        #[arg(long, value_name = "N")]
+        messages: Option<usize>,
+        /// Duration of the steady-rate latency measurement in seconds (default 10; --quick 1).
+        #[arg(long, value_name = "SECONDS")]
+        latency_secs: Option<u64>,
+        /// Retained messages the restart measurement stores (default 100000; --quick 2000).
+        #[arg(long, value_name = "N")]
+        retained: Option<usize>,
+        /// Persistent sessions the restart measurement stores (default 1000; --quick 50).
+        #[arg(long, value_name = "N")]
+        sessions: Option<usize>,
     },
 }
 
@@ -184,6 +224,56 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
                 params.burst = n.max(1);
             }
             bridge::run(&fbbus, &params, out).await
+        }
+        Some(FbbusOnly::Persistence {
+            quick,
+            fbbus,
+            mosquitto,
+            brokers,
+            scenarios,
+            rounds,
+            messages,
+            latency_secs,
+            retained,
+            sessions,
+        }) => {
+            let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
+            let mut kinds = Vec::new();
+            for name in &brokers {
+                let kind = match name.trim() {
+                    "fbbus" => Kind::Fbbus,
+                    "mosquitto" => Kind::Mosquitto,
+                    other => bail!("unknown broker `{other}` (known: fbbus, mosquitto)"),
+                };
+                if !kinds.contains(&kind) {
+                    kinds.push(kind);
+                }
+            }
+            if kinds.is_empty() {
+                kinds = vec![Kind::Fbbus, Kind::Mosquitto];
+            }
+            let mut params = if quick {
+                persistence::PersistParams::quick()
+            } else {
+                persistence::PersistParams::full()
+            };
+            params.measures = persistence::Measure::parse_list(&scenarios)?;
+            params.rounds = rounds.max(1);
+            if let Some(n) = messages {
+                params.messages = n.max(1);
+            }
+            if let Some(s) = latency_secs {
+                params.latency_secs = s.max(1);
+            }
+            if let Some(n) = retained {
+                params.retained = n.max(1);
+            }
+            if let Some(n) = sessions {
+                params.sessions = n.max(1);
+            }
+            let mosquitto =
+                mosquitto.or_else(|| spawn::find_program("mosquitto", &["/usr/sbin/mosquitto"]));
+            persistence::run(&fbbus, mosquitto.as_deref(), &kinds, &params, out).await
         }
         None => compare(args.run, &harness, &default_fbbus, out).await,
     }
@@ -453,6 +543,8 @@ async fn run_one(
         tables: "",
         auth: auth.map(|s| &s.files),
         acl: fbbus_acl,
+        persistence: None,
+        mosquitto_lines: &[],
     };
     let mut broker: Running = match spawn::start(&spec).await {
         Ok(b) => b,
@@ -489,6 +581,8 @@ async fn start_fbbus(fbbus: &Path, broker_keys: &[String], tables: &str) -> Resu
         tables,
         auth: None,
         acl: None,
+        persistence: None,
+        mosquitto_lines: &[],
     })
     .await?)
 }
