@@ -1060,8 +1060,13 @@ impl Router {
 
         // check is group is None because retained messages aren't sent
         // for shared subscriptions
-        // TODO: use retain forward rules
-        let forward_retained = group.is_none();
+        // fbbus: nor to a subscription with Retain Handling 2 (MQTT 5 3.8.3.1,
+        // `RetainForwardRule::Never`). Upstream read them all and left the embedder to
+        // drop them: a session put back at start (`broker/src/store/restore.rs`)
+        // subscribes with Retain Handling 2, and 1,000 of them walked 100,000 retained
+        // messages each (14 s of a restart).
+        let forward_retained =
+            group.is_none() && filter.retain_forward_rule != RetainForwardRule::Never;
 
         // call to `insert(_)` returns `true` if it didn't contain the filter_path already
         // i.e. its a new subscription
