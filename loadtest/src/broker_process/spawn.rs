@@ -444,8 +444,12 @@ fn fbbus_config(
         Some(Persistence::Off) => config.push_str("\n[persistence]\nenabled = false\n"),
         Some(Persistence::On { fsync }) => {
             let store = dir.join("store");
+            // As many queued messages per session as Mosquitto is given
+            // (`max_queued_messages 100000`): a burst into a connected persistent
+            // subscriber keeps more than fbbus's default 1,000 unacknowledged, and past
+            // the limit messages are routed but not stored, which would measure less work.
             config.push_str(&format!(
-                "\n[persistence]\nenabled = true\ndir = \"{}\"\n",
+                "\n[persistence]\nenabled = true\ndir = \"{}\"\nmax_queued_messages = 100000\n",
                 store.display()
             ));
             if let Some(fsync) = fsync {

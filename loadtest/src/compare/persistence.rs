@@ -246,7 +246,7 @@ impl Setup {
         match (self.kind, &self.persistence) {
             (Kind::Fbbus, Persistence::Off) => "[persistence] enabled = false".into(),
             (Kind::Fbbus, Persistence::On { fsync }) => format!(
-                "[persistence] enabled = true, dir in its temp dir, fsync = \"{}\"{}",
+                "[persistence] enabled = true, dir in its temp dir, max_queued_messages = 100000, fsync = \"{}\"{}",
                 fsync.as_deref().unwrap_or("every 100 ms"),
                 if self.label == DEFAULT_POLICY {
                     " (the default)"
