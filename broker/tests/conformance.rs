@@ -1275,3 +1275,52 @@ async fn overlapping_subscriptions_get_one_copy_with_every_identifier() {
         "one copy each, every matching subscription's identifier, the highest QoS"
     );
 }
+
+/// A new subscription gets every retained message it matches, not only as many as the
+/// router sends in one round (`router_max_outgoing_packets`, 1,000): a dashboard of a line
+/// with several thousand retained FB values used to get the first 1,000.
+#[test]
+fn a_new_subscription_gets_every_retained_message_not_only_a_window() {
+    use common::raw::{self, Connect, RawClient};
+    const N: usize = 2500;
+    let broker = Broker::start();
+    let mut p = RawClient::connect(broker.port());
+    assert_eq!(
+        p.handshake(&Connect {
+            client_id: "many-pub",
+            ..Default::default()
+        }),
+        0
+    );
+    let mut burst = Vec::new();
+    for i in 0..N {
+        let mut packet = raw::publish_qos0(&format!("many/{i}"), b"v");
+        packet[0] |= 0x01;
+        burst.extend_from_slice(&packet);
+    }
+    p.send(&burst);
+    // A round trip on the publisher's connection: everything before it was taken.
+    p.send(&raw::PINGREQ);
+    assert_eq!(p.read_packet().expect("PINGRESP").0, 0xD0);
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let mut s = RawClient::connect(broker.port());
+    assert_eq!(
+        s.handshake(&Connect {
+            client_id: "many-sub",
+            ..Default::default()
+        }),
+        0
+    );
+    s.send(&raw::subscribe(4, 1, &["many/#"]));
+    s.stream
+        .set_read_timeout(Some(std::time::Duration::from_secs(2)))
+        .unwrap();
+    let mut retained = std::collections::BTreeSet::new();
+    while let Some((b, body)) = s.read_packet() {
+        if b & 0xF0 == 0x30 && b & 0x01 == 1 {
+            let n = u16::from_be_bytes([body[0], body[1]]) as usize;
+            retained.insert(String::from_utf8_lossy(&body[2..2 + n]).into_owned());
+        }
+    }
+    assert_eq!(retained.len(), N, "every retained message, once");
+}

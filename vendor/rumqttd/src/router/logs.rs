@@ -622,6 +622,7 @@ mod test {
             group: None,
             skipping: false,
             slow: false,
+            retained_pending: Default::default(),
         };
         data.park(7, request("c", c));
         assert_eq!(data.matches("a/x"), Some(vec![a]));
@@ -668,6 +669,7 @@ mod test {
                     group: None,
                     skipping: false,
                     slow: false,
+                    retained_pending: Default::default(),
                 },
             );
         }

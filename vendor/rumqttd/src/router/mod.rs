@@ -272,7 +272,36 @@ pub struct DataRequest {
     /// behind: until it catches up it no longer holds them back (`holds`).
     #[serde(default)]
     pub(crate) slow: bool,
+    /// fbbus: the retained messages of this SUBSCRIBE still to send, read once and sent a
+    /// window at a time. Upstream read them all on every round and dropped what did not
+    /// fit the window (`max_outgoing_packet_count`): a subscriber of a line with more
+    /// than 1,000 retained messages got 1,000 of them.
+    #[serde(skip)]
+    pub(crate) retained_pending: RetainedPending,
 }
+
+/// fbbus: retained messages still to send for a request ([`DataRequest::retained_pending`]).
+/// Compared by length only: a request's identity is its filter and cursor.
+#[derive(Debug, Clone, Default)]
+#[allow(clippy::type_complexity)]
+pub struct RetainedPending(
+    pub(crate)  Option<
+        Box<
+            std::collections::VecDeque<(
+                crate::protocol::Publish,
+                Option<crate::protocol::PublishProperties>,
+            )>,
+        >,
+    >,
+);
+
+impl PartialEq for RetainedPending {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.as_ref().map(|p| p.len()) == other.0.as_ref().map(|p| p.len())
+    }
+}
+
+impl Eq for RetainedPending {}
 
 #[derive(Debug, Clone)]
 pub struct ShadowRequest {

@@ -1084,6 +1084,7 @@ impl Router {
                 group,
                 skipping: false,
                 slow: false,
+                retained_pending: Default::default(),
             };
 
             self.scheduler.track(id, request);
@@ -1752,18 +1753,24 @@ fn forward_device_data(
         // NOTE: ideally we want to limit the number of read messages
         // and skip the messages previously read while reading next time.
         // but for now, we just try to read all messages and drop the excess ones
-        let mut retained_publishes = datalog.read_retained_messages(&request.filter);
-        retained_publishes.truncate(inflight_slots as usize);
-
-        publishes.extend(retained_publishes.into_iter().map(|p| (p, None)));
-        inflight_slots -= publishes.len() as u64;
+        // fbbus: read once per SUBSCRIBE, then sent a window at a time until all went
+        // (`DataRequest::retained_pending`); upstream dropped what exceeded one window.
+        let pending = request.retained_pending.0.get_or_insert_with(|| {
+            Box::new(datalog.read_retained_messages(&request.filter).into())
+        });
+        let n = (inflight_slots as usize).min(pending.len());
+        publishes.extend(pending.drain(..n).map(|p| (p, None)));
+        inflight_slots -= n as u64;
 
         // we only want to forward retained messages once
-        // fbbus: once per SUBSCRIBE that asked for them (`retained_again`).
-        if request.retained_again > 0 {
-            request.retained_again -= 1;
-        } else {
-            request.forward_retained = false;
+        // fbbus: once per SUBSCRIBE that asked for them (`retained_again`), each sent whole.
+        if pending.is_empty() {
+            request.retained_pending.0 = None;
+            if request.retained_again > 0 {
+                request.retained_again -= 1;
+            } else {
+                request.forward_retained = false;
+            }
         }
     }
 
