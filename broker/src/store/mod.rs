@@ -22,7 +22,8 @@
 //! persistent session is linked to the router again with its subscriptions (so messages
 //! published before its client returns are queued for it as before), and what was queued
 //! for it when the broker stopped is its backlog, which its next connection sends first
-//! (`Session::send_backlog`), QoS 2 exchanges at the step they had reached.
+//! (`Session::release_backlog`, `session/persist.rs`), QoS 2 exchanges at the step they had
+//! reached.
 //!
 //! **Bounded**: `max_queued_messages` per session and `max_bytes` in all; a message over
 //! either is not stored (it is still routed), counted in `fbbus_store_not_stored_total`.
@@ -173,7 +174,6 @@ pub enum StoreError {
 /// The store's handle, shared by every session.
 pub struct Store {
     queue: flume::Sender<Batch>,
-    fsync: Fsync,
     next_seq: AtomicU64,
     /// Persistent sessions with at least one subscription, after the writer's last batch.
     subscribed: Arc<AtomicUsize>,
@@ -391,7 +391,6 @@ impl Store {
         restore.took = started.elapsed();
         let store = Store {
             queue,
-            fsync: section.fsync,
             next_seq,
             subscribed,
             subscribing,
@@ -529,10 +528,6 @@ impl Store {
                 .unwrap_or_else(PoisonError::into_inner)
                 .insert(client.to_owned(), backlog);
         }
-    }
-
-    pub fn fsync(&self) -> Fsync {
-        self.fsync
     }
 }
 
@@ -796,7 +791,7 @@ pub fn now_ms() -> u64 {
         .unwrap_or(0)
 }
 
-/// The store's directory is where it will be (for `check-config`).
+/// The store's log file in `dir` (named in errors).
 pub fn log_path(dir: &Path) -> PathBuf {
     dir.join("store.log")
 }
