@@ -887,19 +887,9 @@ async fn latency(broker: &Running, p: &PersistParams) -> Result<Figures> {
         add_note(&mut note, received.end.clone());
     }
     let sent = sent.load(Ordering::Relaxed);
-    let h = &received.latency_ns;
-    let ms = |ns: u64| ns as f64 / 1e6;
-    let (p50, p99, max) = if h.is_empty() {
-        (None, None, None)
-    } else {
-        (
-            Some(ms(h.value_at_quantile(0.50))),
-            Some(ms(h.value_at_quantile(0.99))),
-            Some(ms(h.max())),
-        )
-    };
-    let f = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into());
+    let (p50, p99, max) = super::scenarios::latency_ms(&received.latency_ns);
     drop(keep);
+    let f = super::scenarios::ms_cell;
     Ok(Figures {
         cells: vec![
             f(p50),

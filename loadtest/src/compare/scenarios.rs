@@ -552,6 +552,24 @@ fn delivered(received: u64, expected: u64) -> String {
     format!("{received}/{expected}")
 }
 
+/// p50, p99 and max of a histogram of nanoseconds, in milliseconds (None when empty).
+pub(super) fn latency_ms(h: &Histogram<u64>) -> (Option<f64>, Option<f64>, Option<f64>) {
+    if h.is_empty() {
+        return (None, None, None);
+    }
+    let ms = |ns: u64| ns as f64 / 1e6;
+    (
+        Some(ms(h.value_at_quantile(0.50))),
+        Some(ms(h.value_at_quantile(0.99))),
+        Some(ms(h.max())),
+    )
+}
+
+/// A table cell of milliseconds, `-` without a value.
+pub(super) fn ms_cell(v: Option<f64>) -> String {
+    v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
+}
+
 fn lost(received: u64, sent: u64) -> String {
     let lost = sent.saturating_sub(received);
     if sent == 0 {
@@ -652,23 +670,13 @@ async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
         add_note(&mut note, "timeout");
     }
     let h = drained.latency_ns.expect("latency histogram");
-    let ms = |ns: u64| ns as f64 / 1e6;
-    let (p50, p99, max) = if h.is_empty() {
-        (None, None, None)
-    } else {
-        (
-            Some(ms(h.value_at_quantile(0.50))),
-            Some(ms(h.value_at_quantile(0.99))),
-            Some(ms(h.max())),
-        )
-    };
-    let f = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into());
+    let (p50, p99, max) = latency_ms(&h);
     drop(streams);
     Ok(Outcome {
         cells: vec![
-            f(p50),
-            f(p99),
-            f(max),
+            ms_cell(p50),
+            ms_cell(p99),
+            ms_cell(max),
             delivered(drained.received, expected),
             lost(drained.received, sent),
         ],
