@@ -499,6 +499,22 @@ async fn connect(addr: SocketAddr, id: &str, clean: bool) -> Result<(PacketReade
 }
 
 /// The persistent subscriber (clean session 0) on `topic` at QoS 1.
+/// The persistent subscriber of `topic` and `n` clean publishers, connected; then a
+/// pause, as some brokers apply a subscription after its SUBACK.
+async fn subscriber_and_publishers(
+    addr: SocketAddr,
+    topic: &str,
+    n: usize,
+) -> Result<(PacketReader, Vec<PacketReader>)> {
+    let sub = persistent_subscriber(addr, topic).await?;
+    let mut pubs = Vec::with_capacity(n);
+    for i in 0..n {
+        pubs.push(connect(addr, &format!("bench-pub-{i}"), true).await?.0);
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    Ok((sub, pubs))
+}
+
 async fn persistent_subscriber(addr: SocketAddr, topic: &str) -> Result<PacketReader> {
     let (mut sub, _) = connect(addr, "bench-persist-sub", false).await?;
     let granted = tokio::time::timeout(
@@ -712,13 +728,7 @@ fn count_and_mean(count: f64, seconds: f64) -> String {
 async fn throughput(broker: &Running, p: &PersistParams) -> Result<Figures> {
     let topic = "bench/persist";
     let addr = broker.addr;
-    let mut sub = persistent_subscriber(addr, topic).await?;
-    let mut pubs = Vec::with_capacity(p.publishers);
-    for i in 0..p.publishers {
-        pubs.push(connect(addr, &format!("bench-pub-{i}"), true).await?.0);
-    }
-    // Routers apply a subscription asynchronously to its SUBACK on some brokers.
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let (mut sub, pubs) = subscriber_and_publishers(addr, topic, p.publishers).await?;
     let store = match (broker.kind, broker.admin) {
         (Kind::Fbbus, Some(admin)) => Some((admin, store_counters(admin).await)),
         _ => None,
@@ -818,12 +828,7 @@ async fn throughput(broker: &Running, p: &PersistParams) -> Result<Figures> {
 async fn latency(broker: &Running, p: &PersistParams) -> Result<Figures> {
     let topic = "bench/persist-latency";
     let addr = broker.addr;
-    let mut sub = persistent_subscriber(addr, topic).await?;
-    let mut pubs = Vec::with_capacity(p.publishers);
-    for i in 0..p.publishers {
-        pubs.push(connect(addr, &format!("bench-pub-{i}"), true).await?.0);
-    }
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let (mut sub, pubs) = subscriber_and_publishers(addr, topic, p.publishers).await?;
     let per_publisher = (p.latency_rate * p.latency_secs) as usize;
     let period_ns = 1_000_000_000 / p.latency_rate.max(1);
     let epoch = Instant::now();
@@ -1292,22 +1297,9 @@ fn table(t: &mut Transcript, m: Measure, rows: &[Row], rounds: u32) {
             }
         }
     }
-    let mut widths: Vec<usize> = headers.iter().map(|h| h.chars().count()).collect();
-    for (cells, _) in &lines {
-        for (w, c) in widths.iter_mut().zip(cells) {
-            *w = (*w).max(c.chars().count());
-        }
-    }
-    let render = |cells: &[String]| {
-        cells
-            .iter()
-            .zip(&widths)
-            .map(|(c, w)| format!("{c:<w$}"))
-            .collect::<Vec<_>>()
-            .join("  ")
-            .trim_end()
-            .to_string()
-    };
+    let rows: Vec<Vec<String>> = lines.iter().map(|(cells, _)| cells.clone()).collect();
+    let widths = super::table::column_widths(headers.iter().map(|h| h.chars().count()), &rows);
+    let render = |cells: &[String]| super::table::aligned(cells, &widths);
     t.line(format!("   {}", render(&headers)));
     for (cells, note) in &lines {
         let mut text = render(cells);

@@ -105,22 +105,8 @@ pub fn rows(
             r
         })
         .collect();
-    let mut widths: Vec<usize> = headers.iter().map(|h| h.len()).collect();
-    for r in &table {
-        for (w, c) in widths.iter_mut().zip(r) {
-            *w = (*w).max(c.chars().count());
-        }
-    }
-    let line = |cells: &[String]| {
-        cells
-            .iter()
-            .zip(&widths)
-            .map(|(c, w)| format!("{c:<w$}"))
-            .collect::<Vec<_>>()
-            .join("  ")
-            .trim_end()
-            .to_string()
-    };
+    let widths = column_widths(headers.iter().map(|h| h.chars().count()), &table);
+    let line = |cells: &[String]| aligned(cells, &widths);
     let header: Vec<String> = headers.iter().map(|h| h.to_string()).collect();
     t.line(format!("   {}", line(&header)));
     for (r, (_, _, o)) in table.iter_mut().zip(rows) {
@@ -273,4 +259,30 @@ fn read_first(path: &str, key: Option<&str>) -> String {
         None => text.lines().next().map(|l| l.trim().to_string()),
     };
     line.unwrap_or_else(|| "unknown".into())
+}
+
+/// The width of each column: the widest of its header and its cells, in characters.
+pub(super) fn column_widths(
+    headers: impl Iterator<Item = usize>,
+    rows: &[Vec<String>],
+) -> Vec<usize> {
+    let mut widths: Vec<usize> = headers.collect();
+    for r in rows {
+        for (w, c) in widths.iter_mut().zip(r) {
+            *w = (*w).max(c.chars().count());
+        }
+    }
+    widths
+}
+
+/// One table row, each cell left-aligned to its column's width, two spaces between.
+pub(super) fn aligned(cells: &[String], widths: &[usize]) -> String {
+    cells
+        .iter()
+        .zip(widths)
+        .map(|(c, w)| format!("{c:<w$}"))
+        .collect::<Vec<_>>()
+        .join("  ")
+        .trim_end()
+        .to_string()
 }
