@@ -359,7 +359,7 @@ async fn a_device_whose_runtime_never_pings_is_not_cut_for_it() {
             .unwrap();
         assert!(other.raw.closed_by_broker());
     });
-    assert!(broker.metric("fbbus_disconnects_total{reason=\"keep_alive\"}") >= 1.0);
+    assert!(broker.wait_metric("fbbus_disconnects_total{reason=\"keep_alive\"}", 1.0) >= 1.0);
 }
 
 /// A profile's stated period: the device is judged silent from its first connection,

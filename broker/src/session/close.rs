@@ -232,8 +232,9 @@ impl Session {
                 );
             }
         }
-        self.ctx.metrics.disconnected(end.reason());
+        // The gauge first: a scrape that sees the disconnect counted sees the gauge down.
         self.ctx.metrics.connections.dec();
+        self.ctx.metrics.disconnected(end.reason());
         tracing::info!(
             peer = %self.peer,
             client_id = &*self.client_id,
