@@ -72,7 +72,8 @@ async fn login_ok_wrong_password_unknown_user_and_anonymous() {
         broker.metric("fbbus_auth_failures_total{reason=\"missing_credentials\"}"),
         1.0
     );
-    assert_eq!(broker.metric("fbbus_connects_total"), 2.0);
+    // Counted once the CONNACK is written: the client may read it first.
+    assert_eq!(broker.wait_metric("fbbus_connects_total", 2.0), 2.0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

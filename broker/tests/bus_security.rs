@@ -284,6 +284,15 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
     let dir = tempfile::tempdir().unwrap();
     let ca = pki::bus().write(dir.path(), "line-c").ca;
     let endpoints = [a.zenoh.as_str(), b.zenoh.as_str()];
+    // Line A puts press-8's record before it declares its token, so line B may show it
+    // online (and take its values) before it counted line A's tokens: the baseline waits
+    // for them.
+    for kind in ["line_up", "device_up"] {
+        b.wait_metric(
+            &format!("fbbus_bridge_liveliness_changes_total{{kind=\"{kind}\"}}"),
+            1.0,
+        );
+    }
     let before = device_tokens_beyond_lines(&b);
     let line_downs = liveliness(&b, "line_down");
 
