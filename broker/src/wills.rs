@@ -172,7 +172,7 @@ impl Wills {
         if tasks.len() < waiting {
             if let Some(store) = self.store.get() {
                 store.write_now(vec![crate::store::Record::WillDone {
-                    client: client_id.to_owned(),
+                    client: client_id.into(),
                 }]);
             }
         }
@@ -190,7 +190,7 @@ impl Wills {
         }
         if let Some(store) = self.store.get() {
             store.write_now(vec![crate::store::Record::Will {
-                client: client_id.to_owned(),
+                client: client_id.into(),
                 due: crate::store::now_ms() + will.delay.as_millis() as u64,
                 message: stored_will(client_id, &will),
             }]);
@@ -205,7 +205,9 @@ impl Wills {
             tokio::time::sleep(will.delay).await;
             this.forget(&id, tokio::task::id());
             if let Some(store) = this.store.get() {
-                store.write_now(vec![crate::store::Record::WillDone { client: id.clone() }]);
+                store.write_now(vec![crate::store::Record::WillDone {
+                    client: id.as_str().into(),
+                }]);
             }
             this.publish(&id, session, will);
         });

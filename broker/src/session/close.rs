@@ -1,6 +1,7 @@
 //! The end of a session: why it ended ([`End`]) decides the MQTT 5 DISCONNECT reason,
 //! whether the will fires and the disconnect metric's label.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
@@ -167,7 +168,7 @@ impl Session {
             self.return_backlog(true);
             if current {
                 self.journal.push(crate::store::Record::Offline {
-                    client: self.client_id.to_string(),
+                    client: Arc::clone(&self.client_id),
                     at: crate::store::now(),
                     expiry: self
                         .lifetime

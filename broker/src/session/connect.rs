@@ -243,7 +243,7 @@ fn stored_session(
             drop(store.take_backlog(client_id));
         }
         let record = crate::store::Record::Session {
-            client: client_id.to_owned(),
+            client: client_id.into(),
             owner: match owner {
                 Owner::Anonymous => String::new(),
                 Owner::User(user) => user.to_string(),
@@ -258,7 +258,7 @@ fn stored_session(
     } else if store.has_session(client_id) {
         store.set_session(client_id, false);
         let record = crate::store::Record::Ended {
-            client: client_id.to_owned(),
+            client: client_id.into(),
         };
         (false, vec![record])
     } else {

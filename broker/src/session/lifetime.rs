@@ -113,7 +113,7 @@ pub fn purge_evicted(
     if let Some(store) = store {
         store.set_session(client_id, false);
         store.write_now(vec![Record::Ended {
-            client: client_id.to_owned(),
+            client: client_id.into(),
         }]);
     }
     match router.link_blocking(client_id, true) {
@@ -145,7 +145,7 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
         if let Some(store) = &ctx.store {
             store.set_session(client_id, false);
             let ended = Record::Ended {
-                client: client_id.to_owned(),
+                client: client_id.into(),
             };
             store.write(vec![ended], false).await;
         }

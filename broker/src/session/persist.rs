@@ -75,7 +75,7 @@ impl Session {
         }
         for f in filters {
             self.journal.push(Record::Subscribe {
-                client: self.client_id.to_string(),
+                client: Arc::clone(&self.client_id),
                 filter: f.path.clone(),
                 options: Options {
                     qos: match f.qos {
@@ -102,7 +102,7 @@ impl Session {
         }
         for f in filters {
             self.journal.push(Record::Unsubscribe {
-                client: self.client_id.to_string(),
+                client: Arc::clone(&self.client_id),
                 filter: f.clone(),
             });
         }
@@ -120,7 +120,7 @@ impl Session {
     pub(super) fn store_sent_qos2(&mut self, router_pkid: u16) {
         if let Some((seq, client_pkid)) = self.stored_out.get(&router_pkid) {
             self.journal.push(Record::Qos2 {
-                client: self.client_id.to_string(),
+                client: Arc::clone(&self.client_id),
                 seq: *seq,
                 state: Qos2::Sent(*client_pkid),
             });
@@ -133,7 +133,7 @@ impl Session {
         if self.stored_out.is_empty() {
             return;
         }
-        let client = self.client_id.to_string();
+        let client = Arc::clone(&self.client_id);
         if done {
             if let Some((seq, _)) = self.stored_out.remove(&router_pkid) {
                 self.journal.push(Record::Done { client, seq });
@@ -214,7 +214,7 @@ impl Session {
                     }
                     if b.qos == 2 && b.qos2.is_none() {
                         self.journal.push(Record::Qos2 {
-                            client: self.client_id.to_string(),
+                            client: Arc::clone(&self.client_id),
                             seq: b.seq,
                             state: Qos2::Sent(client_pkid),
                         });
@@ -237,7 +237,7 @@ impl Session {
         let Some(rare) = self.rare.as_mut().filter(|r| !r.backlog_out.is_empty()) else {
             return false;
         };
-        let client = self.client_id.to_string();
+        let client = Arc::clone(&self.client_id);
         match packet {
             Packet::PubAck(ack, _) => {
                 let Some(b) = rare.backlog_out.remove(&ack.pkid) else {

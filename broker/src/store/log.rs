@@ -253,7 +253,7 @@ mod tests {
 
     fn ended(i: usize) -> Record {
         Record::Ended {
-            client: format!("c{i}"),
+            client: format!("c{i}").into(),
         }
     }
 

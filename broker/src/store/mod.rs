@@ -44,7 +44,7 @@ use serde::Deserialize;
 use tokio::sync::oneshot;
 
 pub use self::log::LogError;
-pub use self::record::{Message, Options, Qos2, Record};
+pub use self::record::{ClientId, Message, Options, Qos2, Record};
 use self::state::{Drops, Limits, State, StoredSession};
 
 /// `[persistence]` in the configuration.
@@ -310,7 +310,7 @@ impl Store {
         }
         // Sessions whose expiry passed while the broker was down end now.
         let now = unix_now();
-        let expired: Vec<String> = state
+        let expired: Vec<ClientId> = state
             .sessions
             .iter()
             .filter(|(_, s)| match (s.offline_at, s.expiry) {
@@ -329,7 +329,7 @@ impl Store {
         let mut backlogs = HashMap::new();
         let mut persistent = HashSet::new();
         for (client, s) in &state.sessions {
-            persistent.insert(client.clone());
+            persistent.insert(client.to_string());
             restore.sessions.push(restored_session(client, s, now));
             let backlog: Vec<Backlogged> = s
                 .queue
@@ -343,7 +343,7 @@ impl Store {
                 .collect();
             restore.queued += backlog.len();
             if !backlog.is_empty() {
-                backlogs.insert(client.clone(), backlog);
+                backlogs.insert(client.to_string(), backlog);
             }
         }
         restore.retained = state.retained.values().cloned().collect();
@@ -353,7 +353,7 @@ impl Store {
                 let left = Duration::from_millis(due.saturating_sub(now_ms));
                 restore
                     .wills
-                    .push((client.clone(), left, Arc::clone(message)));
+                    .push((client.to_string(), left, Arc::clone(message)));
             }
         }
         let store_metrics = Arc::new(StoreMetrics::new(metrics));
@@ -367,7 +367,7 @@ impl Store {
             }
         }
         store_metrics.show(&state, log.length());
-        let subscribed = Arc::new(AtomicUsize::new(count_subscribed(&state)));
+        let subscribed = Arc::new(AtomicUsize::new(state.subscribed));
         let subscribing = Arc::new(AtomicUsize::new(0));
         let (queue, batches) = flume::bounded(QUEUE);
         let writer = Writer {
@@ -553,14 +553,6 @@ fn restored_session(client: &str, s: &StoredSession, now: u64) -> RestoredSessio
     }
 }
 
-fn count_subscribed(state: &State) -> usize {
-    state
-        .sessions
-        .values()
-        .filter(|s| !s.subscriptions.is_empty())
-        .count()
-}
-
 /// The writer thread: the only owner of the log and of the state it mirrors.
 struct Writer {
     log: log::Log,
@@ -645,7 +637,7 @@ impl Writer {
                 }
             }
             self.subscribed
-                .store(count_subscribed(&self.state), Ordering::Release);
+                .store(self.state.subscribed, Ordering::Release);
             if subscribes > 0 {
                 self.subscribing.fetch_sub(subscribes, Ordering::AcqRel);
             }

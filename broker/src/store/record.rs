@@ -54,12 +54,16 @@ pub enum Qos2 {
     Received(u16),
 }
 
+/// A session's client id in records: shared with the session that writes them, so the
+/// records of every acknowledgement do not each copy it.
+pub type ClientId = Arc<str>;
+
 #[derive(Debug, Clone, PartialEq)]
 pub enum Record {
     /// A persistent session connected: `fresh` when it starts empty (no session was
     /// resumed). `expiry`: seconds it outlives its connection, None for never.
     Session {
-        client: String,
+        client: ClientId,
         owner: String,
         v5: bool,
         expiry: Option<u32>,
@@ -67,21 +71,21 @@ pub enum Record {
     },
     /// Its connection ended and the session is kept: offline since `at` (Unix seconds).
     Offline {
-        client: String,
+        client: ClientId,
         at: u64,
         expiry: Option<u32>,
     },
     /// The session is gone (clean connection, expiry, eviction): with its queue.
     Ended {
-        client: String,
+        client: ClientId,
     },
     Subscribe {
-        client: String,
+        client: ClientId,
         filter: String,
         options: Options,
     },
     Unsubscribe {
-        client: String,
+        client: ClientId,
         filter: String,
     },
     /// A publication: retained if `message.retain`, queued for every persistent session
@@ -98,31 +102,31 @@ pub enum Record {
     },
     /// The client acknowledged (PUBACK, PUBCOMP) or was not to be sent message `seq`.
     Done {
-        client: String,
+        client: ClientId,
         seq: u64,
     },
     /// A QoS 2 delivery of message `seq` moved on.
     Qos2 {
-        client: String,
+        client: ClientId,
         seq: u64,
         state: Qos2,
     },
     /// A will with a delay, due at `due` (Unix milliseconds).
     Will {
-        client: String,
+        client: ClientId,
         due: u64,
         message: Message,
     },
     /// That will was published or cancelled.
     WillDone {
-        client: String,
+        client: ClientId,
     },
 }
 
 /// One session a `Queued` message waits for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Target {
-    pub client: String,
+    pub client: ClientId,
     pub qos: u8,
     pub qos2: Option<Qos2>,
 }
@@ -247,7 +251,7 @@ impl Record {
         let mut r = Reader(bytes);
         let record = match r.u8()? {
             SESSION => {
-                let client = r.str()?;
+                let client: ClientId = r.str()?.into();
                 let owner = r.str()?;
                 let flags = r.u8()?;
                 Record::Session {
@@ -259,13 +263,15 @@ impl Record {
                 }
             }
             OFFLINE => Record::Offline {
-                client: r.str()?,
+                client: r.str()?.into(),
                 at: r.u64()?,
                 expiry: r.expiry()?,
             },
-            ENDED => Record::Ended { client: r.str()? },
+            ENDED => Record::Ended {
+                client: r.str()?.into(),
+            },
             SUBSCRIBE => {
-                let client = r.str()?;
+                let client: ClientId = r.str()?.into();
                 let filter = r.str()?;
                 let qos = r.u8()?;
                 let flags = r.u8()?;
@@ -282,7 +288,7 @@ impl Record {
                 }
             }
             UNSUBSCRIBE => Record::Unsubscribe {
-                client: r.str()?,
+                client: r.str()?.into(),
                 filter: r.str()?,
             },
             PUBLISH => Record::Publish {
@@ -300,7 +306,7 @@ impl Record {
                 let mut targets = Vec::with_capacity(n);
                 for _ in 0..n {
                     targets.push(Target {
-                        client: r.str()?,
+                        client: r.str()?.into(),
                         qos: r.u8()?.min(2),
                         qos2: r.qos2()?,
                     });
@@ -312,21 +318,23 @@ impl Record {
                 }
             }
             DONE => Record::Done {
-                client: r.str()?,
+                client: r.str()?.into(),
                 seq: r.u64()?,
             },
             QOS2 => {
-                let client = r.str()?;
+                let client: ClientId = r.str()?.into();
                 let seq = r.u64()?;
                 let state = r.qos2()?.ok_or(Corrupt("QoS 2 record without a state"))?;
                 Record::Qos2 { client, seq, state }
             }
             WILL => Record::Will {
-                client: r.str()?,
+                client: r.str()?.into(),
                 due: r.u64()?,
                 message: r.message()?,
             },
-            WILL_DONE => Record::WillDone { client: r.str()? },
+            WILL_DONE => Record::WillDone {
+                client: r.str()?.into(),
+            },
             _ => return Err(Corrupt("unknown record type")),
         };
         if !r.0.is_empty() {
@@ -399,14 +407,17 @@ impl Writer<'_> {
             p.subscription_identifiers.clear();
             p
         });
-        let mut packet = BytesMut::new();
+        let mut packet = BytesMut::with_capacity(m.topic.len() + m.payload.len() + 64);
         // Writing a PUBLISH fails only for sizes MQTT cannot carry, which nothing that
         // entered through a listener has; such a message is stored without properties.
+        let (topic, payload) = (publish.topic.clone(), publish.payload.clone());
         if V5
-            .write(Packet::Publish(publish.clone(), properties), &mut packet)
+            .write(Packet::Publish(publish, properties), &mut packet)
             .is_err()
         {
             packet.clear();
+            let publish =
+                Publish::with_qos(topic, payload, m.qos.min(2), m.retain, u16::from(m.qos > 0));
             let _ = V5.write(Packet::Publish(publish, None), &mut packet);
         }
         self.bytes(&packet);

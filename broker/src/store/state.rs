@@ -12,12 +12,10 @@
 //! (a message queued for n sessions counts n times); beyond either, a message is not
 //! stored for that session (or, for a retained message, not stored), and counted.
 
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
-use fb_bridge::topic::filter;
-
-use super::record::{Message, Options, Qos2, Record, Target};
+use super::record::{ClientId, Message, Options, Qos2, Record, Target};
 
 /// Limits on what the store keeps.
 #[derive(Debug, Clone, Copy)]
@@ -54,15 +52,33 @@ pub struct Drops {
 
 /// Which persistent sessions subscribe to what, as a tree of topic levels, so that finding
 /// the sessions a publication is queued for costs its levels and the sessions that match,
-/// not every subscription of every session.
+/// not every subscription of every session. Each entry carries what queueing needs of the
+/// subscription's options, so a match is final: no filter is matched twice.
 #[derive(Default)]
 struct Subscribers {
     /// Sessions whose filter ends at this node.
-    here: BTreeSet<String>,
+    here: BTreeMap<ClientId, Wanted>,
     /// Sessions with `#` below this node (it matches this level too).
-    rest: BTreeSet<String>,
+    rest: BTreeMap<ClientId, Wanted>,
     plus: Option<Box<Subscribers>>,
     levels: HashMap<String, Subscribers>,
+}
+
+/// What a session's matching subscriptions ask of a publication: the best QoS among them,
+/// and whether all of them are No Local.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Wanted {
+    qos: u8,
+    no_local: bool,
+}
+
+impl Wanted {
+    fn and(self, other: Wanted) -> Wanted {
+        Wanted {
+            qos: self.qos.max(other.qos),
+            no_local: self.no_local && other.no_local,
+        }
+    }
 }
 
 impl Subscribers {
@@ -81,11 +97,16 @@ impl Subscribers {
         (node, false)
     }
 
-    fn insert(&mut self, filter: &str, client: &str) {
+    /// Adds or replaces (a SUBSCRIBE to a filter the session has) the session's entry.
+    fn insert(&mut self, filter: &str, client: &ClientId, options: &Options) {
         let (node, rest) = self.node(filter);
+        let wanted = Wanted {
+            qos: options.qos,
+            no_local: options.no_local,
+        };
         match rest {
-            true => node.rest.insert(client.to_owned()),
-            false => node.here.insert(client.to_owned()),
+            true => node.rest.insert(Arc::clone(client), wanted),
+            false => node.here.insert(Arc::clone(client), wanted),
         };
     }
 
@@ -98,36 +119,54 @@ impl Subscribers {
         };
     }
 
-    /// The sessions with a filter matching `topic` (MQTT 4.7: a filter starting with a
-    /// wildcard does not match a topic starting with `$`).
-    fn matching(&self, topic: &str, out: &mut BTreeSet<String>) {
-        let levels: Vec<&str> = topic.split('/').collect();
-        self.walk(&levels, topic.starts_with('$'), out);
+    /// The sessions with a filter matching `topic`, with what their matching filters ask
+    /// together (MQTT 4.7: a filter starting with a wildcard does not match a topic
+    /// starting with `$`). In client id order: replay decides as the writer did.
+    fn matching(&self, topic: &str) -> BTreeMap<ClientId, Wanted> {
+        let mut out = BTreeMap::new();
+        let mut levels = topic.split('/');
+        self.walk(&mut levels, topic.starts_with('$'), &mut out);
+        out
     }
 
-    fn walk(&self, levels: &[&str], dollar: bool, out: &mut BTreeSet<String>) {
+    fn walk<'t>(
+        &self,
+        levels: &mut (impl Iterator<Item = &'t str> + Clone),
+        dollar: bool,
+        out: &mut BTreeMap<ClientId, Wanted>,
+    ) {
         if !dollar {
-            out.extend(self.rest.iter().cloned());
+            add(out, &self.rest);
         }
-        let Some((first, below)) = levels.split_first() else {
-            out.extend(self.here.iter().cloned());
+        let Some(first) = levels.next() else {
+            add(out, &self.here);
             return;
         };
-        if let Some(next) = self.levels.get(*first) {
-            next.walk(below, false, out);
-        }
         if let (Some(plus), false) = (&self.plus, dollar) {
-            plus.walk(below, false, out);
+            plus.walk(&mut levels.clone(), false, out);
         }
+        if let Some(next) = self.levels.get(first) {
+            next.walk(levels, false, out);
+        }
+    }
+}
+
+fn add(out: &mut BTreeMap<ClientId, Wanted>, entries: &BTreeMap<ClientId, Wanted>) {
+    for (client, wanted) in entries {
+        out.entry(Arc::clone(client))
+            .and_modify(|w| *w = w.and(*wanted))
+            .or_insert(*wanted);
     }
 }
 
 #[derive(Default)]
 pub struct State {
     pub retained: BTreeMap<Vec<u8>, Arc<Message>>,
-    pub sessions: HashMap<String, StoredSession>,
+    pub sessions: HashMap<ClientId, StoredSession>,
+    /// Sessions with at least one subscription.
+    pub subscribed: usize,
     /// Delayed wills by client id (several when a typed will goes out in several encodings).
-    pub wills: BTreeMap<String, Vec<(u64, Arc<Message>)>>,
+    pub wills: BTreeMap<ClientId, Vec<(u64, Arc<Message>)>>,
     /// Bytes of retained and queued messages (see the module doc).
     pub bytes: usize,
     /// The highest message number seen.
@@ -167,7 +206,7 @@ impl State {
                 s.offline_at = None;
             }
             Record::Offline { client, at, expiry } => {
-                if let Some(s) = self.sessions.get_mut(&client) {
+                if let Some(s) = self.sessions.get_mut(&*client) {
                     s.offline_at = Some(at);
                     s.expiry = expiry;
                 }
@@ -178,17 +217,19 @@ impl State {
                 filter,
                 options,
             } => {
-                if let Some(s) = self.sessions.get_mut(&client) {
+                if let Some(s) = self.sessions.get_mut(&*client) {
                     if !filter.starts_with("$share/") {
-                        self.subscribers.insert(&filter, &client);
+                        self.subscribers.insert(&filter, &client, &options);
                     }
+                    self.subscribed += s.subscriptions.is_empty() as usize;
                     s.subscriptions.insert(filter, options);
                 }
             }
             Record::Unsubscribe { client, filter } => {
-                if let Some(s) = self.sessions.get_mut(&client) {
+                if let Some(s) = self.sessions.get_mut(&*client) {
                     if s.subscriptions.remove(&filter).is_some() {
                         self.subscribers.remove(&filter, &client);
+                        self.subscribed -= s.subscriptions.is_empty() as usize;
                     }
                 }
             }
@@ -219,7 +260,7 @@ impl State {
             Record::Done { client, seq } => {
                 if let Some(q) = self
                     .sessions
-                    .get_mut(&client)
+                    .get_mut(&*client)
                     .and_then(|s| s.queue.remove(&seq))
                 {
                     self.bytes = self.bytes.saturating_sub(q.message.size());
@@ -229,7 +270,7 @@ impl State {
             Record::Qos2 { client, seq, state } => {
                 if let Some(q) = self
                     .sessions
-                    .get_mut(&client)
+                    .get_mut(&*client)
                     .and_then(|s| s.queue.get_mut(&seq))
                 {
                     q.qos2 = Some(state);
@@ -246,13 +287,14 @@ impl State {
                     .push((due, Arc::new(message)));
             }
             Record::WillDone { client } => {
-                self.wills.remove(&client);
+                self.wills.remove(&*client);
             }
         }
     }
 
     fn end(&mut self, client: &str) {
         if let Some(s) = self.sessions.remove(client) {
+            self.subscribed -= !s.subscriptions.is_empty() as usize;
             for f in s.subscriptions.keys() {
                 self.subscribers.remove(f, client);
             }
@@ -290,34 +332,14 @@ impl State {
         let Ok(topic) = std::str::from_utf8(&message.topic) else {
             return;
         };
-        let mut matching = BTreeSet::new();
-        self.subscribers.matching(topic, &mut matching);
-        let mut targets: Vec<(String, u8)> = Vec::new();
-        for (client, s) in matching
-            .into_iter()
-            .filter_map(|c| self.sessions.get(&c).map(|s| (c, s)))
-        {
-            let mut best: Option<u8> = None;
-            let mut all_no_local = true;
-            for (f, o) in &s.subscriptions {
-                // Shared subscriptions deliver to one member: not stored per session.
-                if f.starts_with("$share/") || !filter::filter_matches(f, topic) {
-                    continue;
-                }
-                best = Some(best.unwrap_or(0).max(o.qos));
-                all_no_local &= o.no_local;
-            }
-            let Some(best) = best else { continue };
-            if all_no_local && *message.publisher == *client {
+        for (client, wanted) in self.subscribers.matching(topic) {
+            if wanted.no_local && *message.publisher == *client {
                 continue;
             }
-            let qos = best.min(message.qos);
+            let qos = wanted.qos.min(message.qos);
             if qos > 0 {
-                targets.push((client, qos));
+                self.enqueue(&client, seq, message, qos, None, limits, drops);
             }
-        }
-        for (client, qos) in targets {
-            self.enqueue(&client, seq, message, qos, None, limits, drops);
         }
     }
 
@@ -427,6 +449,8 @@ impl State {
 mod tests {
     use super::*;
     use bytes::Bytes;
+    use fb_bridge::topic::filter;
+    use std::collections::BTreeSet;
 
     const LIMITS: Limits = Limits {
         max_bytes: 1 << 20,
@@ -549,24 +573,60 @@ mod tests {
         let topics = [
             "a", "a/b", "a/b/c", "a/b/c/d", "b", "b/b", "$SYS/x", "$SYS", "/", "a//c", "é/ü/ß", "",
         ];
+        let options = |qos, no_local| Options {
+            qos,
+            no_local,
+            retain_as_published: false,
+            retain_handling: 0,
+            id: 0,
+        };
         let mut tree = Subscribers::default();
         for f in filters {
-            tree.insert(f, f);
+            tree.insert(f, &ClientId::from(f), &options(1, false));
         }
+        let got = |tree: &Subscribers, t: &str| -> BTreeSet<String> {
+            tree.matching(t).keys().map(|c| c.to_string()).collect()
+        };
         for t in topics {
-            let mut got = BTreeSet::new();
-            tree.matching(t, &mut got);
             let want: BTreeSet<String> = filters
                 .iter()
                 .filter(|f| filter::filter_matches(f, t))
                 .map(|f| f.to_string())
                 .collect();
-            assert_eq!(got, want, "topic {t:?}");
+            assert_eq!(got(&tree, t), want, "topic {t:?}");
         }
         tree.remove("a/#", "a/#");
-        let mut got = BTreeSet::new();
-        tree.matching("a/b/c", &mut got);
-        assert!(!got.contains("a/#"));
+        assert!(!got(&tree, "a/b/c").contains("a/#"));
+        // One session's matching filters together: the best QoS; No Local only if all are.
+        let m = ClientId::from("m");
+        tree.insert("m/+", &m, &options(1, true));
+        tree.insert("m/#", &m, &options(2, false));
+        tree.insert("m/x", &m, &options(0, true));
+        let wanted = |tree: &Subscribers, t| tree.matching(t).get("m").copied();
+        assert_eq!(
+            wanted(&tree, "m/x"),
+            Some(Wanted {
+                qos: 2,
+                no_local: false
+            })
+        );
+        tree.insert("m/#", &m, &options(0, true));
+        assert_eq!(
+            wanted(&tree, "m/x"),
+            Some(Wanted {
+                qos: 1,
+                no_local: true
+            })
+        );
+        assert_eq!(
+            wanted(&tree, "m"),
+            Some(Wanted {
+                qos: 0,
+                no_local: true
+            })
+        );
+        tree.remove("m/#", "m");
+        assert_eq!(wanted(&tree, "m"), None);
     }
 
     #[test]
