@@ -138,7 +138,7 @@ impl BrokerPublisher {
                         payload: message.payload.clone(),
                         qos: message.qos.min(1),
                         retain: true,
-                        properties: message.properties.clone(),
+                        properties: message.properties.clone().map(Box::new),
                         publisher: message.publisher.as_str().into(),
                     },
                 }]);

@@ -134,15 +134,19 @@ impl Wills {
                 payload: m.payload.clone(),
                 qos: m.qos,
                 retain: m.retain,
-                properties: m.properties.clone().map(|p| LastWillProperties {
-                    delay_interval: None,
-                    payload_format_indicator: p.payload_format_indicator,
-                    message_expiry_interval: p.message_expiry_interval,
-                    content_type: p.content_type,
-                    response_topic: p.response_topic,
-                    correlation_data: p.correlation_data,
-                    user_properties: p.user_properties,
-                }),
+                properties: m
+                    .properties
+                    .as_deref()
+                    .cloned()
+                    .map(|p| LastWillProperties {
+                        delay_interval: None,
+                        payload_format_indicator: p.payload_format_indicator,
+                        message_expiry_interval: p.message_expiry_interval,
+                        content_type: p.content_type,
+                        response_topic: p.response_topic,
+                        correlation_data: p.correlation_data,
+                        user_properties: p.user_properties,
+                    }),
                 delay: left.max(Duration::from_millis(1)),
             };
             // Already in the store: scheduled without writing it again.
@@ -274,7 +278,11 @@ fn stored_will(client_id: &str, will: &Will) -> crate::store::Message {
         payload: will.payload.clone(),
         qos: will.qos,
         retain: will.retain,
-        properties: will.properties.clone().map(publish_properties),
+        properties: will
+            .properties
+            .clone()
+            .map(publish_properties)
+            .map(Box::new),
         publisher: client_id.into(),
     }
 }

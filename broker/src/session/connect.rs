@@ -207,7 +207,7 @@ impl Session {
             fb,
             persistent,
             journal,
-            stored_out: BTreeMap::new(),
+            durable: None,
         };
         if persistent && session_present {
             session.take_backlog();

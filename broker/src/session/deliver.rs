@@ -160,14 +160,26 @@ impl Session {
                     self.io.queue(Packet::PubRel(pubrel, properties));
                 }
             }
-            Some(packet) => {
-                if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
-                    self.inflight_in = self.inflight_in.saturating_sub(1);
+            // An acknowledgement of a stored publication may wait for the store.
+            Some(packet) => match self.durable.as_mut() {
+                Some(durable) => {
+                    if let Some(packet) = durable.pass(packet) {
+                        self.answer(packet);
+                    }
                 }
-                self.io.queue(packet)
-            }
+                None => self.answer(packet),
+            },
             None => {}
         }
+    }
+
+    /// An answer from the router (PUBACK, PUBREC, PUBCOMP, UNSUBACK, PINGRESP) goes to
+    /// the client.
+    pub(super) fn answer(&mut self, packet: Packet) {
+        if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
+            self.inflight_in = self.inflight_in.saturating_sub(1);
+        }
+        self.io.queue(packet)
     }
 
     /// Encodes one delivery, applying the MQTT rules rumqttd 0.20's router leaves out, in

@@ -36,6 +36,7 @@ mod close;
 mod connect;
 pub mod copies;
 mod deliver;
+mod durable;
 mod inbound;
 pub mod lifetime;
 mod observer;
@@ -151,6 +152,8 @@ enum Wake {
     Router {
         linked: bool,
     },
+    /// The store wrote what acknowledgements were waiting for ([`durable`]).
+    Written,
 }
 
 /// An authenticated client's connection, registered with the router.
@@ -229,9 +232,9 @@ struct Session {
     persistent: bool,
     /// Records for the store, written with the next batch ([`persist`]).
     journal: Vec<crate::store::Record>,
-    /// Stored messages on their way to the client: router packet id -> (message number,
-    /// client packet id). Bounded by the in-flight window.
-    stored_out: BTreeMap<u16, (u64, u16)>,
+    /// Stored messages on their way to the client, and acknowledgements that wait for the
+    /// store, allocated on first use ([`durable`]).
+    durable: Option<Box<durable::Durable>>,
 }
 
 /// What a session needs only for uncommon traffic: refused or partly refused requests,
@@ -332,6 +335,7 @@ impl Session {
                     _ = &mut deadline => return End::KeepAlive,
                     _ = Box::pin(tokio::time::sleep(Duration::from_millis(1))) => Wake::Backlogged,
                     linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                    _ = durable::Durable::next_written(&mut self.durable) => Wake::Written,
                 }
             } else {
                 tokio::select! {
@@ -339,6 +343,7 @@ impl Session {
                     _ = &mut deadline => return End::KeepAlive,
                     read = self.io.fill() => Wake::Read(read),
                     linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
+                    _ = durable::Durable::next_written(&mut self.durable) => Wake::Written,
                 }
             };
             let handled = match wake {
@@ -358,6 +363,10 @@ impl Session {
                 }
                 Wake::Router { linked: true } => Box::pin(self.deliver()).await,
                 Wake::Router { linked: false } => Err(Box::pin(self.router_dropped()).await),
+                Wake::Written => {
+                    self.release_written();
+                    self.write_out().await
+                }
             };
             if let Err(end) = handled {
                 return end;

@@ -3,8 +3,8 @@
 //!
 //! - **Before routing** ([`Session::store_batch`]): the batch's retained publications and,
 //!   while a persistent session subscribes to anything, its QoS 1/2 ones are numbered
-//!   (`Origin::stored`) and written; the router gets them, and so the client its
-//!   PUBACK/PUBREC, only once they are written.
+//!   (`Origin::stored`) and handed to the store's writer; the router gets them at once,
+//!   the client its PUBACK/PUBREC only once they are written ([`durable`](super::durable)).
 //! - **A persistent session's** SUBSCRIBE/UNSUBSCRIBE, the start and end of its
 //!   connection, and what becomes of each stored message delivered to it: `Done` at the
 //!   client's PUBACK/PUBCOMP or when fbbus does not send it (No Local, access rules,
@@ -23,24 +23,29 @@ use rumqttd::protocol::{
     Filter, Packet, PubRel, PubRelReason, PublishProperties, QoS, RetainForwardRule,
 };
 
+use super::durable::Durable;
 use super::Session;
 use crate::broker_publisher::publish_packet;
 use crate::store::{Backlogged, Message, Options, Qos2, Record};
 
 impl Session {
-    /// Writes the batch's stored publications and the session's waiting records; returns
-    /// once the store has them where its policy says (see the module doc).
+    /// Hands the batch's stored publications and the session's waiting records to the
+    /// store, before the batch goes to the router; the client's acknowledgements of those
+    /// publications wait for the write ([`durable`](super::durable)).
     pub(super) async fn store_batch(&mut self) {
         let Some(store) = self.ctx.store.clone() else {
             return;
         };
-        let mut wait = false;
+        // The client's packet ids of the stored QoS 1/2 publications: their PUBACK/PUBREC
+        // waits for this write.
+        let mut acknowledged = Vec::new();
         for packet in &mut self.to_router {
             let Packet::Publish(publish, properties) = packet else {
                 continue;
             };
             // The publication's QoS, from its origin: a typed message's re-encodings travel
             // as QoS 0 copies and are delivered at the publication's QoS.
+            let (wire_qos, pkid) = publish.qos_and_pkid();
             let Some(origin) = publish.origin.as_mut() else {
                 continue;
             };
@@ -50,6 +55,9 @@ impl Session {
             }
             let seq = store.number();
             origin.stored = seq;
+            if wire_qos > 0 {
+                acknowledged.push(pkid);
+            }
             self.journal.push(Record::Publish {
                 seq,
                 message: Message {
@@ -57,14 +65,33 @@ impl Session {
                     payload: publish.payload.clone(),
                     qos,
                     retain: publish.retain,
-                    properties: properties.clone(),
+                    properties: properties.clone().map(Box::new),
                     publisher: Arc::clone(&origin.publisher),
                 },
             });
-            wait = true;
         }
-        if !self.journal.is_empty() {
-            store.write(std::mem::take(&mut self.journal), wait).await;
+        if self.journal.is_empty() {
+            return;
+        }
+        let records = std::mem::take(&mut self.journal);
+        if let Some(written) = store.submit(records, !acknowledged.is_empty()).await {
+            self.durable().submitted(&acknowledged, written);
+        }
+    }
+
+    /// The session's store bookkeeping, allocated on first use.
+    fn durable(&mut self) -> &mut Durable {
+        self.durable.get_or_insert_with(Box::default)
+    }
+
+    /// Sends the acknowledgements whose publications are written by now.
+    pub(super) fn release_written(&mut self) {
+        let mut released = Vec::new();
+        if let Some(durable) = self.durable.as_mut() {
+            durable.confirmed(&mut released);
+        }
+        for packet in released {
+            self.answer(packet);
         }
     }
 
@@ -112,13 +139,19 @@ impl Session {
     /// client as `client_pkid` at `qos` (0: it is not sent after all).
     pub(super) fn store_delivering(&mut self, seq: u64, router_pkid: u16, client_pkid: u16) {
         if self.persistent && seq != 0 {
-            self.stored_out.insert(router_pkid, (seq, client_pkid));
+            self.durable()
+                .stored_out
+                .insert(router_pkid, (seq, client_pkid));
         }
     }
 
     /// The delivery `router_pkid` went out at QoS 2.
     pub(super) fn store_sent_qos2(&mut self, router_pkid: u16) {
-        if let Some((seq, client_pkid)) = self.stored_out.get(&router_pkid) {
+        let sent = self
+            .durable
+            .as_ref()
+            .and_then(|d| d.stored_out.get(&router_pkid));
+        if let Some((seq, client_pkid)) = sent {
             self.journal.push(Record::Qos2 {
                 client: Arc::clone(&self.client_id),
                 seq: *seq,
@@ -130,15 +163,20 @@ impl Session {
     /// Delivery `router_pkid` is acknowledged towards the router: `done` (PUBACK, PUBCOMP,
     /// or not sent), or PUBREC.
     pub(super) fn store_acked(&mut self, router_pkid: u16, done: bool) {
-        if self.stored_out.is_empty() {
+        let Some(stored_out) = self
+            .durable
+            .as_mut()
+            .map(|d| &mut d.stored_out)
+            .filter(|s| !s.is_empty())
+        else {
             return;
-        }
+        };
         let client = Arc::clone(&self.client_id);
         if done {
-            if let Some((seq, _)) = self.stored_out.remove(&router_pkid) {
+            if let Some((seq, _)) = stored_out.remove(&router_pkid) {
                 self.journal.push(Record::Done { client, seq });
             }
-        } else if let Some((seq, client_pkid)) = self.stored_out.get(&router_pkid) {
+        } else if let Some((seq, client_pkid)) = stored_out.get(&router_pkid) {
             self.journal.push(Record::Qos2 {
                 client,
                 seq: *seq,
@@ -205,7 +243,7 @@ impl Session {
                         false,
                         client_pkid,
                     );
-                    let properties: Option<PublishProperties> = m.properties.clone();
+                    let properties: Option<PublishProperties> = m.properties.as_deref().cloned();
                     let before = self.io.write.len();
                     self.io.queue(Packet::Publish(publish, properties));
                     if b.qos2.is_some() && self.io.write.len() > before {

@@ -417,8 +417,17 @@ impl Store {
     /// Hands `records` to the writer; with `wait`, returns once they are written (and
     /// synced under `fsync = "always"`).
     pub async fn write(&self, records: Vec<Record>, wait: bool) {
+        if let Some(written) = self.submit(records, wait).await {
+            let _ = written.await;
+        }
+    }
+
+    /// Hands `records` to the writer (waiting only while its queue is full); with `wait`,
+    /// the receiver answers once they are written (and synced under `fsync = "always"`),
+    /// or when the writer is gone.
+    pub async fn submit(&self, records: Vec<Record>, wait: bool) -> Option<oneshot::Receiver<()>> {
         if records.is_empty() {
-            return;
+            return None;
         }
         let subscribes = records
             .iter()
@@ -438,12 +447,9 @@ impl Store {
             written,
             sync: false,
         };
-        if self.queue.send_async(batch).await.is_err() {
-            return;
-        }
-        if let Some(done) = done {
-            let _ = done.await;
-        }
+        // A writer that is gone drops the sender: the receiver answers at once.
+        let _ = self.queue.send_async(batch).await;
+        done
     }
 
     /// Hands `records` to the writer from code that cannot wait (wills): in order with

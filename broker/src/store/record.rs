@@ -21,7 +21,8 @@ pub struct Message {
     pub retain: bool,
     /// MQTT 5 properties as published (no topic alias, no subscription identifiers: those
     /// belong to one connection or one delivery).
-    pub properties: Option<PublishProperties>,
+    /// Boxed: most publications have none, and a message travels by value to the writer.
+    pub properties: Option<Box<PublishProperties>>,
     /// The publishing client's id (No Local; retained messages keep their publisher).
     pub publisher: Arc<str>,
 }
@@ -402,7 +403,7 @@ impl Writer<'_> {
             u16::from(m.qos > 0),
         );
         publish.origin = None;
-        let properties = m.properties.clone().map(|mut p| {
+        let properties = m.properties.as_deref().cloned().map(|mut p| {
             p.topic_alias = None;
             p.subscription_identifiers.clear();
             p
@@ -490,7 +491,7 @@ impl Reader<'_> {
             payload: publish.payload,
             qos,
             retain: publish.retain,
-            properties,
+            properties: properties.map(Box::new),
             publisher,
         })
     }
@@ -506,12 +507,12 @@ mod tests {
             payload: Bytes::from_static(b"\x00\xffpayload"),
             qos: 2,
             retain: true,
-            properties: Some(PublishProperties {
+            properties: Some(Box::new(PublishProperties {
                 user_properties: vec![("a".into(), "1".into()), ("a".into(), "2".into())],
                 content_type: Some("application/json".into()),
                 message_expiry_interval: Some(60),
                 ..Default::default()
-            }),
+            })),
             publisher: "plc-1".into(),
         }
     }
