@@ -60,6 +60,9 @@ impl Durable {
     pub async fn next_written(durable: &mut Option<Box<Durable>>) {
         match durable.as_mut().and_then(|d| d.pending.front_mut()) {
             // A writer that is gone answers too (the broker is stopping).
+            // Never polled again once it answered (tokio's receiver panics then): an
+            // answered write is ready until `confirmed` takes it.
+            Some((_, written)) if written.is_terminated() => {}
             Some((_, written)) => {
                 let _ = written.await;
             }
@@ -177,6 +180,20 @@ mod tests {
         d.confirmed(&mut out);
         assert!(d.pass(puback(4)).is_some());
         assert!(d.unwritten.is_empty());
+    }
+
+    #[tokio::test]
+    async fn an_answered_write_is_ready_until_confirmed() {
+        let mut d = Some(Box::<Durable>::default());
+        let (done, rx) = oneshot::channel();
+        d.as_mut().unwrap().submitted(&[1], rx);
+        done.send(()).unwrap();
+        Durable::next_written(&mut d).await;
+        // Again before `confirmed` took it: ready, not a second poll of the receiver.
+        Durable::next_written(&mut d).await;
+        let mut out = Vec::new();
+        d.as_mut().unwrap().confirmed(&mut out);
+        assert!(!d.as_ref().unwrap().awaiting());
     }
 
     #[test]

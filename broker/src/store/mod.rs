@@ -5,10 +5,13 @@
 //! **The write path.** A session hands its network read's accepted publications to the
 //! router as one batch (`Session::route`). Before it does, the retained ones and, while
 //! some persistent session subscribes to anything, the QoS 1/2 ones are numbered
-//! (`Origin::stored`) and sent to the writer thread as one batch; the session waits until
-//! the writer has written it (`fsync = "always"`: written and synced). Only then does the
-//! router get them, and only the router's answer is the PUBACK/PUBREC: a publication
-//! fbbus acknowledged is in the log. The writer thread takes every batch waiting and
+//! (`Origin::stored`) and sent to the writer thread as one batch. The router gets them at
+//! once; the router's PUBACK/PUBREC for them waits in the session until the writer has
+//! written the batch (`fsync = "always"`: written and synced; `session/durable.rs`): a
+//! publication fbbus acknowledged is in the log. Being handed over before routing, a
+//! publication's record always precedes the `Done` of its deliveries. (Until 2026-11-26
+//! the session waited for the write before routing; the QoS 1 burst went from 0.64x to
+//! the figure in docs/performance.md.) The writer thread takes every batch waiting and
 //! writes them with one `write` (and, by policy, one `fsync`): group commit, so a line of
 //! publishers shares the cost of each sync.
 //!
