@@ -240,7 +240,8 @@ impl Metrics {
             limit_refusals: counter_vec(
                 "fbbus_limit_refusals_total",
                 "Requests refused because a configured limit was reached, by limit \
-                 (subscriptions_per_client, retained_messages, retained_bytes)",
+                 (subscriptions_per_client, retained_messages, retained_bytes, \
+                 sessions_per_identity)",
                 &["limit"],
             ),
             admin_connections: gauge(

@@ -252,3 +252,103 @@ fn retained_messages_beyond_the_limits_are_not_retained_and_counted() {
         .log_text()
         .contains("retained publication on a new topic not retained"));
 }
+
+/// Issue 21: one identity (here the peer address: no password file) holds at most
+/// `max_sessions_per_identity` connections and persistent sessions; beyond, CONNECT is
+/// refused (MQTT 5 0x97, 3.1.1 0x05) and counted; a takeover or resume of its own
+/// session is not refused, and a session that ends gives its place back.
+#[test]
+fn sessions_beyond_the_per_identity_limit_are_refused() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_sessions_per_identity = 3\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let connect = |version: u8, id: &str, clean: bool| {
+        let mut c = RawClient::connect(broker.port());
+        let code = c.handshake(&Connect {
+            version,
+            client_id: id,
+            clean,
+            session_expiry: (version == 5 && !clean).then_some(3600),
+            ..Default::default()
+        });
+        (c, code)
+    };
+    let (a, code) = connect(4, "a", true);
+    assert_eq!(code, 0);
+    let (_b, code) = connect(5, "b", true);
+    assert_eq!(code, 0);
+    // A persistent session kept offline still counts.
+    let (mut kept, code) = connect(4, "kept", false);
+    assert_eq!(code, 0);
+    kept.send(&raw::DISCONNECT);
+    assert!(kept.closed_by_broker());
+    broker.wait_metric("fbbus_disconnects_total{reason=\"client\"}", 1.0);
+    assert_eq!(connect(5, "d", true).1, 0x97, "MQTT 5: Quota exceeded");
+    assert_eq!(connect(4, "d", true).1, 0x05, "MQTT 3.1.1: Not authorized");
+    // Its own sessions: a takeover and a resume.
+    let (_a2, code) = connect(4, "a", true);
+    assert_eq!(code, 0, "takeover");
+    drop(a);
+    let (mut kept, code) = connect(4, "kept", false);
+    assert_eq!(code, 0, "resume");
+    // The kept session ended for good (clean): its place is free.
+    kept.send(&raw::DISCONNECT);
+    assert!(kept.closed_by_broker());
+    let (mut kept, code) = connect(4, "kept", true);
+    assert_eq!(code, 0);
+    kept.send(&raw::DISCONNECT);
+    assert!(kept.closed_by_broker());
+    broker.wait_metric("fbbus_disconnects_total{reason=\"client\"}", 3.0);
+    assert_eq!(connect(5, "e", true).1, 0);
+    assert_eq!(
+        broker.metric(r#"fbbus_limit_refusals_total{limit="sessions_per_identity"}"#),
+        2.0
+    );
+    assert!(broker.log_text().contains("max_sessions_per_identity"));
+}
+
+/// With a password file the identity is the username: one user's sessions do not take
+/// another's places, even from the same address.
+#[test]
+fn sessions_are_counted_per_username() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_sessions_per_identity = 2\n[auth]\npassword_file = \"passwd\"\n".into(),
+            ..Options::default()
+        },
+        |dir| {
+            common::add_user(&dir.join("passwd"), "alice", "alice-pw");
+            common::add_user(&dir.join("passwd"), "bob", "bob-pw");
+        },
+    );
+    let connect = |user: &str, id: &str| {
+        let mut c = RawClient::connect(broker.port());
+        let password = format!("{user}-pw");
+        let code = c.handshake(&Connect {
+            version: 5,
+            client_id: id,
+            login: Some((user, &password)),
+            ..Default::default()
+        });
+        (c, code)
+    };
+    let held: Vec<_> = ["a1", "a2"]
+        .iter()
+        .map(|id| {
+            let (c, code) = connect("alice", id);
+            assert_eq!(code, 0, "{id}");
+            c
+        })
+        .collect();
+    assert_eq!(connect("alice", "a3").1, 0x97);
+    assert_eq!(connect("bob", "b1").1, 0);
+    assert_eq!(
+        broker.metric(r#"fbbus_limit_refusals_total{limit="sessions_per_identity"}"#),
+        1.0
+    );
+    drop(held);
+}
