@@ -134,12 +134,9 @@ impl SessionTable {
     /// and whether the previous connection of that client id is still running (has not
     /// closed yet). Refused, changing nothing, when the client id's connected or kept
     /// session belongs to another identity.
-    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Owned> {
+    /// (Not counted for any identity: never `Refusal::Quota`.)
+    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Refusal> {
         self.open_counted(client_id, owner, None, None)
-            .map_err(|refusal| match refusal {
-                Refusal::Owned(owned) => owned,
-                Refusal::Quota => unreachable!("no quota without a maximum"),
-            })
     }
 
     /// [`SessionTable::open`], the entry counted for `identity`; with `max`, also refused
@@ -469,17 +466,23 @@ mod tests {
         let dev_b = Owner::User("devB".into());
         let dev_a = Owner::User("devA".into());
         let (b1, _) = t.open("devB", &dev_b).unwrap();
-        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: true }));
+        assert_eq!(
+            t.open("devB", &dev_a),
+            Err(Refusal::Owned(Owned { connected: true }))
+        );
         assert_eq!(
             t.open("devB", &Owner::Anonymous),
-            Err(Owned { connected: true })
+            Err(Refusal::Owned(Owned { connected: true }))
         );
         assert!(
             t.is_current("devB", b1),
             "the refusal took no session number"
         );
         t.close("devB", b1, Remains::Kept(None));
-        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: false }));
+        assert_eq!(
+            t.open("devB", &dev_a),
+            Err(Refusal::Owned(Owned { connected: false }))
+        );
         assert_eq!(t.len(), (0, 1), "the kept session is still there");
         // The owner itself takes its session back.
         let (b2, running) = t.open("devB", &dev_b).unwrap();
