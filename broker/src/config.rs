@@ -151,6 +151,17 @@ pub struct BrokerSection {
     /// Subscriptions one connection holds at most; a SUBSCRIBE beyond is refused for the
     /// filters over the limit (MQTT 5: 0x97 Quota exceeded; 3.1.1: 0x80).
     pub max_subscriptions_per_client: usize,
+    /// Retained messages clients can make the broker keep, and their bytes (topic and
+    /// payload). A retained publication on a topic without a retained message beyond
+    /// either is not retained (it is still delivered to the subscribers of the moment;
+    /// MQTT 5 QoS 1: PUBACK 0x97 Quota exceeded); replacing or clearing a retained message
+    /// always works. The broker's own `fbbus/` topics are not counted.
+    pub max_retained_messages: usize,
+    pub max_retained_bytes: usize,
+    /// Connections and persistent sessions one identity holds at most (the username; the
+    /// peer IP address where there is no password file); a CONNECT beyond is refused
+    /// (MQTT 5: 0x97 Quota exceeded; 3.1.1: 0x05 Not authorized).
+    pub max_sessions_per_identity: usize,
     /// Time a new TCP connection has to send CONNECT.
     pub connect_timeout_ms: u64,
     /// Longest keep-alive an MQTT 5 client may use; one asking for more, or for none, is
@@ -190,6 +201,9 @@ impl Default for BrokerSection {
             max_packet_bytes: 64 * 1024,
             max_inflight: 100,
             max_subscriptions_per_client: 1000,
+            max_retained_messages: 100_000,
+            max_retained_bytes: 64 * 1024 * 1024,
+            max_sessions_per_identity: 1000,
             connect_timeout_ms: 5_000,
             max_keep_alive_s: 65_535,
             router_segment_bytes: 4 * 1024 * 1024,
@@ -458,6 +472,20 @@ impl Config {
                 file,
                 "persistence.dir",
                 "must name a directory (or set persistence.enabled = false)",
+            ));
+        }
+        if b.max_retained_messages == 0 || b.max_retained_bytes == 0 {
+            return Err(invalid(
+                file,
+                "broker.max_retained_messages",
+                "max_retained_messages and max_retained_bytes must be at least 1",
+            ));
+        }
+        if b.max_sessions_per_identity == 0 {
+            return Err(invalid(
+                file,
+                "broker.max_sessions_per_identity",
+                "must be at least 1",
             ));
         }
         if b.max_subscriptions_per_client == 0 {

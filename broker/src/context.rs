@@ -41,6 +41,8 @@ pub struct Context {
     pub max_inflight: u16,
     /// `[broker] max_subscriptions_per_client`.
     pub max_subscriptions: usize,
+    /// `[broker] max_sessions_per_identity`.
+    pub max_sessions_per_identity: usize,
     /// `broker.max_keep_alive_s` (see `session::connect::keep_alive`).
     pub max_keep_alive: u16,
     pub connect_timeout: Duration,

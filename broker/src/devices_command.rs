@@ -18,11 +18,10 @@ pub struct Options {
 
 pub fn run(options: Options) -> Result<()> {
     loop {
-        let path = match &options.id {
-            Some(id) => format!("/api/v1/devices/{id}"),
-            None => "/api/v1/devices".to_owned(),
+        let body = match &options.id {
+            Some(id) => get(options.admin, &format!("/api/v1/devices/{id}"))?,
+            None => every_page(options.admin)?,
         };
-        let body = get(options.admin, &path)?;
         let out = if options.json {
             format!("{}\n", serde_json::to_string_pretty(&body)?)
         } else {
@@ -41,6 +40,51 @@ pub fn run(options: Options) -> Result<()> {
             }
         }
     }
+}
+
+/// Every device, page after page (`GET /api/v1/devices` answers one page and names the
+/// next in `next`), as one `{"line", "devices"}` answer.
+fn every_page(admin: SocketAddr) -> Result<Value> {
+    let mut after: Option<String> = None;
+    let mut devices = Vec::new();
+    let mut line = Value::Null;
+    loop {
+        let mut path = format!("/api/v1/devices?limit={PAGE}");
+        if let Some(after) = &after {
+            path.push_str("&after=");
+            path.push_str(&query_escape(after));
+        }
+        let mut page = get(admin, &path)?;
+        line = page.get_mut("line").map(Value::take).unwrap_or(line);
+        if let Some(Value::Array(list)) = page.get_mut("devices").map(Value::take) {
+            devices.extend(list);
+        }
+        match page.get("next").and_then(Value::as_str) {
+            // A `next` not after the last one would loop forever: the broker never sends
+            // one, but a command must end.
+            Some(next) if after.as_deref().is_none_or(|a| next > a) => {
+                after = Some(next.to_owned())
+            }
+            _ => break,
+        }
+    }
+    Ok(serde_json::json!({"line": line, "devices": devices}))
+}
+
+/// Devices asked for per request.
+const PAGE: usize = 1000;
+
+/// `text` as a URL query value: everything but the unreserved characters percent-encoded.
+fn query_escape(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// The registry as an aligned table.
@@ -131,6 +175,12 @@ mod tests {
         assert!(lines[1].contains("conv-a") && lines[1].contains("online"));
         assert!(lines[2].contains("keep-alive expired"));
         assert_eq!(lines[3], "2 devices, 1 online");
+    }
+
+    #[test]
+    fn query_values_are_percent_encoded() {
+        assert_eq!(query_escape("conv-a_1.x~"), "conv-a_1.x~");
+        assert_eq!(query_escape("a b&c=d/é"), "a%20b%26c%3Dd%2F%C3%A9");
     }
 
     #[test]

@@ -135,6 +135,11 @@ pub struct Metrics {
     pub router_sessions: Arc<SavedSessions>,
     saved_sessions: IntGauge,
     saved_sessions_dropped: IntCounter,
+    /// The router's retained store (`RouterHooks::retained`): copied into the gauges below
+    /// and, its refusals, into `limit_refusals` at each scrape.
+    pub router_retained: Arc<rumqttd::RetainedStats>,
+    retained_messages: IntGauge,
+    retained_bytes: IntGauge,
     /// Serializes the copy into the counter above (two scrapes at once would add twice).
     scrape: Mutex<()>,
 }
@@ -235,7 +240,8 @@ impl Metrics {
             limit_refusals: counter_vec(
                 "fbbus_limit_refusals_total",
                 "Requests refused because a configured limit was reached, by limit \
-                 (subscriptions_per_client)",
+                 (subscriptions_per_client, retained_messages, retained_bytes, \
+                 sessions_per_identity)",
                 &["limit"],
             ),
             admin_connections: gauge(
@@ -379,6 +385,16 @@ impl Metrics {
                 "Saved persistent sessions dropped, the oldest first, because the router \
                  kept as many as it may",
             ),
+            router_retained: Arc::default(),
+            retained_messages: gauge(
+                "fbbus_retained_messages",
+                "Retained messages the router keeps for clients (broker.max_retained_messages; \
+                 the broker's own fbbus/ topics are not counted)",
+            ),
+            retained_bytes: gauge(
+                "fbbus_retained_bytes",
+                "Topic and payload bytes of those retained messages (broker.max_retained_bytes)",
+            ),
             scrape: Mutex::new(()),
             refused_lines: Mutex::new(Default::default()),
             typed_ports: Mutex::new(Default::default()),
@@ -468,6 +484,22 @@ impl Metrics {
         let counted = self.saved_sessions_dropped.get();
         if dropped > counted {
             self.saved_sessions_dropped.inc_by(dropped - counted);
+        }
+        let retained = &self.router_retained;
+        self.retained_messages
+            .set(i64::try_from(retained.messages()).unwrap_or(i64::MAX));
+        self.retained_bytes
+            .set(i64::try_from(retained.bytes()).unwrap_or(i64::MAX));
+        for (limit, label) in [
+            (rumqttd::RetainLimit::Messages, "retained_messages"),
+            (rumqttd::RetainLimit::Bytes, "retained_bytes"),
+        ] {
+            let refused = retained.refused(limit);
+            let counter = self.limit_refusals.with_label_values(&[label]);
+            let counted = counter.get();
+            if refused > counted {
+                counter.inc_by(refused - counted);
+            }
         }
     }
 }

@@ -515,6 +515,42 @@ impl Registry {
         all
     }
 
+    /// One page of the devices `which` selects, in id order: the first `limit` with an id
+    /// after `after`, and whether more follow. Only the page's records are copied under
+    /// the lock (one walk over the ids, no sort of every record): the admin API's listing
+    /// must not hold what sessions need while it serializes.
+    pub fn page(
+        &self,
+        after: Option<&str>,
+        limit: usize,
+        which: impl Fn(&Record) -> bool,
+    ) -> (Vec<Record>, bool) {
+        use std::collections::BinaryHeap;
+        let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        // The `limit + 1` smallest ids after `after`: a max-heap keeps them.
+        let mut smallest: BinaryHeap<&str> = BinaryHeap::with_capacity(limit.min(10_000) + 1);
+        for record in devices.values() {
+            let id = record.id.as_str();
+            if after.is_some_and(|after| id <= after) || !which(record) {
+                continue;
+            }
+            if smallest.len() <= limit {
+                smallest.push(id);
+            } else if smallest.peek().is_some_and(|&max| id < max) {
+                smallest.pop();
+                smallest.push(id);
+            }
+        }
+        let more = smallest.len() > limit;
+        let mut ids = smallest.into_sorted_vec();
+        ids.truncate(limit);
+        let page = ids
+            .into_iter()
+            .filter_map(|id| devices.get(id).cloned())
+            .collect();
+        (page, more)
+    }
+
     /// Every change of a local device's record from now on is sent to `observer`.
     /// Returns the local records as they are now.
     pub fn observe(&self, observer: tokio::sync::mpsc::UnboundedSender<Record>) -> Vec<Record> {

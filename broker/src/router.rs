@@ -51,6 +51,12 @@ pub fn saved_sessions_limit(broker: &BrokerSection) -> usize {
         .max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS)
 }
 
+/// Topics whose retained messages are outside `max_retained_messages` and
+/// `max_retained_bytes`: the broker's own (`fbbus/`: device records, line counts;
+/// `$fbbus/`: the readiness probe). Clients cannot publish there (the policy refuses
+/// every `fbbus/` topic but their own declaration, which is never routed).
+pub const RETAINED_UNCOUNTED: [&str; 2] = ["fbbus/", "$fbbus/"];
+
 /// How long the router must be quiet before it releases memory.
 pub const IDLE_AFTER: Duration = Duration::from_millis(500);
 
@@ -93,6 +99,12 @@ impl RouterHandle {
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
             max_saved_sessions: saved_sessions_limit(broker),
+            max_retained_messages: broker.max_retained_messages,
+            max_retained_bytes: broker.max_retained_bytes,
+            // The broker's own retained messages (registry records, line counts) are
+            // bounded by the registry, not by what clients retain: a flood of clients'
+            // retained messages must never keep a device's record from being retained.
+            retained_uncounted_prefixes: RETAINED_UNCOUNTED.iter().map(|p| p.to_string()).collect(),
         };
         let mut warned = SkipWarnings::default();
         let mut warned_holds = SkipWarnings::default();
@@ -100,6 +112,9 @@ impl RouterHandle {
         let hooks = RouterHooks {
             // Exported as fbbus_router_saved_sessions{,_dropped_total}.
             saved_sessions: Arc::clone(&metrics.router_sessions),
+            // Exported as fbbus_retained_{messages,bytes} and, refused,
+            // fbbus_limit_refusals_total{limit="retained_messages"|"retained_bytes"}.
+            retained: Arc::clone(&metrics.router_retained),
             hold_limit: Duration::from_millis(broker.slow_subscriber_hold_ms),
             held: Some(Box::new(move |held: &Held<'_>| {
                 let outcome = if held.gave_up { "gave_up" } else { "caught_up" };

@@ -198,6 +198,7 @@ impl Broker {
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
             max_subscriptions: config.broker.max_subscriptions_per_client,
+            max_sessions_per_identity: config.broker.max_sessions_per_identity,
             max_keep_alive: config.broker.max_keep_alive_s,
             connect_timeout: config.connect_timeout(),
             write_timeout: Duration::from_millis(config.broker.slow_consumer_timeout_ms),

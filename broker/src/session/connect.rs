@@ -16,7 +16,7 @@ use security::Identity;
 use super::ack_order::AckOrder;
 use super::lifetime::{purge_router_session, SessionLifetime};
 use super::packet_ids::PacketIds;
-use super::table::{Owned, Remains};
+use super::table::{Owned, Refusal, Remains};
 use super::Session;
 use crate::authenticator::Outcome;
 use crate::broker_publisher::is_reserved_client_id;
@@ -374,10 +374,22 @@ fn claim(
     client_id: &str,
     owner: &Owner,
 ) -> Result<(u64, bool), Refused> {
-    let Owned { connected } = match ctx.sessions.open(client_id, owner) {
-        Ok(claimed) => return Ok(claimed),
-        Err(owned) => owned,
+    // The identity sessions are counted for: the verified username, else the peer's
+    // address (every client when there is no password file).
+    let identity = match owner {
+        Owner::User(user) => format!("user:{user}"),
+        Owner::Anonymous => format!("ip:{}", peer.ip()),
     };
+    let max = ctx.max_sessions_per_identity;
+    let Owned { connected } =
+        match ctx
+            .sessions
+            .open_counted(client_id, owner, Some(&identity), Some(max))
+        {
+            Ok(claimed) => return Ok(claimed),
+            Err(Refusal::Owned(owned)) => owned,
+            Err(Refusal::Quota) => return Err(over_quota(ctx, peer, client_id, &identity, max)),
+        };
     if ctx.identity.may_log(client_id, owner) {
         tracing::warn!(
             %peer,
@@ -396,6 +408,38 @@ fn claim(
             "client_id_owned",
         )
     })
+}
+
+/// A CONNECT beyond `[broker] max_sessions_per_identity`: refused with MQTT 5 0x97 Quota
+/// exceeded (3.1.1 has no such code: 0x05 Not authorized, the closest that tells a client
+/// not to retry at once), counted, and logged once.
+fn over_quota(
+    ctx: &Context,
+    peer: SocketAddr,
+    client_id: &str,
+    identity: &str,
+    max: usize,
+) -> Refused {
+    static LOGGED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    ctx.metrics
+        .limit_refusals
+        .with_label_values(&["sessions_per_identity"])
+        .inc();
+    if !LOGGED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        tracing::warn!(
+            %peer,
+            client_id,
+            identity,
+            max_sessions_per_identity = max,
+            "CONNECT refused: this identity holds [broker] max_sessions_per_identity \
+             connections and persistent sessions (logged once; all counted in \
+             fbbus_limit_refusals_total{{limit=\"sessions_per_identity\"}})"
+        );
+    }
+    Refused {
+        logged: true,
+        ..refused(ConnectReturnCode::QuotaExceeded, "sessions_per_identity")
+    }
 }
 
 /// A will may only go where the client may publish (the publish policy decides).

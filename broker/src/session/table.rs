@@ -29,9 +29,16 @@
 //! with it (the eviction hook, [`SessionTable::evicting`], run with the table held): the
 //! router drops its oldest saved session by its own order, which may differ, and a
 //! session the router kept without an owner here could be resumed by anyone.
+//!
+//! **Per identity** (issue 21). Each entry may name the identity it is counted for (the
+//! username, or the peer address of an anonymous client: `connect.rs`), and
+//! [`SessionTable::open_counted`] refuses a CONNECT that would give that identity more
+//! than `[broker] max_sessions_per_identity` entries, connected and kept offline,
+//! atomically with the rest of `open`. Taking over or resuming one's own session adds
+//! nothing.
 
 use std::collections::{BTreeMap, HashMap};
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use tokio::time::Instant;
@@ -58,6 +65,8 @@ struct Inner {
     closes: u64,
     /// The offline sessions' expiry deadlines.
     expiries: BTreeMap<(Instant, u64), String>,
+    /// Entries (connected and offline) by the identity they are counted for.
+    per_identity: HashMap<Arc<str>, usize>,
 }
 
 struct Client {
@@ -69,6 +78,17 @@ struct Client {
     connected: bool,
     /// While offline: its place in `offline`, and in `expiries` if it expires.
     closed: Option<(u64, Option<Instant>)>,
+    /// The identity this entry counts for (`per_identity`), if any.
+    counted: Option<Arc<str>>,
+}
+
+/// Why [`SessionTable::open_counted`] refused a CONNECT.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Refusal {
+    /// The client id's session belongs to another identity.
+    Owned(Owned),
+    /// The identity holds `max_sessions_per_identity` sessions already.
+    Quota,
 }
 
 /// A CONNECT's client id belongs to another identity's session.
@@ -114,15 +134,41 @@ impl SessionTable {
     /// and whether the previous connection of that client id is still running (has not
     /// closed yet). Refused, changing nothing, when the client id's connected or kept
     /// session belongs to another identity.
-    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Owned> {
+    /// (Not counted for any identity: never `Refusal::Quota`.)
+    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Refusal> {
+        self.open_counted(client_id, owner, None, None)
+    }
+
+    /// [`SessionTable::open`], the entry counted for `identity`; with `max`, also refused
+    /// when it would give `identity` more than `max` entries (taking over or resuming an
+    /// entry already counted for it adds none). Refused, changing nothing.
+    pub fn open_counted(
+        &self,
+        client_id: &str,
+        owner: &Owner,
+        identity: Option<&str>,
+        max: Option<usize>,
+    ) -> Result<(u64, bool), Refusal> {
         let mut inner = self.inner();
-        if let Some(other) = inner.clients.get(client_id).filter(|c| c.owner != *owner) {
-            return Err(Owned {
+        let existing = inner.clients.get(client_id);
+        if let Some(other) = existing.filter(|c| c.owner != *owner) {
+            return Err(Refusal::Owned(Owned {
                 connected: other.connected,
-            });
+            }));
+        }
+        if let (Some(identity), Some(max)) = (identity, max) {
+            let adds = existing.is_none_or(|c| c.counted.as_deref() != Some(identity));
+            let held = inner.per_identity.get(identity).copied().unwrap_or(0);
+            if adds && held >= max {
+                return Err(Refusal::Quota);
+            }
         }
         inner.last += 1;
         let session = inner.last;
+        let counted: Option<Arc<str>> = identity.map(Arc::from);
+        if let Some(identity) = &counted {
+            *inner.per_identity.entry(Arc::clone(identity)).or_default() += 1;
+        }
         let previous = inner.clients.insert(
             client_id.to_owned(),
             Client {
@@ -130,13 +176,24 @@ impl SessionTable {
                 latest: session,
                 connected: true,
                 closed: None,
+                counted,
             },
         );
         let previous_running = previous.as_ref().is_some_and(|c| c.connected);
         if let Some(previous) = previous {
-            inner.forget_closed(&previous);
+            inner.forget(&previous);
         }
         Ok((session, previous_running))
+    }
+
+    /// Entries counted for `identity` now.
+    #[cfg(test)]
+    pub fn held_by(&self, identity: &str) -> usize {
+        self.inner()
+            .per_identity
+            .get(identity)
+            .copied()
+            .unwrap_or(0)
     }
 
     /// Numbers sessions above `session` from now on (from the persisted registry).
@@ -164,7 +221,7 @@ impl SessionTable {
         }
         let result = f();
         if let Some(ended) = inner.clients.remove(client_id) {
-            inner.forget_closed(&ended);
+            inner.forget(&ended);
         }
         Some(result)
     }
@@ -194,7 +251,9 @@ impl SessionTable {
         if !superseded {
             match remains {
                 Remains::Nothing => {
-                    inner.clients.remove(client_id);
+                    if let Some(ended) = inner.clients.remove(client_id) {
+                        inner.forget(&ended);
+                    }
                 }
                 Remains::Kept(expires_after) => {
                     inner.keep(client_id, expires_after, self.limit, &self.evicted)
@@ -255,10 +314,23 @@ impl Inner {
                 break;
             };
             if let Some(dropped) = self.clients.remove(&oldest) {
-                self.forget_closed(&dropped);
+                self.forget(&dropped);
             }
             evicted(&oldest);
         }
+    }
+
+    /// `client` left the table: its count, and its offline places.
+    fn forget(&mut self, client: &Client) {
+        if let Some(identity) = &client.counted {
+            if let Some(held) = self.per_identity.get_mut(identity) {
+                *held = held.saturating_sub(1);
+                if *held == 0 {
+                    self.per_identity.remove(identity);
+                }
+            }
+        }
+        self.forget_closed(client);
     }
 
     /// The places of `client`'s offline session in `offline` and `expiries`, if it had
@@ -306,6 +378,33 @@ mod tests {
         assert_eq!(t.len(), (0, 0), "an ended session leaves the table");
         let (c, running) = open(&t, "plc");
         assert!(c > b && !running);
+    }
+
+    /// Issue 21: at most `max` entries per identity, connected and kept offline; one's own
+    /// takeover adds none; an entry leaving gives its place back.
+    #[test]
+    fn sessions_per_identity_are_bounded() {
+        let t = SessionTable::new(10);
+        let open = |id: &str, who: &str| t.open_counted(id, &Owner::Anonymous, Some(who), Some(2));
+        let (a, _) = open("a", "10.0.0.1").unwrap();
+        let (b, _) = open("b", "10.0.0.1").unwrap();
+        assert_eq!(open("c", "10.0.0.1"), Err(Refusal::Quota));
+        assert_eq!(t.held_by("10.0.0.1"), 2);
+        // Another identity, and a takeover of one's own client id, are not refused.
+        assert!(open("c", "10.0.0.2").is_ok());
+        let (a2, running) = open("a", "10.0.0.1").unwrap();
+        assert!(running);
+        assert_eq!(t.held_by("10.0.0.1"), 2);
+        t.close("a", a, Remains::Nothing);
+        // A kept session still counts; a clean one's end gives its place back.
+        t.close("a", a2, Remains::Kept(None));
+        assert_eq!(open("c2", "10.0.0.1"), Err(Refusal::Quota));
+        t.close("b", b, Remains::Nothing);
+        assert_eq!(t.held_by("10.0.0.1"), 1);
+        assert!(open("c2", "10.0.0.1").is_ok());
+        // Taking a client id counted for another identity adds one: refused at the limit.
+        assert_eq!(open("c", "10.0.0.1"), Err(Refusal::Quota));
+        assert_eq!(t.held_by("10.0.0.2"), 1);
     }
 
     /// Issue 14: a clean session leaves nothing, and numbers still grow per client id.
@@ -367,17 +466,23 @@ mod tests {
         let dev_b = Owner::User("devB".into());
         let dev_a = Owner::User("devA".into());
         let (b1, _) = t.open("devB", &dev_b).unwrap();
-        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: true }));
+        assert_eq!(
+            t.open("devB", &dev_a),
+            Err(Refusal::Owned(Owned { connected: true }))
+        );
         assert_eq!(
             t.open("devB", &Owner::Anonymous),
-            Err(Owned { connected: true })
+            Err(Refusal::Owned(Owned { connected: true }))
         );
         assert!(
             t.is_current("devB", b1),
             "the refusal took no session number"
         );
         t.close("devB", b1, Remains::Kept(None));
-        assert_eq!(t.open("devB", &dev_a), Err(Owned { connected: false }));
+        assert_eq!(
+            t.open("devB", &dev_a),
+            Err(Refusal::Owned(Owned { connected: false }))
+        );
         assert_eq!(t.len(), (0, 1), "the kept session is still there");
         // The owner itself takes its session back.
         let (b2, running) = t.open("devB", &dev_b).unwrap();

@@ -405,14 +405,16 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
 }
 
 /// fbbus's generated config: its defaults, one loopback listener, `max_connections`
-/// above every scenario's count, warnings only in the log.
+/// (and `max_sessions_per_identity`: every load client is one loopback identity) above
+/// every scenario's count, warnings only in the log.
 fn fbbus_config(
     spec: &Spec<'_>,
     dir: &Path,
     addr: SocketAddr,
     admin: SocketAddr,
 ) -> Result<String, Error> {
-    let mut config = String::from("[broker]\nmax_connections = 10100\n");
+    let mut config =
+        String::from("[broker]\nmax_connections = 10100\nmax_sessions_per_identity = 20200\n");
     for option in spec.broker_keys {
         config.push_str(option);
         config.push('\n');

@@ -17,8 +17,8 @@ use serde::{Deserialize, Serialize};
 
 pub use link::local;
 pub use router::{
-    Forward, Held, Notification, Router, RouterHooks, SavedSessions, Skipped,
-    DEFAULT_MAX_SAVED_SESSIONS,
+    Forward, Held, Notification, RetainLimit, RetainedStats, Router, RouterHooks, SavedSessions,
+    Skipped, DEFAULT_MAX_SAVED_SESSIONS,
 };
 use segments::Storage;
 
@@ -54,6 +54,23 @@ pub struct RouterConfig {
     /// [`DEFAULT_MAX_SAVED_SESSIONS`]; upstream kept every one forever.
     #[serde(default = "default_max_saved_sessions")]
     pub max_saved_sessions: usize,
+    /// fbbus: a retained publication on a topic without a retained message is not kept
+    /// when this many are kept, or when its topic and payload would take the retained
+    /// bytes beyond `max_retained_bytes` (counted in `RouterHooks::retained`). Replacing
+    /// or clearing one always works. Default: no bound (upstream).
+    #[serde(default = "unbounded")]
+    pub max_retained_messages: usize,
+    #[serde(default = "unbounded")]
+    pub max_retained_bytes: usize,
+    /// fbbus: retained messages on topics starting with one of these are neither counted
+    /// nor refused: the embedder's own, which it bounds itself.
+    #[serde(default)]
+    pub retained_uncounted_prefixes: Vec<String>,
+}
+
+// fbbus
+fn unbounded() -> usize {
+    usize::MAX
 }
 
 // fbbus
@@ -72,6 +89,9 @@ impl Default for RouterConfig {
             initialized_filters: None,
             shared_subscriptions_strategy: Strategy::default(),
             max_saved_sessions: DEFAULT_MAX_SAVED_SESSIONS,
+            max_retained_messages: usize::MAX,
+            max_retained_bytes: usize::MAX,
+            retained_uncounted_prefixes: Vec::new(),
         }
     }
 }

@@ -1,13 +1,15 @@
 use super::Ack;
 use bytes::Bytes;
 use slab::Slab;
-use tracing::{info, trace};
+use tracing::{info, trace, warn};
 
 use crate::protocol::{
     matches, ConnAck, ConnAckProperties, PingResp, PubAck, PubComp, PubRec, PubRel, Publish,
     PublishProperties, SubAck, UnsubAck,
 };
 use crate::router::iobufs::shrink_if_empty;
+// fbbus: the retained store's bounds.
+use crate::router::retained::{self, RetainLimit, RetainedStats};
 use crate::router::{DataRequest, FilterIdx, Waiters};
 use crate::{ConnectionId, Filter, Offset, RouterConfig, Topic};
 
@@ -15,6 +17,7 @@ use crate::segments::{CommitLog, Position};
 use crate::Storage;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::io;
+use std::sync::Arc;
 use std::time::Instant;
 
 type PubWithProp = (Publish, Option<PublishProperties>);
@@ -75,6 +78,11 @@ pub struct DataLog {
     /// Map of subscription filter name to filter index
     filter_indexes: HashMap<Filter, FilterIdx>,
     retained_publishes: HashMap<Topic, PublishData>,
+    /// fbbus: the counted retained messages and their bytes (`retained`), and where the
+    /// embedder reads them.
+    retained_counted: usize,
+    retained_bytes: usize,
+    retained_stats: Arc<RetainedStats>,
     /// List of filters associated with a topic
     publish_filters: HashMap<Topic, Vec<FilterIdx>>,
 }
@@ -103,6 +111,9 @@ impl DataLog {
             publish_filters,
             filter_indexes,
             retained_publishes,
+            retained_counted: 0,
+            retained_bytes: 0,
+            retained_stats: Arc::default(),
         })
     }
 
@@ -340,18 +351,109 @@ impl DataLog {
         (self.native.len(), self.publish_filters.len())
     }
 
+    /// fbbus: the retained store reports to `stats` from now on (`RouterHooks::retained`).
+    pub fn report_retained_to(&mut self, stats: Arc<RetainedStats>) {
+        stats.set(self.retained_counted, self.retained_bytes);
+        self.retained_stats = stats;
+    }
+
+    /// fbbus: whether a retained message on `topic` is outside the bounds (an embedder's
+    /// own prefix).
+    fn retained_uncounted(&self, topic: &str) -> bool {
+        self.config
+            .retained_uncounted_prefixes
+            .iter()
+            .any(|prefix| topic.starts_with(prefix.as_str()))
+    }
+
+    /// fbbus: the bound a retained message of `size` bytes on `topic` would go beyond, if
+    /// any. Replacing an existing retained message is never refused.
+    pub fn retain_refusal(&self, topic: &str, size: usize) -> Option<RetainLimit> {
+        if self.retained_publishes.contains_key(topic) || self.retained_uncounted(topic) {
+            return None;
+        }
+        if self.retained_counted >= self.config.max_retained_messages {
+            Some(RetainLimit::Messages)
+        } else if self.retained_bytes.saturating_add(size) > self.config.max_retained_bytes {
+            Some(RetainLimit::Bytes)
+        } else {
+            None
+        }
+    }
+
+    /// fbbus: the counted size of the retained message on `topic`, 0 if uncounted.
+    fn counted_size(&self, topic: &str, data: &PublishData) -> usize {
+        if self.retained_uncounted(topic) {
+            0
+        } else {
+            retained::size(&data.publish.topic, &data.publish.payload)
+        }
+    }
+
+    /// fbbus: takes `size` bytes (and a message when `new`) out of or into the counts.
+    fn count_retained(&mut self, new: bool, size: usize, sign: isize) {
+        if sign > 0 {
+            self.retained_counted += usize::from(new);
+            self.retained_bytes = self.retained_bytes.saturating_add(size);
+        } else {
+            self.retained_counted = self.retained_counted.saturating_sub(usize::from(new));
+            self.retained_bytes = self.retained_bytes.saturating_sub(size);
+        }
+    }
+
+    /// Keeps `publish` as the retained message of `topic`. fbbus: unless it is on a new
+    /// topic beyond `max_retained_messages` or `max_retained_bytes` (`retained`): then it
+    /// is not kept, counted in the stats, and the first refusal of each bound is warned.
     pub fn insert_to_retained_publishes(
         &mut self,
         publish: Publish,
         publish_properties: Option<PublishProperties>,
         topic: Topic,
-    ) {
+    ) -> Result<(), RetainLimit> {
+        let size = retained::size(&publish.topic, &publish.payload);
+        if let Some(limit) = self.retain_refusal(&topic, size) {
+            if self.retained_stats.refuse(limit) {
+                let (setting, value) = match limit {
+                    RetainLimit::Messages => {
+                        ("max_retained_messages", self.config.max_retained_messages)
+                    }
+                    RetainLimit::Bytes => ("max_retained_bytes", self.config.max_retained_bytes),
+                };
+                warn!(
+                    topic,
+                    setting,
+                    value,
+                    "retained publication on a new topic not retained: the retained store \
+                     is full (routed to current subscribers; logged once, counted after)"
+                );
+            }
+            return Err(limit);
+        }
+        let counted = !self.retained_uncounted(&topic);
         let pub_with_props = (publish, publish_properties);
-        self.retained_publishes.insert(topic, pub_with_props.into());
+        let old = self.retained_publishes.insert(topic, pub_with_props.into());
+        if counted {
+            if let Some(old) = &old {
+                let old_size = retained::size(&old.publish.topic, &old.publish.payload);
+                self.count_retained(false, old_size, -1);
+            }
+            self.count_retained(old.is_none(), size, 1);
+            self.retained_stats
+                .set(self.retained_counted, self.retained_bytes);
+        }
+        Ok(())
     }
 
     pub fn remove_from_retained_publishes(&mut self, topic: Topic) {
-        self.retained_publishes.remove(&topic);
+        // fbbus: counted out.
+        if let Some(old) = self.retained_publishes.remove(&topic) {
+            let size = self.counted_size(&topic, &old);
+            if size > 0 {
+                self.count_retained(true, size, -1);
+                self.retained_stats
+                    .set(self.retained_counted, self.retained_bytes);
+            }
+        }
     }
 
     pub fn read_retained_messages(&mut self, filter: &str) -> Vec<PubWithProp> {
@@ -359,7 +461,12 @@ impl DataLog {
         let now = Instant::now();
 
         // discard expired retained messages
-        self.retained_publishes.retain(|_, pubdata| {
+        // fbbus: and count them out (`retained`).
+        let prefixes = &self.config.retained_uncounted_prefixes;
+        let (mut gone, mut gone_bytes) = (0usize, 0usize);
+        self.retained_publishes.retain(|topic, pubdata| {
+            let counted = !prefixes.iter().any(|p| topic.starts_with(p.as_str()));
+            let size = retained::size(&pubdata.publish.topic, &pubdata.publish.payload);
             // Keep data if no properties exists, which implies no message expiry!
             let Some(properties) = pubdata.properties.as_mut() else {
                 return true;
@@ -379,10 +486,19 @@ impl DataLog {
                 // set message_expiry_interval to (original value - time spent waiting in server)
                 // ref: https://docs.oasis-open.org/mqtt/mqtt/v5.0/os/mqtt-v5.0-os.html#_Toc3901112
                 *message_expiry_interval -= time_spent;
+            } else if counted {
+                gone += 1;
+                gone_bytes += size;
             }
 
             is_valid
         });
+        if gone > 0 {
+            self.retained_counted = self.retained_counted.saturating_sub(gone);
+            self.retained_bytes = self.retained_bytes.saturating_sub(gone_bytes);
+            self.retained_stats
+                .set(self.retained_counted, self.retained_bytes);
+        }
 
         // no need to include timestamp when returning
         self.retained_publishes
@@ -547,6 +663,7 @@ mod test {
             initialized_filters: None,
             shared_subscriptions_strategy: Strategy::RoundRobin,
             max_saved_sessions: crate::DEFAULT_MAX_SAVED_SESSIONS, // fbbus
+            ..Default::default()                                   // fbbus
         };
         let mut data = DataLog::new(config).unwrap();
         data.next_native_offset("topic/a");
@@ -568,6 +685,7 @@ mod test {
             initialized_filters: None,
             shared_subscriptions_strategy: Strategy::RoundRobin,
             max_saved_sessions: crate::DEFAULT_MAX_SAVED_SESSIONS, // fbbus
+            ..Default::default()                                   // fbbus
         };
         let mut data = DataLog::new(config).unwrap();
         data.next_native_offset("+/+");
@@ -587,6 +705,55 @@ mod test {
             ..Default::default()
         })
         .unwrap()
+    }
+
+    /// fbbus: a retained message on a new topic beyond `max_retained_messages` or
+    /// `max_retained_bytes` is not kept and is counted; replacing and clearing always
+    /// work; uncounted prefixes are neither counted nor refused.
+    #[test]
+    fn the_retained_store_is_bounded() {
+        use crate::protocol::Publish;
+        use crate::router::{RetainLimit, RetainedStats};
+        let mut data = DataLog::new(RouterConfig {
+            max_retained_messages: 2,
+            max_retained_bytes: 100,
+            retained_uncounted_prefixes: vec!["own/".into()],
+            ..Default::default()
+        })
+        .unwrap();
+        let stats = std::sync::Arc::new(RetainedStats::default());
+        data.report_retained_to(stats.clone());
+        let retain = |data: &mut DataLog, topic: &str, payload: &str| {
+            data.insert_to_retained_publishes(
+                Publish::new(topic.to_owned(), payload.to_owned(), true),
+                None,
+                topic.to_owned(),
+            )
+        };
+        assert_eq!(retain(&mut data, "a", "1234"), Ok(()));
+        assert_eq!(retain(&mut data, "b", "1234"), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (2, 10));
+        assert_eq!(data.retain_refusal("c", 5), Some(RetainLimit::Messages));
+        assert_eq!(retain(&mut data, "c", "1234"), Err(RetainLimit::Messages));
+        assert_eq!(retain(&mut data, "c", "1234"), Err(RetainLimit::Messages));
+        assert_eq!(stats.refused(RetainLimit::Messages), 2);
+        // Replacing works at the limit, and its bytes replace the old ones.
+        assert_eq!(retain(&mut data, "a", "123456789"), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (2, 15));
+        // The embedder's own topics are outside the bounds.
+        assert_eq!(retain(&mut data, "own/x", "1234"), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (2, 15));
+        // Clearing frees a place; bytes bound a new topic too.
+        data.remove_from_retained_publishes("b".into());
+        assert_eq!((stats.messages(), stats.bytes()), (1, 10));
+        let big = "x".repeat(90);
+        assert_eq!(retain(&mut data, "c", &big), Err(RetainLimit::Bytes));
+        assert_eq!(stats.refused(RetainLimit::Bytes), 1);
+        assert_eq!(retain(&mut data, "c", "1234"), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (2, 15));
+        data.remove_from_retained_publishes("own/x".into());
+        assert_eq!((stats.messages(), stats.bytes()), (2, 15));
+        assert_eq!(data.read_retained_messages("#").len(), 2);
     }
 
     /// fbbus: the topic cache starts over at `MAX_CACHED_TOPICS` instead of growing with

@@ -17,6 +17,7 @@ mod graveyard;
 mod holds;
 pub mod iobufs;
 mod logs;
+mod retained; // fbbus
 mod routing;
 mod scheduler;
 pub(crate) mod shared_subs;
@@ -24,6 +25,7 @@ mod waiters;
 
 pub use connection::Connection;
 pub use graveyard::{SavedSessions, DEFAULT_MAX_SAVED_SESSIONS};
+pub use retained::{RetainLimit, RetainedStats};
 pub use routing::Router;
 pub use waiters::Waiters;
 
@@ -42,6 +44,10 @@ pub struct RouterHooks {
     /// `RouterConfig::max_saved_sessions`: the router updates the counters, the embedder
     /// reads them (keep a clone of the `Arc`).
     pub saved_sessions: std::sync::Arc<SavedSessions>,
+    /// The retained messages the router keeps, and the retained publications it did not
+    /// keep at `RouterConfig::max_retained_messages` / `max_retained_bytes` (`retained`):
+    /// updated by the router, read by the embedder (keep a clone of the `Arc`).
+    pub retained: std::sync::Arc<RetainedStats>,
     /// Called after the router released the memory no reader needs any more (read
     /// commit-log segments, empty per-connection queues): once it had no event for
     /// `idle_after`, and while events keep coming, at most every `release_every`.
@@ -71,6 +77,7 @@ impl Default for RouterHooks {
         RouterHooks {
             skipped: None,
             saved_sessions: Default::default(),
+            retained: Default::default(),
             released: None,
             idle_after: std::time::Duration::from_millis(500),
             release_every: std::time::Duration::from_secs(10),

@@ -20,6 +20,7 @@ use super::graveyard::Graveyard;
 use super::holds::Holds;
 use super::iobufs::{Incoming, Outgoing};
 use super::logs::{AckLog, DataLog};
+use super::retained; // fbbus
 use super::scheduler::{ScheduleReason, Scheduler};
 use super::shared_subs::SharedGroup;
 use super::{
@@ -145,10 +146,22 @@ impl Router {
         }
     }
 
+    /// fbbus: whether `publish` is a retained publication the retained store will not
+    /// keep (a new topic beyond its bounds, `retained`).
+    fn retain_refused(&self, publish: &Publish) -> bool {
+        publish.retain
+            && !publish.payload.is_empty()
+            && std::str::from_utf8(&publish.topic).is_ok_and(|topic| {
+                let size = retained::size(&publish.topic, &publish.payload);
+                self.datalog.retain_refusal(topic, size).is_some()
+            })
+    }
+
     /// fbbus: sets the callbacks the router reports to (see [`RouterHooks`]).
     pub fn with_hooks(mut self, hooks: RouterHooks) -> Router {
         self.holds = Holds::new(hooks.hold_limit);
         self.graveyard.report_to(hooks.saved_sessions.clone());
+        self.datalog.report_retained_to(hooks.retained.clone());
         self.hooks = hooks;
         self
     }
@@ -636,10 +649,15 @@ impl Router {
 
                     match qos {
                         QoS::AtLeastOnce => {
-                            let puback = PubAck {
-                                pkid,
-                                reason: PubAckReason::Success,
+                            // fbbus: a retained publication the retained store will not
+                            // keep is still routed, and its MQTT 5 PUBACK says 0x97
+                            // (`retained`). QoS 2 has no such code before the release.
+                            let reason = if self.retain_refused(&publish) {
+                                PubAckReason::QuotaExceeded
+                            } else {
+                                PubAckReason::Success
                             };
+                            let puback = PubAck { pkid, reason };
 
                             let ackslog = self.ackslog.get_mut(id).expect(SLABS_IN_STEP);
                             ackslog.puback(puback);
@@ -1518,7 +1536,12 @@ fn append_to_commitlog(
     if publish.payload.is_empty() {
         datalog.remove_from_retained_publishes(topic.to_owned());
     } else if publish.retain {
-        datalog.insert_to_retained_publishes(publish.clone(), properties.clone(), topic.to_owned());
+        // fbbus: not kept beyond the retained store's bounds; routed all the same.
+        let _ = datalog.insert_to_retained_publishes(
+            publish.clone(),
+            properties.clone(),
+            topic.to_owned(),
+        );
     }
 
     // after recording retained message, we also send that message to existing subscribers
@@ -1580,7 +1603,12 @@ fn append_will_message(
     if publish.payload.is_empty() {
         datalog.remove_from_retained_publishes(topic.to_owned());
     } else if publish.retain {
-        datalog.insert_to_retained_publishes(publish.clone(), properties.clone(), topic.to_owned());
+        // fbbus: not kept beyond the retained store's bounds; routed all the same.
+        let _ = datalog.insert_to_retained_publishes(
+            publish.clone(),
+            properties.clone(),
+            topic.to_owned(),
+        );
     }
 
     // after recording retained message, we also send that message to existing subscribers
