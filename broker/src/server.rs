@@ -127,14 +127,21 @@ impl Broker {
         })?;
         registry.start_silence_check(&tasks);
         let (store, restore) = if config.persistence.enabled {
-            let (store, restore) =
-                Store::open(&config.persistence, &metrics).map_err(|e| StartError::File {
-                    kind: "store",
-                    path: crate::store::log_path(&config.persistence.dir)
-                        .display()
-                        .to_string(),
-                    message: e.to_string(),
-                })?;
+            let (store, restore) = Store::open(
+                &config.persistence,
+                (
+                    config.broker.max_retained_messages,
+                    config.broker.max_retained_bytes,
+                ),
+                &metrics,
+            )
+            .map_err(|e| StartError::File {
+                kind: "store",
+                path: crate::store::log_path(&config.persistence.dir)
+                    .display()
+                    .to_string(),
+                message: e.to_string(),
+            })?;
             (Some(store), restore)
         } else {
             (None, Restore::default())

@@ -224,7 +224,9 @@ impl StoreMetrics {
             Opts::new(
                 "fbbus_store_not_stored_total",
                 "Messages not stored (still routed) by reason: session_queue_full \
-                 (max_queued_messages), store_full (max_bytes)",
+                 (max_queued_messages), store_full (max_bytes), retained_limit (a retained \
+                 message on a new topic beyond [broker] max_retained_messages or \
+                 max_retained_bytes, which the router does not retain either)",
             ),
             &["reason"],
         )
@@ -286,8 +288,11 @@ fn unix_now() -> u64 {
 
 impl Store {
     /// Opens the store in `section.dir`, replays it, and starts its writer thread.
+    /// `retained`: the router's bounds on retained messages (count, bytes), which the
+    /// store applies too.
     pub fn open(
         section: &PersistenceSection,
+        retained: (usize, usize),
         metrics: &crate::metrics::Metrics,
     ) -> Result<(Arc<Store>, Restore), StoreError> {
         let started = Instant::now();
@@ -305,6 +310,8 @@ impl Store {
         let limits = Limits {
             max_bytes: section.max_bytes,
             max_queued: section.max_queued_messages.max(1),
+            max_retained: retained.0,
+            max_retained_bytes: retained.1,
         };
         let mut state = State::default();
         let mut drops = Drops::default();
@@ -686,6 +693,7 @@ impl Writer {
         for (reason, n) in [
             ("session_queue_full", drops.session_queue_full),
             ("store_full", drops.store_full),
+            ("retained_limit", drops.retained_limit),
         ] {
             if n > 0 {
                 let counter = self.metrics.not_stored.with_label_values(&[reason]);
@@ -741,6 +749,8 @@ pub fn replay_for_fuzzing(bytes: &[u8]) -> usize {
     let limits = Limits {
         max_bytes: 1 << 16,
         max_queued: 16,
+        max_retained: 64,
+        max_retained_bytes: 1 << 14,
     };
     let mut state = State::default();
     let mut drops = Drops::default();

@@ -22,6 +22,13 @@ use super::record::{ClientId, Message, Options, Qos2, Record, Target};
 pub struct Limits {
     pub max_bytes: usize,
     pub max_queued: usize,
+    /// The router's bounds on retained messages (`[broker] max_retained_messages`,
+    /// `max_retained_bytes`), applied here the same way, so the store keeps what the
+    /// router keeps and a restart brings back the same set: a retained message on a new
+    /// topic beyond either is not stored; replacing and clearing always work; the broker's
+    /// own topics are not counted.
+    pub max_retained: usize,
+    pub max_retained_bytes: usize,
 }
 
 #[derive(Debug, Clone)]
@@ -48,6 +55,7 @@ pub struct StoredSession {
 pub struct Drops {
     pub session_queue_full: u64,
     pub store_full: u64,
+    pub retained_limit: u64,
 }
 
 /// Which persistent sessions subscribe to what, as a tree of topic levels, so that finding
@@ -173,6 +181,9 @@ pub struct State {
     pub last_seq: u64,
     /// Queued messages in all sessions.
     pub queued: usize,
+    /// Retained messages under the router's bounds, and their topic and payload bytes.
+    retained_counted: usize,
+    retained_counted_bytes: usize,
     subscribers: Subscribers,
 }
 
@@ -306,11 +317,27 @@ impl State {
     }
 
     fn retain(&mut self, message: &Arc<Message>, limits: Limits, drops: &mut Drops) {
+        let counted = !crate::router::RETAINED_UNCOUNTED
+            .iter()
+            .any(|prefix| message.topic.starts_with(prefix.as_bytes()));
+        let router_size = |m: &Message| m.topic.len() + m.payload.len();
         let old = self.retained.remove(message.topic.as_ref());
-        if let Some(old) = old {
+        if let Some(old) = &old {
             self.bytes = self.bytes.saturating_sub(old.size());
+            if counted {
+                self.retained_counted -= 1;
+                self.retained_counted_bytes -= router_size(old);
+            }
         }
         if message.payload.is_empty() {
+            return;
+        }
+        if counted
+            && old.is_none()
+            && (self.retained_counted >= limits.max_retained
+                || self.retained_counted_bytes + router_size(message) > limits.max_retained_bytes)
+        {
+            drops.retained_limit += 1;
             return;
         }
         if self.bytes + message.size() > limits.max_bytes {
@@ -318,6 +345,10 @@ impl State {
             return;
         }
         self.bytes += message.size();
+        if counted {
+            self.retained_counted += 1;
+            self.retained_counted_bytes += router_size(message);
+        }
         self.retained
             .insert(message.topic.to_vec(), Arc::clone(message));
     }
@@ -455,6 +486,8 @@ mod tests {
     const LIMITS: Limits = Limits {
         max_bytes: 1 << 20,
         max_queued: 3,
+        max_retained: 4,
+        max_retained_bytes: 1 << 20,
     };
 
     fn session(client: &str) -> Record {
@@ -563,6 +596,41 @@ mod tests {
         assert!(s.retained.is_empty());
         assert!(queue(&s, "a").is_empty());
         assert_eq!((s.bytes, s.queued), (0, 0));
+    }
+
+    #[test]
+    fn retained_messages_follow_the_routers_bounds() {
+        // LIMITS: 4 retained messages; the broker's own topics are not counted.
+        let mut records: Vec<Record> = (1..=6)
+            .map(|i| publish(i, &format!("r/{i}"), 0, true, "v"))
+            .collect();
+        records.push(publish(7, "fbbus/devices/x", 0, true, "own"));
+        records.push(publish(8, "r/1", 0, true, "replaced, and longer"));
+        records.push(publish(9, "r/2", 0, true, ""));
+        records.push(publish(10, "r/9", 0, true, "room again"));
+        let (s, d) = state(records);
+        assert_eq!(d.retained_limit, 2, "r/5 and r/6");
+        let topics: Vec<&[u8]> = s.retained.keys().map(|k| k.as_slice()).collect();
+        let want: [&[u8]; 5] = [b"fbbus/devices/x", b"r/1", b"r/3", b"r/4", b"r/9"];
+        assert_eq!(topics, want);
+        assert_eq!(
+            &s.retained[b"r/1".as_slice()].payload[..],
+            b"replaced, and longer"
+        );
+        // Bytes: topic and payload, as the router counts them.
+        let tight = Limits {
+            max_retained_bytes: 10,
+            ..LIMITS
+        };
+        let mut s = State::default();
+        let mut d = Drops::default();
+        for r in [
+            publish(1, "a", 0, true, "123456789"),
+            publish(2, "b", 0, true, "1"),
+        ] {
+            s.apply(r, tight, &mut d);
+        }
+        assert_eq!((s.retained.len(), d.retained_limit), (1, 1));
     }
 
     #[test]
