@@ -98,8 +98,9 @@ struct Common {
     #[arg(long, global = true)]
     allow_remote: bool,
     /// Directory for report.json, batches.csv, batches.jtl and the SVG charts (compare:
-    /// compare.txt; compare bridge: bridge.txt; compare persistence: persistence.txt).
-    /// Default: target/loadtest/<scenario>, outside the source tree.
+    /// compare.txt; compare bridge: bridge.txt; compare persistence: persistence.txt;
+    /// compare abuse: abuse.txt). Default: target/loadtest/<scenario>
+    /// (compare abuse: target/loadtest/abuse), outside the source tree.
     #[arg(long, global = true, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -385,7 +386,10 @@ fn main() -> ExitCode {
 async fn run(cli: Cli) -> Result<()> {
     let c = &cli.common;
     let scenario = match cli.scenario {
-        Command::Compare(args) => return compare::run(args, &c.out_dir("compare")).await,
+        Command::Compare(args) => {
+            let out = c.out_dir(args.scenario_dir());
+            return compare::run(args, &out).await;
+        }
         other => other,
     };
     if let Command::Render { report: path } = &scenario {

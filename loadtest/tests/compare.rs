@@ -403,3 +403,90 @@ fn quick_persistence_measures_the_store_and_the_restart() {
         "the quick smoke run took {elapsed:?}"
     );
 }
+
+/// `compare abuse --quick` (issue 21): every phase has its row with probe figures, the
+/// floods did something, the broker answered throughout (no phase failed, the probe was
+/// delivered), and the three goal lines say MET or NOT MET (the figures are not judged
+/// here: they are the broker's, and --quick is no measurement).
+#[test]
+fn quick_abuse_runs_every_flood_and_states_the_goals() {
+    let fbbus = fbbus_bin().to_str().unwrap();
+    let started = Instant::now();
+    let run = loadtest(&["compare", "abuse", "--quick", "--fbbus", fbbus], &[]);
+    let elapsed = started.elapsed();
+    assert!(run.success, "compare abuse failed\n{}", run.context());
+    let phases: Vec<&str> = run
+        .stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("== phases"))
+        .collect();
+    for phase in [
+        "0 idle",
+        "1 registry",
+        "2 redeclare",
+        "3 admin-poll",
+        "4 slow-headers",
+        "5 labels",
+        "6 retained",
+    ] {
+        let row = phases
+            .iter()
+            .find(|l| l.trim_start().starts_with(phase))
+            .unwrap_or_else(|| panic!("no row for {phase}\n{}", run.context()));
+        let cells: Vec<&str> = row.split_whitespace().collect();
+        // phase (2 words), ops, refused, p50, p99, max, p99/idle, lost, RSS, fds, KB
+        assert_eq!(cells.len(), 12, "{phase}: {row}");
+        assert!(
+            cells[4].parse::<f64>().is_ok(),
+            "{phase}: no probe p50 in {row}\n{}",
+            run.context()
+        );
+        assert!(
+            cells[10].parse::<u64>().is_ok_and(|fds| fds > 0),
+            "{phase}: no fd count in {row}"
+        );
+        if phase != "0 idle" {
+            let ops = cells[2].split('/').next().unwrap();
+            assert!(
+                ops.parse::<u64>().is_ok_and(|n| n > 0),
+                "{phase}: no flood operations in {row}\n{}",
+                run.context()
+            );
+        }
+    }
+    let slow = phases
+        .iter()
+        .find(|l| l.trim_start().starts_with("4 slow-headers"))
+        .unwrap();
+    let connects = slow.split_whitespace().nth(2).unwrap();
+    // ok/tried: whether every one succeeded is the broker's figure, not the harness's.
+    assert!(
+        connects
+            .split_once('/')
+            .is_some_and(|(ok, tried)| ok.parse::<u64>().is_ok() && tried.parse::<u64>().is_ok()),
+        "{slow}"
+    );
+    let goals: Vec<&str> = run
+        .stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("== goals"))
+        .collect();
+    for goal in [
+        "probe p99 within 2x idle during admin polling:",
+        "probe p99 within 2x idle during re-declaration:",
+        "resident memory within --max-rss-mb 256 MB",
+    ] {
+        assert!(
+            goals
+                .iter()
+                .any(|l| l.starts_with(goal) && (l.ends_with(" MET") || l.ends_with(" NOT MET"))),
+            "no goal line `{goal}`\n{}",
+            run.context()
+        );
+    }
+    assert_eq!(run.file("abuse.txt"), run.stdout);
+    assert!(
+        elapsed < Duration::from_secs(90),
+        "the quick smoke run took {elapsed:?}"
+    );
+}

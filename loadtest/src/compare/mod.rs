@@ -10,6 +10,7 @@
 //! alternating (A B A B ...), so machine noise hits every broker alike; the ratios use
 //! each broker's median.
 
+mod abuse;
 mod auth;
 mod bridge;
 mod fb;
@@ -43,6 +44,24 @@ pub struct CompareArgs {
 
 #[derive(Subcommand)]
 enum FbbusOnly {
+    /// fbbus only (issue 21): floods of the registry, re-declarations, admin polling,
+    /// slow admin headers, metric labels and retained messages, one phase each, with the
+    /// broker's resident memory and descriptors and a well-behaved device's round trip
+    /// during each; the goals MET or NOT MET. Writes abuse.txt.
+    Abuse {
+        /// Short phases (2 s), for a smoke test: the figures are not measurements.
+        #[arg(long)]
+        quick: bool,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+        /// Duration of each phase in seconds (default 10; --quick 2).
+        #[arg(long, value_name = "SECONDS")]
+        phase_secs: Option<u64>,
+        /// The resident-memory goal: the broker's peak VmRSS must stay within this.
+        #[arg(long, default_value_t = 256, value_name = "MB")]
+        max_rss_mb: u64,
+    },
     /// fbbus only: typed-topic validation cost (typed vs untyped burst, A B A B), device
     /// births per second, and registry HTTP query latency with 10,000 devices.
     Fb {
@@ -178,12 +197,41 @@ pub struct Contender {
     pub program: PathBuf,
 }
 
+impl CompareArgs {
+    /// The default `--out` directory's last part: `abuse` for `compare abuse`, else
+    /// `compare`.
+    pub fn scenario_dir(&self) -> &'static str {
+        match self.fbbus_only {
+            Some(FbbusOnly::Abuse { .. }) => "abuse",
+            _ => "compare",
+        }
+    }
+}
+
 /// Runs `compare`; the main comparison's output also goes to `<out>/compare.txt`, `compare
 /// bridge`'s to `<out>/bridge.txt`.
 pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
     let harness = std::env::current_exe().context("locating this binary")?;
     let default_fbbus = harness.with_file_name("fbbus");
     match args.fbbus_only {
+        Some(FbbusOnly::Abuse {
+            quick,
+            fbbus,
+            phase_secs,
+            max_rss_mb,
+        }) => {
+            let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
+            let mut params = if quick {
+                abuse::AbuseParams::quick()
+            } else {
+                abuse::AbuseParams::full()
+            };
+            if let Some(s) = phase_secs {
+                params.phase = Duration::from_secs(s.max(1));
+            }
+            params.max_rss_mb = max_rss_mb;
+            abuse::run(&fbbus, &params, out).await
+        }
         Some(FbbusOnly::Fb {
             quick,
             devices,
