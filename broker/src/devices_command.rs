@@ -1,4 +1,5 @@
-//! `fbbus devices`: the device registry in a terminal, read from the admin endpoint.
+//! `fbbus devices`: the device registry in a terminal, read from the admin endpoint;
+//! `fbbus devices forget ID` removes an offline device through it.
 
 use std::io::Write;
 use std::net::SocketAddr;
@@ -7,7 +8,7 @@ use std::time::Duration;
 use anyhow::Result;
 use serde_json::Value;
 
-use crate::admin_client::get;
+use crate::admin_client::{delete, get};
 
 pub struct Options {
     pub admin: SocketAddr,
@@ -19,7 +20,7 @@ pub struct Options {
 pub fn run(options: Options) -> Result<()> {
     loop {
         let path = match &options.id {
-            Some(id) => format!("/api/v1/devices/{id}"),
+            Some(id) => format!("/api/v1/devices/{}", path_segment(id)),
             None => "/api/v1/devices".to_owned(),
         };
         let body = get(options.admin, &path)?;
@@ -41,6 +42,27 @@ pub fn run(options: Options) -> Result<()> {
             }
         }
     }
+}
+
+/// Forgets the offline device `id` (`DELETE /api/v1/devices/{id}`): its record, its
+/// retained record and values, its metric series. The broker refuses an unknown or
+/// online device, and any request not from its own host.
+pub fn forget(admin: SocketAddr, id: &str) -> Result<()> {
+    delete(admin, &format!("/api/v1/devices/{}", path_segment(id)))?;
+    println!("device {id} forgotten: its record and retained values are cleared");
+    Ok(())
+}
+
+/// `id` as one URL path segment: a client id may hold any character, `/` and `?` too.
+fn path_segment(id: &str) -> String {
+    id.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
 }
 
 /// The registry as an aligned table.
@@ -131,6 +153,12 @@ mod tests {
         assert!(lines[1].contains("conv-a") && lines[1].contains("online"));
         assert!(lines[2].contains("keep-alive expired"));
         assert_eq!(lines[3], "2 devices, 1 online");
+    }
+
+    #[test]
+    fn device_ids_are_one_path_segment() {
+        assert_eq!(path_segment("conv-a_1.x~"), "conv-a_1.x~");
+        assert_eq!(path_segment("a/b?c d%é"), "a%2Fb%3Fc%20d%25%C3%A9");
     }
 
     #[test]
