@@ -821,6 +821,43 @@ mod tests {
         assert!(err.contains("`ns` or `ms`"), "{err}");
     }
 
+    /// The registry's bounds: 10,000 devices, 100 per identity, never forgotten by age;
+    /// a limit of 0 would refuse every device and is refused instead.
+    #[test]
+    fn registry_limits_default_and_are_at_least_1() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let limits = |fb: &str| {
+            Config::parse(&format!("[fb]\n{fb}\n{listener}"), "f")
+                .map(|c| c.fb.registry_limits())
+                .map_err(|e| e.to_string())
+        };
+        let default = limits("").unwrap();
+        assert_eq!(
+            default,
+            crate::registry::Limits {
+                max_devices: 10_000,
+                max_per_identity: 100,
+                forget_offline_after: None,
+            }
+        );
+        let set = limits("max_devices = 20\nforget_offline_after_s = 3600").unwrap();
+        assert_eq!(set.max_devices, 20);
+        assert_eq!(
+            set.forget_offline_after,
+            Some(std::time::Duration::from_secs(3600))
+        );
+        for (bad, key) in [
+            ("max_devices = 0", "fb.max_devices"),
+            (
+                "max_devices_per_identity = 0",
+                "fb.max_devices_per_identity",
+            ),
+        ] {
+            let err = limits(bad).unwrap_err();
+            assert!(err.contains(key), "{bad}: {err}");
+        }
+    }
+
     /// The silence keys become durations: a value no duration can hold (negative, NaN,
     /// huge) is refused here, never reaches `Duration::from_secs_f64`.
     #[test]
