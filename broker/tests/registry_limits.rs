@@ -201,7 +201,8 @@ async fn offline_devices_expire_with_their_retained_record() {
             None => panic!("never forgotten\n{}", broker.log_text()),
         }
     }
-    assert!(left.elapsed() >= Duration::from_secs(1), "too early");
+    // Offline from when the broker saw the end, a moment before the client saw its close.
+    assert!(left.elapsed() >= Duration::from_millis(900), "too early");
     assert!(record(&broker, "leaves").is_none());
     assert_metric(
         &broker,
