@@ -330,3 +330,87 @@ async fn fbbus_devices_forget_removes_a_device() {
     let (ok, out, err) = common::run(&mut cmd, Duration::from_secs(15));
     assert!(ok && out.contains("on-line"), "{out} {err}");
 }
+
+/// A FORTE-like device recognised by its client id, and a DINASORE-like one recognised by
+/// its topics only (as in `profiles.rs`, smaller).
+const FORTE_PROFILE: &str = r#"
+device = "conv2"
+runtime = "forte"
+[speaks]
+encoding = "fbdk"
+[interface.fbs.CONV.data_out]
+POSITION = "INT"
+[[topics]]
+topic = "line1/conv2/position"
+port = "CONV.POSITION"
+"#;
+
+const TOPICS_ONLY_PROFILE: &str = r#"
+device = "conv3"
+runtime = "dinasore"
+identity = { topics_only = true }
+[speaks]
+encoding = "dinasore"
+[interface.fbs.CONV.data_out]
+SPEED = "REAL"
+[[topics]]
+topic = "line1/conv3/speed"
+port = "CONV.SPEED"
+"#;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn profiled_devices_are_new_devices_too() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\nmax_devices = 1\n".into(),
+            ..Options::default()
+        },
+        |dir| {
+            let profiles = dir.join("profiles");
+            std::fs::create_dir(&profiles).unwrap();
+            std::fs::write(profiles.join("conv2.toml"), FORTE_PROFILE).unwrap();
+            std::fs::write(profiles.join("conv3.toml"), TOPICS_ONLY_PROFILE).unwrap();
+        },
+    );
+    let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/#"]).await;
+    let mut plain = Dev::connect(broker.port(), 5, "plain");
+    declare_ok(&mut plain, CONV, &mut diag_sub, &broker).await;
+
+    // Recognised at CONNECT: told on its diag topic, and no device on this connection.
+    let mut forte = Dev::connect(broker.port(), 5, "conv2");
+    let answer = diag(&mut diag_sub, "conv2", "declaration", &broker).await;
+    assert_eq!(
+        (answer["ok"].clone(), answer["limit"].clone()),
+        (false.into(), "devices".into())
+    );
+    assert!(record(&broker, "conv2").is_none());
+    assert_eq!(
+        forte.publish("line1/conv2/position", &[0x43, 0, 7]),
+        NOT_AUTHORIZED
+    );
+    forte.disconnect();
+
+    // Recognised by its topics: its first publication is refused at the limit.
+    let mut dinasore = Dev::connect(broker.port(), 5, "random-7f3a");
+    let speed = br#"{"SPEED": 1.5}"#;
+    assert_eq!(dinasore.publish("line1/conv3/speed", speed), QUOTA_EXCEEDED);
+    let answer = diag(&mut diag_sub, "conv3", "declaration", &broker).await;
+    assert_eq!(answer["limit"], "devices", "{answer}");
+    assert!(record(&broker, "conv3").is_none());
+    assert_metric(
+        &broker,
+        "fbbus_limit_refusals_total{limit=\"devices\"}",
+        2.0,
+    );
+
+    // With a place free, the profiled device is registered at its next CONNECT.
+    plain.disconnect();
+    wait_record(&broker, "plain", "went offline", |r| {
+        r["status"] == "offline"
+    })
+    .await;
+    assert_eq!(admin(&broker, "DELETE", "/api/v1/devices/plain").0, 200);
+    let _forte = Dev::connect(broker.port(), 5, "conv2");
+    wait_record(&broker, "conv2", "registered", |r| r["status"] == "online").await;
+    assert_eq!(dinasore.publish("line1/conv3/speed", speed), QUOTA_EXCEEDED);
+}
