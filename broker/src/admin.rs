@@ -4,20 +4,23 @@
 //! `?after=`, `next`; `?status=online` filters)
 //! and `/api/v1/devices/{id}` (one record, 404 if unknown); the device profiles:
 //! `/api/v1/profiles` (what each profile recognises and maps) and
-//! `PUT /api/v1/profiles/{device}` (a profile in TOML, as `fbbus declare` sends it).
+//! `PUT /api/v1/profiles/{device}` (a profile in TOML, as `fbbus declare` sends it);
+//! `DELETE /api/v1/devices/{id}` forgets an offline device (`fbbus devices forget`).
 //!
-//! Bound to loopback by default; it exposes no secret. Its one command, putting a
-//! profile, is refused (403) to any peer that is not on the broker's own host: the
-//! endpoint has no authentication, and an admin bound to a plant network for Prometheus
-//! must not let that network retype the line's devices.
+//! Bound to loopback by default; it exposes no secret. Its commands (putting a profile,
+//! forgetting a device) are refused (403) to any peer that is not on the broker's own
+//! host, by one extractor, [`LoopbackOnly`]: the endpoint has no authentication, and an
+//! admin bound to a plant network for Prometheus must not let that network retype or
+//! remove the line's devices. Remote admin writes are refused, whatever the bind.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, Query, State};
+use axum::extract::{ConnectInfo, DefaultBodyLimit, FromRequestParts, Path, Query, State};
+use axum::http::request::Parts;
 use axum::http::{header, StatusCode};
-use axum::response::IntoResponse;
+use axum::response::{IntoResponse, Response};
 use axum::routing::{get, put};
 use axum::{Extension, Router};
 use hyper::server::conn::http1;
@@ -29,7 +32,7 @@ use tokio::sync::Semaphore;
 use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::profiles::{Profiles, PutError};
-use crate::registry::Registry;
+use crate::registry::{ForgetError, ForgetReason, Registry};
 
 #[derive(Clone)]
 pub struct AdminState {
@@ -45,7 +48,7 @@ pub fn routes(state: AdminState) -> Router {
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(readyz))
         .route("/api/v1/devices", get(devices))
-        .route("/api/v1/devices/:id", get(device))
+        .route("/api/v1/devices/:id", get(device).delete(forget_device))
         .route("/api/v1/profiles", get(profiles))
         .route("/api/v1/profiles/:device", put(put_profile))
         // A request body larger than this is refused (413) before it is read further.
@@ -135,6 +138,56 @@ async fn device(State(state): State<AdminState>, Path(id): Path<String>) -> impl
     }
 }
 
+/// Forgets an offline device with its retained record and values: 404 if unknown, 409
+/// if it is online (or another line's). From the broker's host only.
+async fn forget_device(
+    _: LoopbackOnly,
+    State(state): State<AdminState>,
+    Path(id): Path<String>,
+) -> Response {
+    match state.registry.forget(&id, ForgetReason::Admin) {
+        Ok(record) => {
+            axum::Json(serde_json::json!({"ok": true, "forgotten": record.id})).into_response()
+        }
+        Err(e @ ForgetError::Unknown(_)) => error(StatusCode::NOT_FOUND, e.to_string()),
+        Err(e @ (ForgetError::Online(_) | ForgetError::OtherLine(..))) => {
+            error(StatusCode::CONFLICT, e.to_string())
+        }
+    }
+}
+
+/// An error answer: `{"error": ...}` with `code`.
+fn error(code: StatusCode, message: String) -> Response {
+    (code, axum::Json(serde_json::json!({"error": message}))).into_response()
+}
+
+/// The request comes from the broker's own host: extracting it refuses (403) any other
+/// peer. Every route that changes something takes it, so the rule is in one place; the
+/// endpoint has no authentication (a later change may check Basic credentials against
+/// the password file here).
+pub struct LoopbackOnly;
+
+#[axum::async_trait]
+impl<S: Send + Sync> FromRequestParts<S> for LoopbackOnly {
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, Self::Rejection> {
+        let peer = parts
+            .extensions
+            .get::<ConnectInfo<SocketAddr>>()
+            .map(|ConnectInfo(peer)| peer.ip().to_canonical());
+        match peer {
+            Some(ip) if ip.is_loopback() => Ok(LoopbackOnly),
+            _ => Err(error(
+                StatusCode::FORBIDDEN,
+                "admin writes are accepted from the broker's own host only (fbbus declare, \
+                 fbbus devices forget); remote admin writes are refused"
+                    .into(),
+            )),
+        }
+    }
+}
+
 /// What each profile recognises and maps, by device.
 async fn profiles(State(state): State<AdminState>) -> impl IntoResponse {
     let set = state.profiles.get();
@@ -173,22 +226,14 @@ async fn profiles(State(state): State<AdminState>) -> impl IntoResponse {
     }))
 }
 
-/// Puts a profile (TOML body) into the profiles directory: from the broker's host only.
+/// Puts a profile (TOML body) into the profiles directory: from the broker's host only
+/// (or written into its profiles directory).
 async fn put_profile(
+    _: LoopbackOnly,
     State(state): State<AdminState>,
-    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Path(device): Path<String>,
     body: String,
 ) -> impl IntoResponse {
-    let error = |code: StatusCode, e: String| {
-        (code, axum::Json(serde_json::json!({"error": e}))).into_response()
-    };
-    if !peer.ip().is_loopback() {
-        return error(
-            StatusCode::FORBIDDEN,
-            "profiles are put from the broker's own host (fbbus declare), or written into its profiles directory".into(),
-        );
-    }
     let (profiles, metrics) = (Arc::clone(&state.profiles), Arc::clone(&state.metrics));
     let put = tokio::task::spawn_blocking(move || profiles.put(&device, &body, &metrics)).await;
     match put {
@@ -288,5 +333,47 @@ pub async fn serve(
             let _ = tokio::time::timeout(limits.connection_timeout, connection).await;
             metrics.admin_connections.dec();
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    async fn from(peer: Option<&str>) -> Result<LoopbackOnly, StatusCode> {
+        let (mut parts, ()) = axum::http::Request::new(()).into_parts();
+        if let Some(peer) = peer {
+            let peer: SocketAddr = peer.parse().unwrap();
+            parts.extensions.insert(ConnectInfo(peer));
+        }
+        LoopbackOnly::from_request_parts(&mut parts, &())
+            .await
+            .map_err(|r| r.status())
+    }
+
+    /// Admin writes are answered to the broker's own host only, IPv4-mapped loopback
+    /// included; a request whose peer is unknown is refused too.
+    #[tokio::test]
+    async fn admin_writes_are_loopback_only() {
+        for peer in [
+            "127.0.0.1:5000",
+            "127.0.0.2:5000",
+            "[::1]:5000",
+            "[::ffff:127.0.0.1]:5000",
+        ] {
+            assert!(from(Some(peer)).await.is_ok(), "{peer}");
+        }
+        for peer in [
+            Some("10.0.0.7:5000"),
+            Some("[::ffff:10.0.0.7]:5000"),
+            Some("[fe80::1]:5000"),
+            None,
+        ] {
+            assert_eq!(
+                from(peer).await.err(),
+                Some(StatusCode::FORBIDDEN),
+                "{peer:?}"
+            );
+        }
     }
 }

@@ -1,4 +1,5 @@
-//! The admin endpoint, as `fbbus devices` and `fbbus declare` talk to it.
+//! The admin endpoint, as `fbbus devices` (and `fbbus devices forget`) and `fbbus declare`
+//! talk to it.
 //!
 //! The admin endpoint is plain HTTP on loopback and fbbus's own, so a dozen lines of
 //! HTTP/1.1 here replace an HTTP client crate and its TLS stack.
@@ -18,6 +19,11 @@ pub fn get(admin: SocketAddr, path: &str) -> Result<Value> {
 /// PUTs `body` at `path` and parses the JSON answer.
 pub fn put(admin: SocketAddr, path: &str, body: &[u8]) -> Result<Value> {
     request(admin, "PUT", path, Some(body))
+}
+
+/// DELETEs `path` and parses the JSON answer.
+pub fn delete(admin: SocketAddr, path: &str) -> Result<Value> {
+    request(admin, "DELETE", path, None)
 }
 
 fn request(admin: SocketAddr, method: &str, path: &str, body: Option<&[u8]>) -> Result<Value> {

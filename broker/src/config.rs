@@ -110,6 +110,16 @@ pub struct FbSection {
     /// seconds. 0 turns the judgement off.
     pub silence_factor: f64,
     pub silence_min_s: f64,
+    /// Devices of this line the registry holds at most: a new device beyond is refused
+    /// (its declaration answered on `fbbus/diag/<id>`, MQTT 5: 0x97), known devices go on.
+    pub max_devices: usize,
+    /// Devices one identity registers at most (the verified username where a password
+    /// file exists, else the client's address): a new device beyond is refused likewise.
+    pub max_devices_per_identity: usize,
+    /// A device of this line offline this long is forgotten, with its retained record and
+    /// values, as `fbbus devices forget` does. 0: never (a device away for maintenance
+    /// keeps its record until it is forgotten by hand).
+    pub forget_offline_after_s: u64,
 }
 
 impl FbSection {
@@ -118,6 +128,16 @@ impl FbSection {
         crate::silence::Bound {
             factor: self.silence_factor,
             floor: std::time::Duration::from_secs_f64(self.silence_min_s),
+        }
+    }
+
+    /// What the device registry holds at most.
+    pub(crate) fn registry_limits(&self) -> crate::registry::Limits {
+        crate::registry::Limits {
+            max_devices: self.max_devices,
+            max_per_identity: self.max_devices_per_identity,
+            forget_offline_after: (self.forget_offline_after_s > 0)
+                .then(|| std::time::Duration::from_secs(self.forget_offline_after_s)),
         }
     }
 }
@@ -132,6 +152,9 @@ impl Default for FbSection {
             fbdk_max_payload: crate::policy::typed::FORTE_RECEIVE_BUFFER,
             silence_factor: 3.0,
             silence_min_s: 5.0,
+            max_devices: 10_000,
+            max_devices_per_identity: 100,
+            forget_offline_after_s: 0,
         }
     }
 }
@@ -508,6 +531,17 @@ impl Config {
                 return Err(invalid(file, key, "must be between 0 and 86400"));
             }
         }
+        for (key, value) in [
+            ("fb.max_devices", self.fb.max_devices),
+            (
+                "fb.max_devices_per_identity",
+                self.fb.max_devices_per_identity,
+            ),
+        ] {
+            if value == 0 {
+                return Err(invalid(file, key, "must be at least 1"));
+            }
+        }
         if b.connect_timeout_ms == 0 {
             return Err(invalid(
                 file,
@@ -813,6 +847,43 @@ mod tests {
         let err = unit("fbdk_time_unit = \"us\"").unwrap_err();
         assert!(err.contains("fb.fbdk_time_unit"), "{err}");
         assert!(err.contains("`ns` or `ms`"), "{err}");
+    }
+
+    /// The registry's bounds: 10,000 devices, 100 per identity, never forgotten by age;
+    /// a limit of 0 would refuse every device and is refused instead.
+    #[test]
+    fn registry_limits_default_and_are_at_least_1() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        let limits = |fb: &str| {
+            Config::parse(&format!("[fb]\n{fb}\n{listener}"), "f")
+                .map(|c| c.fb.registry_limits())
+                .map_err(|e| e.to_string())
+        };
+        let default = limits("").unwrap();
+        assert_eq!(
+            default,
+            crate::registry::Limits {
+                max_devices: 10_000,
+                max_per_identity: 100,
+                forget_offline_after: None,
+            }
+        );
+        let set = limits("max_devices = 20\nforget_offline_after_s = 3600").unwrap();
+        assert_eq!(set.max_devices, 20);
+        assert_eq!(
+            set.forget_offline_after,
+            Some(std::time::Duration::from_secs(3600))
+        );
+        for (bad, key) in [
+            ("max_devices = 0", "fb.max_devices"),
+            (
+                "max_devices_per_identity = 0",
+                "fb.max_devices_per_identity",
+            ),
+        ] {
+            let err = limits(bad).unwrap_err();
+            assert!(err.contains(key), "{bad}: {err}");
+        }
     }
 
     /// The silence keys become durations: a value no duration can hold (negative, NaN,

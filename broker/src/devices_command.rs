@@ -1,4 +1,5 @@
-//! `fbbus devices`: the device registry in a terminal, read from the admin endpoint.
+//! `fbbus devices`: the device registry in a terminal, read from the admin endpoint;
+//! `fbbus devices forget ID` removes an offline device through it.
 
 use std::io::Write;
 use std::net::SocketAddr;
@@ -7,7 +8,7 @@ use std::time::Duration;
 use anyhow::Result;
 use serde_json::Value;
 
-use crate::admin_client::get;
+use crate::admin_client::{delete, get};
 
 pub struct Options {
     pub admin: SocketAddr,
@@ -19,7 +20,10 @@ pub struct Options {
 pub fn run(options: Options) -> Result<()> {
     loop {
         let body = match &options.id {
-            Some(id) => get(options.admin, &format!("/api/v1/devices/{id}"))?,
+            Some(id) => get(
+                options.admin,
+                &format!("/api/v1/devices/{}", percent_encode(id)),
+            )?,
             None => every_page(options.admin)?,
         };
         let out = if options.json {
@@ -52,7 +56,7 @@ fn every_page(admin: SocketAddr) -> Result<Value> {
         let mut path = format!("/api/v1/devices?limit={PAGE}");
         if let Some(after) = &after {
             path.push_str("&after=");
-            path.push_str(&query_escape(after));
+            path.push_str(&percent_encode(after));
         }
         let mut page = get(admin, &path)?;
         line = page.get_mut("line").map(Value::take).unwrap_or(line);
@@ -74,8 +78,18 @@ fn every_page(admin: SocketAddr) -> Result<Value> {
 /// Devices asked for per request.
 const PAGE: usize = 1000;
 
-/// `text` as a URL query value: everything but the unreserved characters percent-encoded.
-fn query_escape(text: &str) -> String {
+/// Forgets the offline device `id` (`DELETE /api/v1/devices/{id}`): its record, its
+/// retained record and values, its metric series. The broker refuses an unknown or
+/// online device, and any request not from its own host.
+pub fn forget(admin: SocketAddr, id: &str) -> Result<()> {
+    delete(admin, &format!("/api/v1/devices/{}", percent_encode(id)))?;
+    println!("device {id} forgotten: its record and retained values are cleared");
+    Ok(())
+}
+
+/// `text` as one URL path segment or query value: everything but the unreserved
+/// characters percent-encoded (a client id may hold any character, `/`, `?` and `&` too).
+fn percent_encode(text: &str) -> String {
     let mut out = String::with_capacity(text.len());
     for b in text.bytes() {
         if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.' | b'~') {
@@ -178,9 +192,10 @@ mod tests {
     }
 
     #[test]
-    fn query_values_are_percent_encoded() {
-        assert_eq!(query_escape("conv-a_1.x~"), "conv-a_1.x~");
-        assert_eq!(query_escape("a b&c=d/é"), "a%20b%26c%3Dd%2F%C3%A9");
+    fn ids_are_percent_encoded_for_paths_and_queries() {
+        assert_eq!(percent_encode("conv-a_1.x~"), "conv-a_1.x~");
+        assert_eq!(percent_encode("a b&c=d/é"), "a%20b%26c%3Dd%2F%C3%A9");
+        assert_eq!(percent_encode("a/b?c d%é"), "a%2Fb%3Fc%20d%25%C3%A9");
     }
 
     #[test]

@@ -53,8 +53,12 @@ enum Command {
     CheckConfig { config: PathBuf },
     /// Manage an argon2id password file, like mosquitto_passwd.
     Passwd(PasswdArgs),
-    /// Show the device registry of a running broker (from its admin endpoint).
+    /// Show the device registry of a running broker (from its admin endpoint), or
+    /// `forget` a device.
+    #[command(args_conflicts_with_subcommands = true)]
     Devices {
+        #[command(subcommand)]
+        action: Option<DevicesAction>,
         /// One device's record instead of the list.
         id: Option<String>,
         /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
@@ -99,6 +103,22 @@ enum Command {
     /// the same access control the lines apply (docs/bus-security.md).
     #[cfg(feature = "bridge")]
     ZenohdConfig(zenohd_command::ZenohdArgs),
+}
+
+#[derive(Subcommand)]
+enum DevicesAction {
+    /// Remove an offline device from the registry of a running broker, with its retained
+    /// record and values and its metric series (from the broker's host only; an online
+    /// device is refused).
+    Forget {
+        id: String,
+        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+        #[arg(long)]
+        admin: Option<std::net::SocketAddr>,
+        /// Take the admin endpoint from this configuration file.
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -163,6 +183,11 @@ fn main() -> std::process::ExitCode {
         #[cfg(feature = "bridge")]
         Command::ZenohdConfig(args) => zenohd_command::run(args),
         Command::Devices {
+            action: Some(DevicesAction::Forget { id, admin, config }),
+            ..
+        } => admin_address(admin, config).and_then(|a| devices_command::forget(a, &id)),
+        Command::Devices {
+            action: None,
             id,
             admin,
             config,

@@ -113,6 +113,8 @@ pub struct Metrics {
     /// `registry_devices{status="online"}`.
     pub registry_silent_devices: IntGauge,
     pub registry_stale_ends: IntCounter,
+    /// Devices forgotten, by reason (`expired`, `admin`).
+    pub registry_forgotten: IntCounterVec,
     /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
     pub bridge_messages: IntCounterVec,
     pub bridge_dropped: IntCounterVec,
@@ -241,7 +243,7 @@ impl Metrics {
                 "fbbus_limit_refusals_total",
                 "Requests refused because a configured limit was reached, by limit \
                  (subscriptions_per_client, retained_messages, retained_bytes, \
-                 sessions_per_identity)",
+                 sessions_per_identity, devices, devices_per_identity)",
                 &["limit"],
             ),
             admin_connections: gauge(
@@ -277,6 +279,16 @@ impl Metrics {
             registry_silent_devices: gauge(
                 "fbbus_registry_silent_devices",
                 "Online devices whose periodic outputs stopped publishing (also counted as online)",
+            ),
+            registry_forgotten: with_series(
+                counter_vec(
+                    "fbbus_registry_forgotten_total",
+                    "Devices removed from the registry with their retained record and values, \
+                     by reason (expired: offline longer than [fb] forget_offline_after_s; \
+                     admin: DELETE /api/v1/devices/{id}, fbbus devices forget)",
+                    &["reason"],
+                ),
+                &[&["expired"], &["admin"]],
             ),
             registry_stale_ends: counter(
                 "fbbus_registry_stale_ends_total",
@@ -472,6 +484,27 @@ impl Metrics {
         self.typed_rejected
             .with_label_values(&[device, port, reason])
             .inc();
+    }
+
+    /// Removes the series labelled with the forgotten device `device`: its
+    /// `fbbus_typed_messages_rejected_total` series, whatever the port and reason (a
+    /// device's series must not outlive it, or forgetting would not bound `/metrics`).
+    pub fn forget_device(&self, device: &str) {
+        let mut ports = self
+            .typed_ports
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let gone: Vec<(String, String)> =
+            ports.iter().filter(|(d, _)| d == device).cloned().collect();
+        for key in gone {
+            for reason in crate::policy::typed::Refusal::ALL {
+                // Absent when the port was never refused for this reason: nothing to do.
+                let _ = self
+                    .typed_rejected
+                    .remove_label_values(&[&key.0, &key.1, reason.label()]);
+            }
+            ports.remove(&key);
+        }
     }
 
     /// The router's saved-session counters into their metrics.

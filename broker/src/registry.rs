@@ -27,6 +27,17 @@
 //! renames it over the old one, so a crash leaves either the old or the new file. After a
 //! restart every device is offline (reason `broker restart`) until it reconnects.
 //!
+//! **Bounded.** A device of this line enters the registry in one place,
+//! [`Registry::declare`] (a declaration, or a profile that recognised a connection), which
+//! admits a new device only within `[fb] max_devices` devices of the line and
+//! `[fb] max_devices_per_identity` devices registered by one identity (the verified
+//! username where a password file exists, else the peer's address); a known device is
+//! always admitted again. A refusal is counted (`fbbus_limit_refusals_total`), logged at
+//! most once a minute per limit, and answered by the caller on `fbbus/diag/<id>`.
+//! [`Registry::forget`] removes an offline device with its retained record and typed
+//! values (the admin API, `fbbus devices forget`), and so does `[fb] forget_offline_after_s`
+//! for devices offline longer than that.
+//!
 //! **Other lines' devices.** With a `[bridge]`, the registry also holds the devices of the
 //! other lines on the bus (their `line` says where they live), learned from the bus
 //! (`bridge`): online and offline as their own line says, and **unreachable** while their
@@ -40,6 +51,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant, SystemTime};
 
+use fb_bridge::codec::Encoding;
 use fb_bridge::topic;
 use fb_bridge::Interface;
 use serde::{Deserialize, Serialize};
@@ -56,9 +68,91 @@ pub const PERSIST_INTERVAL: Duration = Duration::from_millis(200);
 /// bound plus this.
 pub const SILENCE_CHECK: Duration = Duration::from_secs(1);
 
+/// The longest silence between two log lines about refusals at one registry limit.
+const LIMIT_LOG_INTERVAL: Duration = Duration::from_secs(60);
+
 /// How often the observed output periods are written, when nothing else changes: a
 /// crash loses at most this much of what was learned.
 const PERIODS_PERSIST: u32 = 60;
+
+/// How much the registry holds (`[fb] max_devices`, `max_devices_per_identity`,
+/// `forget_offline_after_s`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Devices of this line, at most.
+    pub max_devices: usize,
+    /// Devices one identity registered, at most.
+    pub max_per_identity: usize,
+    /// A local device offline this long is forgotten; None: never.
+    pub forget_offline_after: Option<Duration>,
+}
+
+impl Limits {
+    /// No limit (the unit tests).
+    pub const NONE: Limits = Limits {
+        max_devices: usize::MAX,
+        max_per_identity: usize::MAX,
+        forget_offline_after: None,
+    };
+}
+
+/// Why a new device was not admitted into the registry.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Full {
+    #[error(
+        "the registry holds [fb] max_devices = {0} devices of this line: a new device is \
+         refused until one is forgotten (fbbus devices forget)"
+    )]
+    Devices(usize),
+    #[error(
+        "this client's identity (its username, or without a password file its address) \
+         registered [fb] max_devices_per_identity = {0} devices: a new device is refused \
+         until one of them is forgotten (fbbus devices forget)"
+    )]
+    PerIdentity(usize),
+}
+
+impl Full {
+    /// The `limit` label of `fbbus_limit_refusals_total`.
+    pub fn limit(&self) -> &'static str {
+        match self {
+            Full::Devices(_) => "devices",
+            Full::PerIdentity(_) => "devices_per_identity",
+        }
+    }
+}
+
+/// Why a device was forgotten: the `reason` label of `fbbus_registry_forgotten_total`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ForgetReason {
+    /// Offline longer than `[fb] forget_offline_after_s`.
+    Expired,
+    /// `DELETE /api/v1/devices/{id}` (`fbbus devices forget`).
+    Admin,
+}
+
+impl ForgetReason {
+    pub fn label(self) -> &'static str {
+        match self {
+            ForgetReason::Expired => "expired",
+            ForgetReason::Admin => "admin",
+        }
+    }
+}
+
+/// Why a device cannot be forgotten.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ForgetError {
+    #[error("no device {0} in the registry")]
+    Unknown(String),
+    #[error(
+        "device {0} is online: an online device is not forgotten (it would be registered \
+         again at its next declaration); disconnect it first"
+    )]
+    Online(String),
+    #[error("device {0} is a device of line {1}: it is forgotten on its own line")]
+    OtherLine(String, String),
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -109,6 +203,9 @@ struct File {
     /// device whose publishers died at a restart is still judged.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     periods: BTreeMap<String, Periods>,
+    /// Who registered each local device (`[fb] max_devices_per_identity`), by device.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    registrants: BTreeMap<String, String>,
 }
 
 /// The records, with their counts kept up to date by every change: announcing the
@@ -129,12 +226,22 @@ struct Devices {
     /// (`Registry::queried_record`). One entry per remote record: the records' bound.
     live_taken: u64,
     live: HashMap<String, u64>,
+    /// When each offline local device went offline (`[fb] forget_offline_after_s`): the
+    /// wall clock, as the record's `since` shows it.
+    offline_since: HashMap<String, SystemTime>,
+    /// Who registered each local device, and how many devices each registrant holds.
+    registrants: HashMap<String, Arc<str>>,
+    registered: HashMap<Arc<str>, usize>,
+    /// The refusals at each limit since its last log line (logged at most once a minute).
+    refusals_unlogged: HashMap<&'static str, (Option<Instant>, u64)>,
 }
 
 /// Devices by status (every line), and this line's online devices.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 struct Counts {
     by_status: [i64; 3],
+    /// This line's devices (`[fb] max_devices`).
+    local: i64,
     online_here: i64,
     /// Online and silent, every line.
     silent: i64,
@@ -144,6 +251,9 @@ impl Counts {
     /// Adds (`sign` 1) or removes (-1) one record.
     fn tally(&mut self, record: &Record, line: &str, sign: i64) {
         self.by_status[record.status as usize] += sign;
+        if record.line == line {
+            self.local += sign;
+        }
         if record.status == Status::Online && record.line == line {
             self.online_here += sign;
         }
@@ -167,13 +277,67 @@ impl Devices {
             remembered: HashMap::new(),
             live_taken: 0,
             live: HashMap::new(),
+            offline_since: HashMap::new(),
+            registrants: HashMap::new(),
+            registered: HashMap::new(),
+            refusals_unlogged: HashMap::new(),
         }
     }
 
     fn insert(&mut self, record: Record) {
         self.counts.tally(&record, &self.line, 1);
+        let id = record.id.clone();
         if let Some(old) = self.records.insert(record.id.clone(), record) {
             self.counts.tally(&old, &self.line, -1);
+        }
+        self.note_offline(&id);
+    }
+
+    /// Removes every trace of `id`: its record, timing, registrant and offline time.
+    fn remove(&mut self, id: &str) -> Option<Record> {
+        let record = self.records.remove(id)?;
+        self.counts.tally(&record, &self.line, -1);
+        self.activity.remove(id);
+        self.remembered.remove(id);
+        self.live.remove(id);
+        self.offline_since.remove(id);
+        if let Some(registrant) = self.registrants.remove(id) {
+            if let Some(n) = self.registered.get_mut(&registrant) {
+                *n -= 1;
+                if *n == 0 {
+                    self.registered.remove(&registrant);
+                }
+            }
+        }
+        Some(record)
+    }
+
+    /// `registrant` registered the new device `id`.
+    fn register(&mut self, id: &str, registrant: &str) {
+        let registrant: Arc<str> = match self.registered.get_key_value(registrant) {
+            Some((held, _)) => Arc::clone(held),
+            None => registrant.into(),
+        };
+        *self.registered.entry(Arc::clone(&registrant)).or_default() += 1;
+        if let Some(old) = self.registrants.insert(id.to_owned(), registrant) {
+            // Not reached: a device is registered once. Kept consistent anyway.
+            if let Some(n) = self.registered.get_mut(&old) {
+                *n = n.saturating_sub(1);
+            }
+        }
+    }
+
+    /// Keeps `offline_since` in step with the record of `id`: the time it went offline,
+    /// for a local offline device.
+    fn note_offline(&mut self, id: &str) {
+        let offline = self
+            .records
+            .get(id)
+            .is_some_and(|r| r.line == self.line && r.status == Status::Offline);
+        if !offline {
+            self.offline_since.remove(id);
+        } else if !self.offline_since.contains_key(id) {
+            self.offline_since.insert(id.to_owned(), SystemTime::now());
         }
     }
 
@@ -189,7 +353,8 @@ impl Devices {
         self.counts.tally(record, &self.line, -1);
         change(record);
         self.counts.tally(record, &self.line, 1);
-        Some(record)
+        self.note_offline(id);
+        self.records.get(id)
     }
 
     /// The output periods of `id`, observed in this run or read from the file.
@@ -226,6 +391,7 @@ pub struct Registry {
     metrics: Arc<Metrics>,
     /// How long a periodic output may be quiet (`[fb] silence_*`).
     bound: Bound,
+    limits: Limits,
     file: Option<PathBuf>,
     dirty: Notify,
     /// Held while the file is written: the writer task's write (on a blocking thread,
@@ -296,13 +462,16 @@ impl Registry {
         publisher: Arc<BrokerPublisher>,
         metrics: Arc<Metrics>,
         bound: Bound,
+        limits: Limits,
         tasks: &crate::supervisor::Tasks,
     ) -> Result<Arc<Registry>, LoadError> {
         let mut devices = HashMap::new();
         let mut remembered = HashMap::new();
+        let mut registrants = BTreeMap::new();
         if let Some(path) = file {
-            let (records, periods) = load(path)?;
+            let (records, periods, registered) = load(path)?;
             remembered.extend(periods);
+            registrants = registered;
             for mut record in records {
                 if record.status == Status::Online {
                     record.status = Status::Offline;
@@ -314,15 +483,33 @@ impl Registry {
                 devices.insert(record.id.clone(), record);
             }
         }
+        let mut devices = Devices {
+            remembered,
+            ..Devices::new(line, devices)
+        };
+        let wall = SystemTime::now();
+        let ids: Vec<String> = devices.keys().cloned().collect();
+        for id in ids {
+            if let Some(registrant) = registrants.remove(&id) {
+                devices.register(&id, &registrant);
+            }
+            // Offline since its record says (a restart does not make it younger).
+            let since = humantime::parse_rfc3339_weak(&devices[&id].since).unwrap_or(wall);
+            if devices[&id].status == Status::Offline {
+                devices.offline_since.insert(id, since.min(wall));
+            }
+        }
+        // Exported at 0 from the start: an alert on the first refusal has its series.
+        for limit in ["devices", "devices_per_identity"] {
+            metrics.limit_refusals.with_label_values(&[limit]);
+        }
         let registry = Arc::new(Registry {
             line: line.to_owned(),
-            devices: Mutex::new(Devices {
-                remembered,
-                ..Devices::new(line, devices)
-            }),
+            devices: Mutex::new(devices),
             publisher,
             metrics,
             bound,
+            limits,
             file: file.map(Path::to_owned),
             dirty: Notify::new(),
             writing: Mutex::new(()),
@@ -372,10 +559,19 @@ impl Registry {
             .collect()
     }
 
-    /// A device declared its interface on its connection `session`: it is online with it.
-    pub fn declare(&self, id: &str, session: u64, interface: Interface) -> Arc<Interface> {
-        let interface = Arc::new(interface);
+    /// A device declared its interface on its connection `session` (or a profile declared
+    /// it for the connection): it is online with it. `registrant` is who declares
+    /// ([`Registry::admit`]); a new device beyond the limits is refused.
+    pub fn declare(
+        &self,
+        id: &str,
+        session: u64,
+        interface: Interface,
+        registrant: &str,
+    ) -> Result<Arc<Interface>, Full> {
         let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        self.admit(&mut devices, id, registrant)?;
+        let interface = Arc::new(interface);
         let record = Record {
             id: id.to_owned(),
             line: self.line.clone(),
@@ -396,7 +592,111 @@ impl Registry {
         devices.insert(record);
         self.announce_count(&devices);
         self.dirty.notify_one();
-        interface
+        Ok(interface)
+    }
+
+    /// The one place a device of this line enters the registry. A device it holds already
+    /// is admitted again (a re-declaration, a profiled device's reconnection); a new one
+    /// only while the line has fewer than `[fb] max_devices` devices and `registrant`
+    /// (the verified username, or the peer's address) registered fewer than
+    /// `[fb] max_devices_per_identity`. A refusal is counted and logged (at most once a
+    /// minute per limit, with the number refused since); the caller answers the device.
+    fn admit(&self, devices: &mut Devices, id: &str, registrant: &str) -> Result<(), Full> {
+        if devices.get(id).is_some_and(|r| r.line == self.line) {
+            return Ok(());
+        }
+        let line_full =
+            usize::try_from(devices.counts.local).is_ok_and(|n| n >= self.limits.max_devices);
+        let held = devices.registered.get(registrant).copied().unwrap_or(0);
+        let full = if line_full {
+            Full::Devices(self.limits.max_devices)
+        } else if held >= self.limits.max_per_identity {
+            Full::PerIdentity(self.limits.max_per_identity)
+        } else {
+            devices.register(id, registrant);
+            return Ok(());
+        };
+        self.metrics
+            .limit_refusals
+            .with_label_values(&[full.limit()])
+            .inc();
+        let now = Instant::now();
+        let (last, unlogged) = devices.refusals_unlogged.entry(full.limit()).or_default();
+        *unlogged += 1;
+        if last.is_none_or(|t| now.duration_since(t) >= LIMIT_LOG_INTERVAL) {
+            tracing::warn!(
+                device = id,
+                registrant,
+                limit = full.limit(),
+                refused_since_last_line = *unlogged,
+                "new device refused: {full} (logged at most once a minute per limit; \
+                 fbbus_limit_refusals_total)"
+            );
+            *last = Some(now);
+            *unlogged = 0;
+        }
+        Err(full)
+    }
+
+    /// Forgets the offline device `id` of this line: its record, its retained record on
+    /// `fbbus/devices/<id>` and its ports' retained values (cleared with empty retained
+    /// messages), its output timing and its metric series. Returns the record it had.
+    pub fn forget(&self, id: &str, reason: ForgetReason) -> Result<Record, ForgetError> {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        match devices.get(id) {
+            None => return Err(ForgetError::Unknown(id.to_owned())),
+            Some(r) if r.line != self.line => {
+                return Err(ForgetError::OtherLine(id.to_owned(), r.line.clone()))
+            }
+            Some(r) if r.status == Status::Online => {
+                return Err(ForgetError::Online(id.to_owned()))
+            }
+            Some(_) => {}
+        }
+        let record = self.remove(&mut devices, id, reason);
+        self.announce_count(&devices);
+        record.ok_or_else(|| ForgetError::Unknown(id.to_owned()))
+    }
+
+    /// Forgets the local devices offline for `after` or longer at `now`.
+    fn expire(&self, now: SystemTime, after: Duration) {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        let expired: Vec<String> = devices
+            .offline_since
+            .iter()
+            .filter(|(_, since)| now.duration_since(**since).is_ok_and(|d| d >= after))
+            .map(|(id, _)| id.clone())
+            .collect();
+        if expired.is_empty() {
+            return;
+        }
+        for id in &expired {
+            self.remove(&mut devices, id, ForgetReason::Expired);
+        }
+        self.announce_count(&devices);
+    }
+
+    /// Removes `id` (checked by the caller), clears what it retained, and tells.
+    fn remove(&self, devices: &mut Devices, id: &str, reason: ForgetReason) -> Option<Record> {
+        let record = devices.remove(id)?;
+        self.publisher
+            .publish(Message::broker(topic::device_record(id), Vec::new(), true));
+        for clear in retained_clears(id, record.interface.outputs()) {
+            self.publisher.publish(clear);
+        }
+        self.metrics.forget_device(id);
+        self.metrics
+            .registry_forgotten
+            .with_label_values(&[reason.label()])
+            .inc();
+        self.dirty.notify_one();
+        tracing::info!(
+            device = id,
+            reason = reason.label(),
+            offline_since = record.since,
+            "device forgotten: its record and retained values are cleared"
+        );
+        Some(record)
     }
 
     /// A connection of `id` took session number `session` and is about to end any older
@@ -709,6 +1009,7 @@ impl Registry {
             by_status,
             online_here,
             silent,
+            local: _,
         } = devices.counts;
         self.metrics.registry_silent_devices.set(silent);
         for (status, count) in [Status::Online, Status::Offline, Status::Unreachable]
@@ -727,19 +1028,26 @@ impl Registry {
         ));
     }
 
-    /// Starts judging the local devices' silence every [`SILENCE_CHECK`], unless the
-    /// judgement is off (`silence_factor = 0`).
-    pub fn start_silence_check(self: &Arc<Self>, tasks: &crate::supervisor::Tasks) {
-        if self.bound.enabled() {
-            tasks.core("registry silence check", Arc::clone(self).silence_loop());
+    /// Starts the registry's periodic checks, every [`SILENCE_CHECK`]: the local
+    /// devices' silence, unless the judgement is off (`silence_factor = 0`), and the
+    /// expiry of offline devices, if `[fb] forget_offline_after_s` is set.
+    pub fn start_periodic_checks(self: &Arc<Self>, tasks: &crate::supervisor::Tasks) {
+        if self.bound.enabled() || self.limits.forget_offline_after.is_some() {
+            tasks.core("registry checks", Arc::clone(self).check_loop());
         }
     }
 
-    async fn silence_loop(self: Arc<Self>) {
+    async fn check_loop(self: Arc<Self>) {
         let mut tick = tokio::time::interval(SILENCE_CHECK);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         for n in 1u32.. {
             tick.tick().await;
+            if let Some(after) = self.limits.forget_offline_after {
+                self.expire(SystemTime::now(), after);
+            }
+            if !self.bound.enabled() {
+                continue;
+            }
             self.judge_silence(Instant::now());
             if n % PERIODS_PERSIST == 0 {
                 self.dirty.notify_one();
@@ -815,18 +1123,25 @@ impl Registry {
     fn write(&self, path: &Path) -> std::io::Result<()> {
         let _one_writer = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
         let devices = self.local();
-        let periods = {
+        let (periods, registrants) = {
             let held = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-            devices
+            let periods = devices
                 .iter()
                 .map(|r| (r.id.clone(), held.periods(&r.id)))
                 .filter(|(_, p)| !p.is_empty())
-                .collect()
+                .collect();
+            let registrants = held
+                .registrants
+                .iter()
+                .map(|(id, who)| (id.clone(), who.to_string()))
+                .collect();
+            (periods, registrants)
         };
         let snapshot = File {
             version: 1,
             devices,
             periods,
+            registrants,
         };
         let bytes = serde_json::to_vec_pretty(&snapshot).expect("the registry serializes");
         let tmp = path.with_extension("tmp");
@@ -844,7 +1159,14 @@ impl Registry {
     }
 }
 
-fn load(path: &Path) -> Result<(Vec<Record>, BTreeMap<String, Periods>), LoadError> {
+/// What a registry file holds: the records, the observed periods and the registrants.
+type Loaded = (
+    Vec<Record>,
+    BTreeMap<String, Periods>,
+    BTreeMap<String, String>,
+);
+
+fn load(path: &Path) -> Result<Loaded, LoadError> {
     let error = |message: String| LoadError {
         path: path.display().to_string(),
         message,
@@ -859,7 +1181,22 @@ fn load(path: &Path) -> Result<(Vec<Record>, BTreeMap<String, Periods>), LoadErr
     if file.version != 1 {
         return Err(error(format!("version {} is not supported", file.version)));
     }
-    Ok((file.devices, file.periods))
+    Ok((file.devices, file.periods, file.registrants))
+}
+
+/// Empty retained messages that clear what `device` retained on its output `ports`, in
+/// every typed namespace (MQTT 3.3.1.3): a port a re-declaration removes or retypes, or
+/// every port of a forgotten device, must not hand a new subscriber an old value.
+pub fn retained_clears<'a>(
+    device: &'a str,
+    ports: impl IntoIterator<Item = (&'a str, &'a str)> + 'a,
+) -> impl Iterator<Item = Message> + 'a {
+    ports.into_iter().flat_map(move |(fb, port)| {
+        Encoding::ALL.into_iter().map(move |e| {
+            let topic = format!("{}/{device}/{fb}/{port}", e.namespace());
+            Message::broker(topic, Vec::new(), true)
+        })
+    })
 }
 
 /// The current time, RFC 3339 with milliseconds.
@@ -901,7 +1238,15 @@ mod tests {
         };
         let health = crate::health::Health::new();
         let tasks = crate::supervisor::Tasks::new(&health);
-        let registry = Registry::open("a", None, publisher, Arc::clone(metrics), bound, &tasks);
+        let registry = Registry::open(
+            "a",
+            None,
+            publisher,
+            Arc::clone(metrics),
+            bound,
+            Limits::NONE,
+            &tasks,
+        );
         (registry.unwrap(), published)
     }
 
@@ -917,14 +1262,23 @@ mod tests {
             let bound = crate::config::FbSection::default().silence_bound();
             let tasks = crate::supervisor::Tasks::new(&health);
             let metrics = Arc::new(Metrics::new());
-            Registry::open("a", Some(&path), publisher, metrics, bound, &tasks).unwrap()
+            Registry::open(
+                "a",
+                Some(&path),
+                publisher,
+                metrics,
+                bound,
+                Limits::NONE,
+                &tasks,
+            )
+            .unwrap()
         };
         let speed: Interface = serde_json::from_value(serde_json::json!({"fbs": {"CONV": {
             "data_out": {"SPEED": "REAL"},
         }}}))
         .unwrap();
         let first = open();
-        first.declare("d1", 1, speed);
+        first.declare("d1", 1, speed, "test").unwrap();
         let activity = first.activity("d1").unwrap();
         let t0 = Instant::now();
         for i in 0..10 {
@@ -954,8 +1308,8 @@ mod tests {
             "data_out": {"SPEED": "REAL"},
         }}}))
         .unwrap();
-        registry.declare("d1", 1, speed);
-        registry.declare("quiet", 2, interface());
+        registry.declare("d1", 1, speed, "test").unwrap();
+        registry.declare("quiet", 2, interface(), "test").unwrap();
         let activity = registry.activity("d1").unwrap();
         let bound = *registry.silence_bound();
         let t0 = Instant::now();
@@ -1018,6 +1372,7 @@ mod tests {
             publisher,
             Arc::clone(&metrics),
             crate::config::FbSection::default().silence_bound(),
+            Limits::NONE,
             &crate::supervisor::Tasks::new(&health),
         )
         .unwrap();
@@ -1045,7 +1400,9 @@ mod tests {
         };
 
         for (i, id) in ["d1", "d2", "d3"].into_iter().enumerate() {
-            registry.declare(id, i as u64 + 1, interface());
+            registry
+                .declare(id, i as u64 + 1, interface(), "test")
+                .unwrap();
         }
         check("declared");
         assert!(registry.disconnected("d1", 1, "clean disconnect"));
@@ -1055,7 +1412,7 @@ mod tests {
         assert!(!registry.disconnected("d1", 1, "stale"));
         check("stale end ignored");
         registry.session_started("d2", 5);
-        registry.declare("d2", 5, interface());
+        registry.declare("d2", 5, interface(), "test").unwrap();
         check("d2 declared again");
         assert_eq!(
             registry.remote_record("b", remote("r1", "b", Status::Online)),
@@ -1126,5 +1483,191 @@ mod tests {
         check("line b unreachable");
         assert!(registry.disconnected("d3", 3, "keep-alive"));
         check("d3 offline");
+    }
+
+    fn limited(limits: Limits, file: Option<&Path>) -> (Arc<Registry>, Arc<Metrics>) {
+        let (publisher, _) = BrokerPublisher::detached();
+        let metrics = Arc::new(Metrics::new());
+        let health = crate::health::Health::new();
+        let registry = Registry::open(
+            "a",
+            file,
+            publisher,
+            Arc::clone(&metrics),
+            crate::config::FbSection::default().silence_bound(),
+            limits,
+            &crate::supervisor::Tasks::new(&health),
+        )
+        .unwrap();
+        (registry, metrics)
+    }
+
+    /// A new device beyond either limit is refused and counted; a known device declares
+    /// again whoever it is; other lines' devices do not count; a forgotten device frees
+    /// its place, and who registered what survives a restart.
+    #[tokio::test]
+    async fn new_devices_are_admitted_within_the_limits() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("registry.json");
+        let limits = Limits {
+            max_devices: 3,
+            max_per_identity: 2,
+            forget_offline_after: None,
+        };
+        let (registry, metrics) = limited(limits, Some(&path));
+        let refusals = |limit: &str| metrics.limit_refusals.with_label_values(&[limit]).get();
+        assert!(registry.declare("d1", 1, interface(), "a").is_ok());
+        assert!(registry.declare("d2", 2, interface(), "a").is_ok());
+        assert_eq!(
+            registry.declare("d3", 3, interface(), "a"),
+            Err(Full::PerIdentity(2))
+        );
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Online)),
+            Ok(())
+        );
+        assert!(registry.declare("d3", 3, interface(), "b").is_ok());
+        assert_eq!(
+            registry.declare("d4", 4, interface(), "c"),
+            Err(Full::Devices(3))
+        );
+        assert!(registry.get("d4").is_none());
+        assert!(registry.declare("d1", 5, interface(), "c").is_ok(), "known");
+        assert_eq!(
+            (refusals("devices"), refusals("devices_per_identity")),
+            (1, 1)
+        );
+
+        assert!(registry.disconnected("d1", 5, "clean disconnect"));
+        registry.forget("d1", ForgetReason::Admin).unwrap();
+        assert!(
+            registry.declare("d4", 6, interface(), "a").is_ok(),
+            "d1's place"
+        );
+        assert_eq!(
+            registry.declare("d5", 7, interface(), "c"),
+            Err(Full::Devices(3))
+        );
+        registry.flush();
+        drop(registry);
+
+        let (reopened, _) = limited(
+            Limits {
+                max_devices: 10,
+                ..limits
+            },
+            Some(&path),
+        );
+        assert_eq!(
+            reopened.declare("d6", 8, interface(), "a"),
+            Err(Full::PerIdentity(2)),
+            "a registered d2 and d4 before the restart"
+        );
+        assert!(reopened.declare("d6", 8, interface(), "b").is_ok());
+    }
+
+    /// Forgetting: refused for an unknown, online or remote device; an offline one goes
+    /// with its retained record and port values (empty retained messages), its counts
+    /// and its metric series.
+    #[test]
+    fn forgetting_clears_the_record_its_retained_values_and_series() {
+        let metrics = Arc::new(Metrics::new());
+        let (registry, mut published) = registry(&metrics);
+        let speed: Interface = serde_json::from_value(serde_json::json!({"fbs": {"CONV": {
+            "data_out": {"SPEED": "REAL"}, "data_in": {"SET": "REAL"},
+        }}}))
+        .unwrap();
+        registry.declare("d1", 1, speed, "a").unwrap();
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Offline)),
+            Ok(())
+        );
+        assert_eq!(
+            registry.forget("nope", ForgetReason::Admin),
+            Err(ForgetError::Unknown("nope".into()))
+        );
+        assert_eq!(
+            registry.forget("d1", ForgetReason::Admin),
+            Err(ForgetError::Online("d1".into()))
+        );
+        assert_eq!(
+            registry.forget("r1", ForgetReason::Admin),
+            Err(ForgetError::OtherLine("r1".into(), "b".into()))
+        );
+        metrics.typed_refused("d1", "CONV.SPEED", "payload_format_invalid");
+        metrics.typed_refused("d1", "undeclared", "topic_name_invalid");
+        metrics.typed_refused("d2", "CONV.SPEED", "payload_format_invalid");
+        assert!(registry.disconnected("d1", 1, "clean disconnect"));
+        while published.try_recv().is_ok() {}
+
+        registry.forget("d1", ForgetReason::Admin).unwrap();
+        assert!(registry.get("d1").is_none());
+        let mut cleared = Vec::new();
+        while let Ok(m) = published.try_recv() {
+            if m.payload.is_empty() {
+                assert!(m.retain);
+                cleared.push(String::from_utf8(m.topic.to_vec()).unwrap());
+            }
+        }
+        cleared.sort();
+        assert_eq!(
+            cleared,
+            [
+                "dinasore/d1/CONV/SPEED",
+                "fb/d1/CONV/SPEED",
+                "fbbus/devices/d1",
+                "fbdk/d1/CONV/SPEED"
+            ]
+        );
+        let offline = metrics
+            .registry_devices
+            .with_label_values(&["offline"])
+            .get();
+        assert_eq!(offline, 1, "r1 only");
+        let forgotten = metrics
+            .registry_forgotten
+            .with_label_values(&["admin"])
+            .get();
+        assert_eq!(forgotten, 1);
+        let text = metrics.render();
+        assert!(!text.contains("device=\"d1\""), "{text}");
+        assert!(text.contains("device=\"d2\""), "{text}");
+        assert_eq!(
+            registry.forget("d1", ForgetReason::Admin),
+            Err(ForgetError::Unknown("d1".into()))
+        );
+    }
+
+    /// Local devices offline for the configured time are forgotten; online ones, those
+    /// offline for less, and other lines' devices are not.
+    #[test]
+    fn offline_devices_expire() {
+        let metrics = Arc::new(Metrics::new());
+        let (registry, _published) = registry(&metrics);
+        for (i, id) in ["gone", "online", "back"].into_iter().enumerate() {
+            registry
+                .declare(id, i as u64 + 1, interface(), "a")
+                .unwrap();
+        }
+        assert_eq!(
+            registry.remote_record("b", remote("r1", "b", Status::Offline)),
+            Ok(())
+        );
+        assert!(registry.disconnected("gone", 1, "keep-alive"));
+        assert!(registry.disconnected("back", 3, "keep-alive"));
+        assert!(registry.connected("back", 4).is_some());
+        let after = Duration::from_secs(5);
+        registry.expire(SystemTime::now() + Duration::from_secs(1), after);
+        assert!(registry.get("gone").is_some(), "offline for less");
+        registry.expire(SystemTime::now() + Duration::from_secs(6), after);
+        assert!(registry.get("gone").is_none());
+        for id in ["online", "back", "r1"] {
+            assert!(registry.get(id).is_some(), "{id}");
+        }
+        let expired = metrics
+            .registry_forgotten
+            .with_label_values(&["expired"])
+            .get();
+        assert_eq!(expired, 1);
     }
 }

@@ -118,6 +118,7 @@ impl Broker {
             Arc::clone(&publisher),
             Arc::clone(&metrics),
             config.fb.silence_bound(),
+            config.fb.registry_limits(),
             &tasks,
         )
         .map_err(|e| StartError::File {
@@ -125,7 +126,7 @@ impl Broker {
             path: e.path.clone(),
             message: e.to_string(),
         })?;
-        registry.start_silence_check(&tasks);
+        registry.start_periodic_checks(&tasks);
         let (store, restore) = if config.persistence.enabled {
             let (store, restore) = Store::open(
                 &config.persistence,

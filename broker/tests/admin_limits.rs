@@ -17,7 +17,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::raw::{self, Connect, RawClient};
-use common::Broker;
+use common::{Broker, Options};
 
 const MAX: usize = 8;
 
@@ -138,6 +138,18 @@ fn slow_admin_clients_are_capped_and_timed_out_while_mqtt_keeps_accepting() {
 
 const DECLARATION: &str = r#"{"fbs": {"F": {"type": "T", "data_out": {"X": "INT"}}}}"#;
 
+/// A broker that lets one address register more than the 100 devices
+/// `max_devices_per_identity` allows by default: the test's devices all come from 127.0.0.1.
+fn many_devices_broker() -> Broker {
+    Broker::start_with(
+        Options {
+            extra: "[fb]\nmax_devices_per_identity = 10000\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    )
+}
+
 /// Registers devices `dev-00000` .. `dev-{n-1}` the way devices do (CONNECT, a QoS 1
 /// declaration, DISCONNECT), from four threads.
 fn register(broker: &Broker, n: usize) {
@@ -226,7 +238,7 @@ fn every_id(admin: SocketAddr, limit: usize, query: &str) -> (Vec<String>, usize
 #[test]
 fn the_device_listing_is_paginated_and_every_device_is_seen_once() {
     const N: usize = 2_500;
-    let broker = Broker::start();
+    let broker = many_devices_broker();
     register(&broker, N);
     // Three devices stay online.
     let mut online = Vec::new();
@@ -307,7 +319,7 @@ fn the_device_listing_is_paginated_and_every_device_is_seen_once() {
 #[test]
 fn polling_the_device_listing_does_not_stall_a_well_behaved_client() {
     const N: usize = 2_500;
-    let broker = Broker::start();
+    let broker = many_devices_broker();
     register(&broker, N);
     let admin = broker.admin;
     let stop = Arc::new(AtomicBool::new(false));

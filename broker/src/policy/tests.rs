@@ -44,6 +44,7 @@ fn line(acl: Option<&str>) -> Line {
         Arc::clone(&publisher),
         Arc::clone(&metrics),
         crate::config::FbSection::default().silence_bound(),
+        crate::registry::Limits::NONE,
         &Tasks::new(&Health::new()),
     )
     .expect("a registry without a file always opens");
@@ -87,7 +88,7 @@ impl Line {
             .unwrap()
             .validate()
             .unwrap();
-        session.set_interface(Some(self.fb.registry.declare("plc-1", 1, interface)));
+        session.set_interface(self.fb.registry.declare("plc-1", 1, interface, "test").ok());
         session
     }
 
@@ -501,7 +502,7 @@ fn typed_line(
         .unwrap()
         .validate()
         .unwrap();
-    device.set_interface(Some(line.fb.registry.declare("plc-1", 1, interface)));
+    device.set_interface(line.fb.registry.declare("plc-1", 1, interface, "test").ok());
     (line, device)
 }
 

@@ -61,14 +61,25 @@ pub enum Refusal {
     TopicNameInvalid,
     /// 0x99: the payload does not decode to the declared types.
     PayloadFormatInvalid,
+    /// 0x97: a limit of the registry refused a new device (`[fb] max_devices`,
+    /// `max_devices_per_identity`).
+    QuotaExceeded,
 }
 
 impl Refusal {
+    pub const ALL: [Refusal; 4] = [
+        Refusal::NotAuthorized,
+        Refusal::TopicNameInvalid,
+        Refusal::PayloadFormatInvalid,
+        Refusal::QuotaExceeded,
+    ];
+
     pub fn label(self) -> &'static str {
         match self {
             Refusal::NotAuthorized => "not_authorized",
             Refusal::TopicNameInvalid => "topic_name_invalid",
             Refusal::PayloadFormatInvalid => "payload_format_invalid",
+            Refusal::QuotaExceeded => "quota_exceeded",
         }
     }
 
@@ -77,6 +88,7 @@ impl Refusal {
             Refusal::NotAuthorized => 0x87,
             Refusal::TopicNameInvalid => 0x90,
             Refusal::PayloadFormatInvalid => 0x99,
+            Refusal::QuotaExceeded => 0x97,
         }
     }
 }
@@ -251,6 +263,9 @@ pub struct FbSession {
     /// No password file is configured: a client id alone identifies a device.
     anonymous_devices: bool,
     username: Option<String>,
+    /// The connection's peer address (None for the bus door): who registers devices
+    /// where there is no password file ([`FbSession::registrant`]).
+    peer: Option<std::net::IpAddr>,
     session: u64,
     /// The device's declared interface, once it has one.
     interface: Option<Arc<Interface>>,
@@ -283,6 +298,7 @@ impl FbSession {
             client_id: device.to_owned(),
             anonymous_devices: fb.anonymous_devices,
             username: username.map(str::to_owned),
+            peer: None,
             session,
             interface: None,
             profile: None,
@@ -325,6 +341,28 @@ impl FbSession {
         self.interface = Some(interface);
     }
 
+    /// At CONNECT: `profile` recognised this connection, so it is that device, registered
+    /// with the profile's interface, if the registry admits it. Returns whether it did;
+    /// if not, the device is told on its diag topic and the connection is no device.
+    pub fn declare_profile(&mut self, fb: &FbTopics, profile: &Arc<Profile>) -> bool {
+        let declared = fb.registry.declare(
+            &profile.device,
+            self.session,
+            profile.interface.clone(),
+            &self.registrant(),
+        );
+        match declared {
+            Ok(interface) => {
+                self.set_profile(Arc::clone(profile), interface);
+                true
+            }
+            Err(full) => {
+                self.registry_full(&profile.device, &full, true);
+                false
+            }
+        }
+    }
+
     /// The interface the registry had for this device when it connected.
     pub fn set_interface(&mut self, interface: Option<Arc<Interface>>) {
         self.interface = interface;
@@ -339,6 +377,55 @@ impl FbSession {
             }
         }
         self.activity = activity;
+    }
+
+    /// The address the connection comes from.
+    pub fn set_peer(&mut self, peer: std::net::IpAddr) {
+        self.peer = Some(peer.to_canonical());
+    }
+
+    /// Who registers the devices this connection declares, for
+    /// `[fb] max_devices_per_identity`: the verified username where a password file
+    /// exists, else the peer's address (client ids and unverified usernames are free to
+    /// choose, an address is not).
+    fn registrant(&self) -> String {
+        match (&self.username, self.anonymous_devices, self.peer) {
+            (Some(user), false, _) => format!("user:{user}"),
+            (_, _, Some(ip)) => format!("address:{ip}"),
+            (_, _, None) => "broker".to_owned(),
+        }
+    }
+
+    /// A new device beyond a registry limit: the device is told on its diag topic, and the
+    /// publication refused with 0x97. The registry counted and logged it. A declaration is
+    /// always answered (the device waits for the answer); a topics-only device's
+    /// publications are answered within the connection's diagnostics budget.
+    fn registry_full(
+        &mut self,
+        device: &str,
+        full: &crate::registry::Full,
+        declaration: bool,
+    ) -> Check {
+        let body = json!({
+            "kind": "declaration",
+            "ok": false,
+            "reason": "quota_exceeded",
+            "limit": full.limit(),
+            "errors": [{"error": full.to_string()}],
+        });
+        if declaration {
+            self.outbox.push(BrokerMessage::broker(
+                topic::diag(device),
+                body.to_string(),
+                false,
+            ));
+        } else {
+            self.diag_to(device, body);
+        }
+        Check::Refused(Rejection {
+            refusal: Refusal::QuotaExceeded,
+            detail: String::new(),
+        })
     }
 
     /// Who publishes, as the access rules see it.
@@ -528,11 +615,24 @@ impl FbSession {
                 .registry
                 .get(&profile.device)
                 .filter(|r| !first && r.status == Status::Online);
-            let interface = match held {
-                Some(record) => record.interface,
-                None => {
-                    fb.registry
-                        .declare(&profile.device, self.session, profile.interface.clone())
+            let declared = match held {
+                Some(record) => Ok(record.interface),
+                None => fb.registry.declare(
+                    &profile.device,
+                    self.session,
+                    profile.interface.clone(),
+                    &self.registrant(),
+                ),
+            };
+            let interface = match declared {
+                Ok(interface) => interface,
+                Err(full) => {
+                    fb.speakers.leave(&profile.device, self.session);
+                    fb.metrics
+                        .declarations
+                        .with_label_values(&["refused"])
+                        .inc();
+                    return self.registry_full(&profile.device, &full, false);
                 }
             };
             self.by_topics = true;
@@ -828,20 +928,31 @@ impl FbSession {
         match validated {
             Ok(interface) => {
                 let fbs = interface.fbs.len();
+                let old = fb.registry.get(&self.device).map(|r| r.interface);
+                let declared =
+                    fb.registry
+                        .declare(&self.device, self.session, interface, &self.registrant());
+                let interface = match declared {
+                    Ok(interface) => interface,
+                    Err(full) => {
+                        fb.metrics
+                            .declarations
+                            .with_label_values(&["refused"])
+                            .inc();
+                        let device = self.device.clone();
+                        return self.registry_full(&device, &full, true);
+                    }
+                };
                 // A port the new declaration removes or retypes: its retained value would
                 // be ill-typed for a new subscriber. Cleared in every namespace.
-                let old = fb.registry.get(&self.device).map(|r| r.interface);
                 if let Some(old) = old {
-                    for (f, p) in old.outputs() {
-                        if interface.output(f, p) != old.output(f, p) {
-                            for e in Encoding::ALL {
-                                let topic = format!("{}/{}/{f}/{p}", e.namespace(), self.device);
-                                self.outbox.push(BrokerMessage::broker(topic, "", true));
-                            }
-                        }
-                    }
+                    let changed = old
+                        .outputs()
+                        .filter(|(f, p)| interface.output(f, p) != old.output(f, p));
+                    self.outbox
+                        .extend(crate::registry::retained_clears(&self.device, changed));
                 }
-                self.interface = Some(fb.registry.declare(&self.device, self.session, interface));
+                self.interface = Some(interface);
                 self.activity = fb.registry.activity(&self.device);
                 fb.metrics
                     .declarations
@@ -941,6 +1052,12 @@ impl FbSession {
 
     /// Queues a diagnostic for `fbbus/diag/<device>`, within the connection's budget.
     fn diag(&mut self, body: serde_json::Value) {
+        let device = self.device.clone();
+        self.diag_to(&device, body);
+    }
+
+    /// [`FbSession::diag`] for `device`'s diag topic.
+    fn diag_to(&mut self, device: &str, body: serde_json::Value) {
         let now = std::time::Instant::now();
         self.diag_budget = (self.diag_budget
             + now.duration_since(self.diag_refill).as_secs_f64() * DIAG_PER_SECOND)
@@ -949,7 +1066,7 @@ impl FbSession {
         if self.diag_budget >= 1.0 {
             self.diag_budget -= 1.0;
             self.outbox.push(BrokerMessage::broker(
-                topic::diag(&self.device),
+                topic::diag(device),
                 bounded_diag(body),
                 false,
             ));

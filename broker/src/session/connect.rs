@@ -131,15 +131,16 @@ impl Session {
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
         let mut fb = FbSession::new(&ctx.fb, &client_id, username.as_deref(), linked.session);
+        fb.set_peer(peer.ip());
         let profiles = ctx.fb.profiles.get();
         if let Some(profile) = profiles.identify(&client_id, username.as_deref()) {
             // A device its profile recognises is online with the profile's interface, as
-            // if it had declared it.
-            let registry = &ctx.fb.registry;
-            let interface =
-                registry.declare(&profile.device, linked.session, profile.interface.clone());
-            fb.set_profile(std::sync::Arc::clone(profile), interface);
-            fb.set_activity(registry.activity(&profile.device));
+            // if it had declared it; a new one beyond the registry's limits is not that
+            // device on this connection (told on its diag topic).
+            if fb.declare_profile(&ctx.fb, profile) {
+                fb.set_activity(ctx.fb.registry.activity(&profile.device));
+            }
+            ctx.fb.publish(fb.take_outbox());
         } else if fb.identity_verified() {
             fb.set_interface(ctx.fb.registry.connected(&client_id, linked.session));
             fb.set_activity(ctx.fb.registry.activity(&client_id));

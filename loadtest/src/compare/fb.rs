@@ -85,7 +85,12 @@ pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
             profile(&format!("bench-pub-{i}")),
         )?;
     }
-    let tables = format!("\n[fb]\nprofiles_dir = \"{}\"\n", profiles.path().display());
+    // Every device of the run comes from one loopback address: the registry's per-identity
+    // limit (issue 21) raised above the births' count, as `max_sessions_per_identity` is.
+    let tables = format!(
+        "\n[fb]\nprofiles_dir = \"{}\"\nmax_devices = 20200\nmax_devices_per_identity = 20200\n",
+        profiles.path().display()
+    );
     let broker = start(fbbus, &[], &tables).await?;
     let admin = broker.admin.context("fbbus runs with an admin endpoint")?;
     println!(
