@@ -323,6 +323,9 @@ impl Session {
                 PubAckReason::PayloadFormatInvalid,
                 PubRecReason::PayloadFormatInvalid,
             ),
+            (true, Refusal::QuotaExceeded) => {
+                (PubAckReason::QuotaExceeded, PubRecReason::QuotaExceeded)
+            }
         };
         match qos {
             1 => self
