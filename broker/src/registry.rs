@@ -139,8 +139,9 @@ struct Devices {
     /// (`Registry::queried_record`). One entry per remote record: the records' bound.
     live_taken: u64,
     live: HashMap<String, u64>,
-    /// Local records changed since the journal's last append (`Registry::append`).
-    changed: std::collections::HashSet<String>,
+    /// Local records changed since the journal's last append (`Registry::append`);
+    /// None when the registry is not persisted (nothing would empty it).
+    changed: Option<std::collections::HashSet<String>>,
 }
 
 /// Devices by status (every line), and this line's online devices.
@@ -179,14 +180,16 @@ impl Devices {
             remembered: HashMap::new(),
             live_taken: 0,
             live: HashMap::new(),
-            changed: Default::default(),
+            changed: None,
         }
     }
 
     /// Marks `record` for the journal if it is a local device's.
-    fn mark(changed: &mut std::collections::HashSet<String>, line: &str, record: &Record) {
-        if record.line == line && !changed.contains(&record.id) {
-            changed.insert(record.id.clone());
+    fn mark(changed: &mut Option<std::collections::HashSet<String>>, line: &str, record: &Record) {
+        if let Some(changed) = changed.as_mut().filter(|_| record.line == line) {
+            if !changed.contains(&record.id) {
+                changed.insert(record.id.clone());
+            }
         }
     }
 
@@ -343,6 +346,7 @@ impl Registry {
             line: line.to_owned(),
             devices: Mutex::new(Devices {
                 remembered,
+                changed: file.map(|_| Default::default()),
                 ..Devices::new(line, devices)
             }),
             publisher,
@@ -811,7 +815,11 @@ impl Registry {
         let seq = journal.seq + 1;
         let entries: Vec<Entry> = {
             let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-            let mut changed = std::mem::take(&mut devices.changed);
+            let mut changed = devices
+                .changed
+                .as_mut()
+                .map(std::mem::take)
+                .unwrap_or_default();
             // Periods change with every publication: looked at once in a while only.
             let every = SILENCE_CHECK * PERIODS_PERSIST;
             if journal.periods_at.is_none_or(|at| at.elapsed() >= every) {
@@ -845,8 +853,8 @@ impl Registry {
             Err(e) => {
                 // Marked again for the next try.
                 let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-                for entry in &entries {
-                    devices.changed.insert(entry.id().to_owned());
+                if let Some(changed) = devices.changed.as_mut() {
+                    changed.extend(entries.iter().map(|e| e.id().to_owned()));
                 }
                 Err(e)
             }
