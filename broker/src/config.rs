@@ -120,6 +120,22 @@ pub struct FbSection {
     /// values, as `fbbus devices forget` does. 0: never (a device away for maintenance
     /// keeps its record until it is forgotten by hand).
     pub forget_offline_after_s: u64,
+    /// The largest declaration payload read, in bytes; a longer one is refused unread
+    /// (`fbbus_limit_refusals_total{limit="declaration_bytes"}`).
+    pub max_declaration_bytes: usize,
+    /// Most FB instances one device declares (`limit="fbs"`).
+    pub max_fbs: usize,
+    /// Most ports (event and data, inputs and outputs) one device declares, over all
+    /// its FBs (`limit="ports"`).
+    pub max_ports: usize,
+    /// Declarations one connected device may send per minute, in a burst of as many
+    /// (a token bucket per connection); beyond, refused with "rate limited, retry after
+    /// N s" (`limit="declaration_rate"`).
+    pub declarations_per_minute: u32,
+    /// Diagnostics on `fbbus/diag/<device>` per device and second, beyond a burst of
+    /// `diag_burst`; beyond, dropped and counted (`fbbus_diag_dropped_total`).
+    pub diag_per_second: f64,
+    pub diag_burst: u32,
 }
 
 impl FbSection {
@@ -155,6 +171,12 @@ impl Default for FbSection {
             max_devices: 10_000,
             max_devices_per_identity: 100,
             forget_offline_after_s: 0,
+            max_declaration_bytes: 16 * 1024,
+            max_fbs: 64,
+            max_ports: 512,
+            declarations_per_minute: 30,
+            diag_per_second: 10.0,
+            diag_burst: 20,
         }
     }
 }
@@ -541,6 +563,33 @@ impl Config {
             if value == 0 {
                 return Err(invalid(file, key, "must be at least 1"));
             }
+        }
+        let fb = &self.fb;
+        for (key, value, most) in [
+            (
+                "fb.max_declaration_bytes",
+                fb.max_declaration_bytes,
+                16 << 20,
+            ),
+            ("fb.max_fbs", fb.max_fbs, fb_bridge::interface::MAX_FBS),
+            ("fb.max_ports", fb.max_ports, 1 << 20),
+            (
+                "fb.declarations_per_minute",
+                fb.declarations_per_minute as usize,
+                1 << 20,
+            ),
+            ("fb.diag_burst", fb.diag_burst as usize, 1 << 20),
+        ] {
+            if !(1..=most).contains(&value) {
+                return Err(invalid(file, key, format!("must be between 1 and {most}")));
+            }
+        }
+        if !(fb.diag_per_second > 0.0 && fb.diag_per_second <= 1e6) {
+            return Err(invalid(
+                file,
+                "fb.diag_per_second",
+                "must be more than 0 (and at most 1000000)",
+            ));
         }
         if b.connect_timeout_ms == 0 {
             return Err(invalid(

@@ -108,6 +108,8 @@ pub struct Metrics {
     pub typed_rejected: IntCounterVec,
     pub typed_not_reencoded: IntCounterVec,
     pub declarations: IntCounterVec,
+    /// Diagnostics not published on `fbbus/diag/<device>`: over `[fb] diag_per_second`.
+    pub diag_dropped: IntCounter,
     pub registry_devices: IntGaugeVec,
     /// Online devices whose periodic outputs stopped (`silence`), included in
     /// `registry_devices{status="online"}`.
@@ -243,7 +245,8 @@ impl Metrics {
                 "fbbus_limit_refusals_total",
                 "Requests refused because a configured limit was reached, by limit \
                  (subscriptions_per_client, retained_messages, retained_bytes, \
-                 sessions_per_identity, devices, devices_per_identity)",
+                 sessions_per_identity, devices, devices_per_identity, declaration_bytes, fbs, \
+                 ports, encoded_size, declaration_rate)",
                 &["limit"],
             ),
             admin_connections: gauge(
@@ -274,6 +277,10 @@ impl Metrics {
                 "fbbus_declarations_total",
                 "Interface declarations, by result (accepted, refused)",
                 &["result"],
+            ),
+            diag_dropped: counter(
+                "fbbus_diag_dropped_total",
+                "Diagnostics for a device dropped over its rate ([fb] diag_per_second)",
             ),
             registry_devices,
             registry_silent_devices: gauge(

@@ -22,10 +22,16 @@
 //! task judges every device each [`SILENCE_CHECK`], republishing a record only when it
 //! turns silent or speaks again. Remote devices are judged by their own line.
 //!
-//! **Persisted, never half-written.** Changes mark the registry dirty; a task writes the
-//! whole registry at most every [`PERSIST_INTERVAL`] to a temporary file, syncs it and
-//! renames it over the old one, so a crash leaves either the old or the new file. After a
-//! restart every device is offline (reason `broker restart`) until it reconnects.
+//! **Persisted incrementally, never half-written.** Every change of a local record marks
+//! its id (`Devices::insert` and `update*`, the only writers). A task appends the marked
+//! records, one JSON line each, to a journal beside the snapshot (`registry.json.log`)
+//! at most every [`PERSIST_INTERVAL`], and syncs it: one declaration costs one line, not
+//! a rewrite of every device (issue 21). When the journal outgrows the snapshot
+//! ([`Journal::needs_compaction`]) the whole registry is written to a temporary file,
+//! synced and renamed over the snapshot, and the journal is emptied. Loading is the
+//! snapshot, then the journal's lines newer than it (each line and the snapshot carry a
+//! sequence number), a torn last line cut off with a warning. After a restart every
+//! device is offline (reason `broker restart`) until it reconnects.
 //!
 //! **Bounded.** A device of this line enters the registry in one place,
 //! [`Registry::declare`] (a declaration, or a profile that recognised a connection), which
@@ -198,6 +204,10 @@ pub struct Record {
 #[derive(Serialize, Deserialize)]
 struct File {
     version: u32,
+    /// The journal's last sequence number when this snapshot was written: the journal
+    /// lines up to it are in the snapshot already (0: none).
+    #[serde(default)]
+    seq: u64,
     devices: Vec<Record>,
     /// The observed output periods of the local devices, by device (`silence`): a
     /// device whose publishers died at a restart is still judged.
@@ -234,6 +244,9 @@ struct Devices {
     registered: HashMap<Arc<str>, usize>,
     /// The refusals at each limit since its last log line (logged at most once a minute).
     refusals_unlogged: HashMap<&'static str, (Option<Instant>, u64)>,
+    /// Local records changed since the journal's last append (`Registry::append`);
+    /// None when the registry is not persisted (nothing would empty it).
+    changed: Option<std::collections::HashSet<String>>,
 }
 
 /// Devices by status (every line), and this line's online devices.
@@ -281,10 +294,21 @@ impl Devices {
             registrants: HashMap::new(),
             registered: HashMap::new(),
             refusals_unlogged: HashMap::new(),
+            changed: None,
+        }
+    }
+
+    /// Marks `record` for the journal if it is a local device's.
+    fn mark(changed: &mut Option<std::collections::HashSet<String>>, line: &str, record: &Record) {
+        if let Some(changed) = changed.as_mut().filter(|_| record.line == line) {
+            if !changed.contains(&record.id) {
+                changed.insert(record.id.clone());
+            }
         }
     }
 
     fn insert(&mut self, record: Record) {
+        Self::mark(&mut self.changed, &self.line, &record);
         self.counts.tally(&record, &self.line, 1);
         let id = record.id.clone();
         if let Some(old) = self.records.insert(record.id.clone(), record) {
@@ -296,6 +320,8 @@ impl Devices {
     /// Removes every trace of `id`: its record, timing, registrant and offline time.
     fn remove(&mut self, id: &str) -> Option<Record> {
         let record = self.records.remove(id)?;
+        // A removed local device is journaled as removed (`Registry::append`).
+        Self::mark(&mut self.changed, &self.line, &record);
         self.counts.tally(&record, &self.line, -1);
         self.activity.remove(id);
         self.remembered.remove(id);
@@ -353,6 +379,7 @@ impl Devices {
         self.counts.tally(record, &self.line, -1);
         change(record);
         self.counts.tally(record, &self.line, 1);
+        Self::mark(&mut self.changed, &self.line, record);
         self.note_offline(id);
         self.records.get(id)
     }
@@ -371,6 +398,7 @@ impl Devices {
             self.counts.tally(record, &self.line, -1);
             change(record);
             self.counts.tally(record, &self.line, 1);
+            Self::mark(&mut self.changed, &self.line, record);
         }
     }
 }
@@ -394,10 +422,10 @@ pub struct Registry {
     limits: Limits,
     file: Option<PathBuf>,
     dirty: Notify,
-    /// Held while the file is written: the writer task's write (on a blocking thread,
-    /// which aborting the task does not stop) and the last write at shutdown never overlap
-    /// on the temporary file.
-    writing: Mutex<()>,
+    /// The journal, held while the files are written: the writer task's append (on a
+    /// blocking thread, which aborting the task does not stop) and the last write at
+    /// shutdown never overlap.
+    journal: Mutex<Journal>,
     /// Receives every change of a local device's record (the bridge announces them).
     observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<Record>>,
 }
@@ -468,8 +496,10 @@ impl Registry {
         let mut devices = HashMap::new();
         let mut remembered = HashMap::new();
         let mut registrants = BTreeMap::new();
+        let mut journal = Journal::default();
         if let Some(path) = file {
-            let (records, periods, registered) = load(path)?;
+            let (records, periods, registered, opened) = load(path)?;
+            journal = opened;
             remembered.extend(periods);
             registrants = registered;
             for mut record in records {
@@ -485,6 +515,7 @@ impl Registry {
         }
         let mut devices = Devices {
             remembered,
+            changed: file.map(|_| Default::default()),
             ..Devices::new(line, devices)
         };
         let wall = SystemTime::now();
@@ -512,7 +543,7 @@ impl Registry {
             limits,
             file: file.map(Path::to_owned),
             dirty: Notify::new(),
-            writing: Mutex::new(()),
+            journal: Mutex::new(journal),
             observer: std::sync::OnceLock::new(),
         });
         {
@@ -981,10 +1012,10 @@ impl Registry {
         }
     }
 
-    /// Writes the registry now (at shutdown).
+    /// Writes the whole registry now and empties the journal (at shutdown).
     pub fn flush(&self) {
         if let Some(path) = &self.file {
-            if let Err(e) = self.write(path) {
+            if let Err(e) = self.append(path, true) {
                 tracing::error!(path = %path.display(), error = %e, "cannot persist the device registry");
             }
         }
@@ -1111,17 +1142,95 @@ impl Registry {
             self.dirty.notified().await;
             let this = Arc::clone(&self);
             let p = path.clone();
-            let result = tokio::task::spawn_blocking(move || this.write(&p)).await;
+            let result = tokio::task::spawn_blocking(move || this.append(&p, false)).await;
             if let Ok(Err(e)) = result {
                 tracing::error!(path = %path.display(), error = %e, "cannot persist the device registry; retrying on the next change");
+                // What was taken is marked again: nothing is lost by a failed write.
+                self.dirty.notify_one();
             }
             tokio::time::sleep(PERSIST_INTERVAL).await;
         }
     }
 
-    /// Writes a snapshot atomically: temporary file, fsync, rename, fsync of the directory.
-    fn write(&self, path: &Path) -> std::io::Result<()> {
-        let _one_writer = self.writing.lock().unwrap_or_else(PoisonError::into_inner);
+    /// Appends the records changed since the last append to the journal and syncs it;
+    /// then, if the journal outgrew the snapshot (or `compact`), writes the snapshot and
+    /// empties the journal. Periods alone (the silence loop's periodic wake) are
+    /// journaled for the devices whose periods changed since they were last written.
+    fn append(&self, path: &Path, compact: bool) -> std::io::Result<()> {
+        let mut journal = self.journal.lock().unwrap_or_else(PoisonError::into_inner);
+        let seq = journal.seq + 1;
+        let entries: Vec<Entry> = {
+            let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+            let mut changed = devices
+                .changed
+                .as_mut()
+                .map(std::mem::take)
+                .unwrap_or_default();
+            // Periods change with every publication: looked at once in a while only.
+            let every = SILENCE_CHECK * PERIODS_PERSIST;
+            if journal.periods_at.is_none_or(|at| at.elapsed() >= every) {
+                journal.periods_at = Some(Instant::now());
+                for (id, activity) in &devices.activity {
+                    let periods = activity.periods();
+                    if journal.periods.get(id) != Some(&periods) && !periods.is_empty() {
+                        changed.insert(id.clone());
+                    }
+                }
+            }
+            changed
+                .into_iter()
+                .map(|id| match devices.get(&id) {
+                    Some(record) if record.line == self.line => Entry::Device {
+                        seq,
+                        periods: devices.periods(&id),
+                        registrant: devices.registrants.get(&id).map(|r| r.to_string()),
+                        record: record.clone(),
+                    },
+                    _ => Entry::Removed { seq, id },
+                })
+                .collect()
+        };
+        let mut bytes = Vec::with_capacity(entries.len() * 512);
+        for entry in &entries {
+            serde_json::to_writer(&mut bytes, entry).expect("a registry entry serializes");
+            bytes.push(b'\n');
+        }
+        let written = match journal.write(path, &bytes) {
+            Ok(()) => Ok(()),
+            Err(e) => {
+                // Marked again for the next try.
+                let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+                if let Some(changed) = devices.changed.as_mut() {
+                    changed.extend(entries.iter().map(|e| e.id().to_owned()));
+                }
+                Err(e)
+            }
+        };
+        written?;
+        if !entries.is_empty() {
+            journal.seq = seq;
+        }
+        for entry in entries {
+            match entry {
+                Entry::Device {
+                    record, periods, ..
+                } => {
+                    journal.periods.insert(record.id, periods);
+                }
+                Entry::Removed { id, .. } => {
+                    journal.periods.remove(&id);
+                }
+            }
+        }
+        if compact || journal.needs_compaction() {
+            self.write(path, &mut journal)?;
+        }
+        Ok(())
+    }
+
+    /// Writes a snapshot atomically (temporary file, fsync, rename, fsync of the
+    /// directory), then empties the journal, whose lines it holds.
+    fn write(&self, path: &Path, journal: &mut Journal) -> std::io::Result<()> {
         let devices = self.local();
         let (periods, registrants) = {
             let held = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
@@ -1139,6 +1248,7 @@ impl Registry {
         };
         let snapshot = File {
             version: 1,
+            seq: journal.seq,
             devices,
             periods,
             registrants,
@@ -1155,33 +1265,250 @@ impl Registry {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::File::open(dir)?.sync_all()?;
         }
+        journal.snapshot_bytes = bytes.len() as u64;
+        // A crash before this leaves lines the snapshot's `seq` already covers: skipped.
+        journal.truncate(path)?;
+        tracing::debug!(
+            path = %path.display(),
+            bytes = bytes.len(),
+            "registry snapshot written, journal emptied"
+        );
         Ok(())
     }
 }
 
-/// What a registry file holds: the records, the observed periods and the registrants.
+/// What a registry file holds, with its journal replayed: the records, the observed
+/// periods, the registrants, and the journal as the writer goes on with it.
 type Loaded = (
     Vec<Record>,
     BTreeMap<String, Periods>,
     BTreeMap<String, String>,
+    Journal,
 );
 
+/// One line of the registry's journal: a local device's record as it is now, or its
+/// removal.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Entry {
+    Device {
+        seq: u64,
+        record: Record,
+        #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+        periods: Periods,
+        /// Who registered it (`[fb] max_devices_per_identity`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        registrant: Option<String>,
+    },
+    Removed {
+        seq: u64,
+        id: String,
+    },
+}
+
+impl Entry {
+    fn id(&self) -> &str {
+        match self {
+            Entry::Device { record, .. } => &record.id,
+            Entry::Removed { id, .. } => id,
+        }
+    }
+
+    fn seq(&self) -> u64 {
+        match self {
+            Entry::Device { seq, .. } | Entry::Removed { seq, .. } => *seq,
+        }
+    }
+}
+
+/// The journal beside the snapshot (`<registry file>.log`), as the writer keeps it.
+#[derive(Default)]
+struct Journal {
+    /// Open for appending, once the first line is written.
+    file: Option<std::fs::File>,
+    bytes: u64,
+    snapshot_bytes: u64,
+    /// The last sequence number written (a batch of lines shares one).
+    seq: u64,
+    /// The periods last written per device, so unchanged ones are not written again.
+    periods: HashMap<String, Periods>,
+    /// When the periods were last compared with what was written.
+    periods_at: Option<Instant>,
+}
+
+/// The journal is compacted once it is larger than this many times the snapshot (so a
+/// compaction's rewrite costs at most a quarter of what was appended since the last)...
+const COMPACT_RATIO: u64 = 4;
+/// ... and at least this (small registries are not rewritten for every few changes) ...
+const COMPACT_FLOOR: u64 = 64 * 1024;
+/// ... or once it is larger than this, whatever the snapshot (bounds replay at start).
+const COMPACT_CEILING: u64 = 8 * 1024 * 1024;
+
+fn journal_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".log");
+    PathBuf::from(name)
+}
+
+impl Journal {
+    fn needs_compaction(&self) -> bool {
+        self.bytes > COMPACT_CEILING
+            || self.bytes > (COMPACT_RATIO * self.snapshot_bytes).max(COMPACT_FLOOR)
+    }
+
+    /// Appends `bytes` (whole lines) and syncs them.
+    fn write(&mut self, path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+        use std::io::Write;
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        let file = match &mut self.file {
+            Some(file) => file,
+            None => self.file.insert(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(journal_path(path))?,
+            ),
+        };
+        file.write_all(bytes)?;
+        file.sync_data()?;
+        self.bytes += bytes.len() as u64;
+        Ok(())
+    }
+
+    fn truncate(&mut self, path: &Path) -> std::io::Result<()> {
+        let file = match &mut self.file {
+            Some(file) => file,
+            None => self.file.insert(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(journal_path(path))?,
+            ),
+        };
+        file.set_len(0)?;
+        file.sync_all()?;
+        self.bytes = 0;
+        Ok(())
+    }
+}
+
+/// The snapshot, then the journal's lines newer than it.
 fn load(path: &Path) -> Result<Loaded, LoadError> {
     let error = |message: String| LoadError {
         path: path.display().to_string(),
         message,
     };
-    let text = match std::fs::read(path) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Default::default()),
+    let mut journal = Journal::default();
+    let file = match std::fs::read(path) {
+        Ok(text) => {
+            journal.snapshot_bytes = text.len() as u64;
+            let file: File = serde_json::from_slice(&text)
+                .map_err(|e| error(format!("{e}; move it away to start with an empty registry")))?;
+            if file.version != 1 {
+                return Err(error(format!("version {} is not supported", file.version)));
+            }
+            file
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => File {
+            version: 1,
+            seq: 0,
+            devices: Vec::new(),
+            periods: BTreeMap::new(),
+            registrants: BTreeMap::new(),
+        },
         Err(e) => return Err(error(e.to_string())),
     };
-    let file: File = serde_json::from_slice(&text)
-        .map_err(|e| error(format!("{e}; move it away to start with an empty registry")))?;
-    if file.version != 1 {
-        return Err(error(format!("version {} is not supported", file.version)));
+    journal.seq = file.seq;
+    let mut records: HashMap<String, Record> = file
+        .devices
+        .into_iter()
+        .map(|r| (r.id.clone(), r))
+        .collect();
+    let mut periods = file.periods;
+    let mut registrants = file.registrants;
+    let log = journal_path(path);
+    let log_error = |message: String| LoadError {
+        path: log.display().to_string(),
+        message,
+    };
+    let bytes = match std::fs::read(&log) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(log_error(e.to_string())),
+    };
+    let mut good = 0;
+    for line in bytes.split_inclusive(|b| *b == b'\n') {
+        let Some(text) = line.strip_suffix(b"\n") else {
+            break;
+        };
+        let Ok(entry) = serde_json::from_slice::<Entry>(text) else {
+            break;
+        };
+        good += line.len();
+        if entry.seq() <= file.seq {
+            continue;
+        }
+        journal.seq = journal.seq.max(entry.seq());
+        match entry {
+            Entry::Device {
+                record,
+                periods: p,
+                registrant,
+                ..
+            } => {
+                match p.is_empty() {
+                    true => periods.remove(&record.id),
+                    false => periods.insert(record.id.clone(), p),
+                };
+                match registrant {
+                    Some(who) => registrants.insert(record.id.clone(), who),
+                    None => registrants.remove(&record.id),
+                };
+                records.insert(record.id.clone(), record);
+            }
+            Entry::Removed { id, .. } => {
+                periods.remove(&id);
+                registrants.remove(&id);
+                records.remove(&id);
+            }
+        }
     }
-    Ok((file.devices, file.periods, file.registrants))
+    if good < bytes.len() {
+        // A crash mid-append: the last line is cut (or, after a disk fault, a line is
+        // not JSON). What follows the last good line is kept beside the journal and cut
+        // off it, so appends go on after whole lines.
+        let at = SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0);
+        let mut torn = log.as_os_str().to_owned();
+        torn.push(format!(".torn-{at}"));
+        let torn = PathBuf::from(torn);
+        std::fs::write(&torn, &bytes[good..]).map_err(|e| log_error(e.to_string()))?;
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&log)
+            .map_err(|e| log_error(e.to_string()))?;
+        file.set_len(good as u64)
+            .and_then(|()| file.sync_all())
+            .map_err(|e| log_error(e.to_string()))?;
+        tracing::warn!(
+            journal = %log.display(),
+            torn = %torn.display(),
+            bytes = bytes.len() - good,
+            "registry journal: a torn or unreadable tail was moved aside; the registry is \
+             recovered up to the last whole line"
+        );
+    }
+    journal.bytes = good as u64;
+    Ok((
+        records.into_values().collect(),
+        periods,
+        registrants,
+        journal,
+    ))
 }
 
 /// Empty retained messages that clear what `device` retained on its output `ports`, in
@@ -1212,6 +1539,51 @@ mod tests {
         Interface {
             fbs: Default::default(),
         }
+    }
+
+    /// Journal lines the snapshot already holds (a crash between the snapshot's rename
+    /// and the journal's truncation) are skipped: an older line never overrides it.
+    #[test]
+    fn journal_lines_older_than_the_snapshot_are_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("registry.json");
+        let at = |session: u64| Record {
+            session,
+            ..remote("d1", "a", Status::Offline)
+        };
+        let snapshot = File {
+            version: 1,
+            seq: 5,
+            devices: vec![at(50)],
+            periods: BTreeMap::new(),
+            registrants: BTreeMap::from([("d1".to_owned(), "127.0.0.1".to_owned())]),
+        };
+        std::fs::write(&path, serde_json::to_vec(&snapshot).unwrap()).unwrap();
+        let mut journal = Vec::new();
+        for (seq, session) in [(4, 40), (6, 60)] {
+            let entry = Entry::Device {
+                seq,
+                record: at(session),
+                periods: Periods::new(),
+                registrant: Some(format!("user-{seq}")),
+            };
+            serde_json::to_writer(&mut journal, &entry).unwrap();
+            journal.push(b'\n');
+        }
+        let removed = Entry::Removed {
+            seq: 3,
+            id: "d1".into(),
+        };
+        serde_json::to_writer(&mut journal, &removed).unwrap();
+        journal.push(b'\n');
+        std::fs::write(journal_path(&path), &journal).unwrap();
+        let (records, _, registrants, state) = load(&path).unwrap();
+        assert_eq!(records.len(), 1);
+        assert_eq!(records[0].session, 60);
+        // The registrant too comes from the newer line, not the older one or the snapshot.
+        assert_eq!(registrants["d1"], "user-6");
+        assert_eq!(state.seq, 6);
+        assert_eq!(state.bytes, journal.len() as u64);
     }
 
     fn remote(id: &str, line: &str, status: Status) -> Record {

@@ -175,7 +175,15 @@ async fn refused_declaration_lists_every_error_and_is_not_routed() {
 /// echo of everything wrong in it (a 64 KB one used to make an 821 KB diagnostic).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_large_bad_declaration_gets_a_bounded_answer() {
-    let broker = Broker::start();
+    // Read although larger than the default `[fb] max_declaration_bytes` (16 KiB), to see
+    // what its errors make of it.
+    let broker = common::Broker::start_with(
+        common::Options {
+            extra: "[fb]\nmax_declaration_bytes = 65536\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
     let mut sub = observer(&broker, "watch", &["fbbus/diag/big"]).await;
     // Each error names the port's type, and every type is a 6,000-character invention.
     let ports: serde_json::Map<String, Value> = (0..10)

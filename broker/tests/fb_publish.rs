@@ -501,8 +501,9 @@ async fn refusals_hold_for_every_qos_retain_and_topic_alias() {
     );
 }
 
-/// A device looping on a bad message gets explanations at a bounded rate: a burst of 20,
-/// then 5 per second; every refusal is still counted.
+/// A device looping on a bad message gets explanations at a bounded rate (`[fb]
+/// diag_per_second`, `diag_burst`): a burst of 20 (less the declaration's answer), then 10
+/// per second, and one saying how many were dropped; every refusal is still counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rejection_diagnostics_are_rate_limited() {
     const SENT: usize = 60;
@@ -521,10 +522,10 @@ async fn rejection_diagnostics_are_rate_limited() {
         SENT as f64,
     );
     let diags = drain(&mut diag_sub, QUIET).await;
-    let allowed = 20 + (elapsed * 5.0).ceil() as usize;
+    let allowed = 20 + (elapsed * 10.0).ceil() as usize;
     assert!(
-        diags.len() >= 20 && diags.len() <= allowed,
-        "{} diagnostics for {SENT} refusals in {elapsed:.2} s (allowed 20..={allowed})",
+        diags.len() >= 19 && diags.len() <= allowed,
+        "{} diagnostics for {SENT} refusals in {elapsed:.2} s (allowed 19..={allowed})",
         diags.len()
     );
 }
@@ -642,7 +643,10 @@ async fn a_string_with_nul_is_refused_in_every_encoding() {
 }
 
 /// Issue 21: a re-encoded copy larger than `max_packet_bytes` is not made (counted, and
-/// described to the publisher), while the copies that fit are delivered.
+/// described to the publisher), while the copies that fit are delivered. A port of fixed
+/// size whose worst case is over the limit is refused when declared
+/// (`declaration_limits.rs`), so this happens to STRINGs only: control characters are one
+/// byte in `fbdk` and six (`\u0001`) in canonical JSON.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reencoded_copy_over_max_packet_bytes_is_not_made() {
     let broker = Broker::start_with(
@@ -656,27 +660,25 @@ async fn a_reencoded_copy_over_max_packet_bytes_is_not_made() {
     let mut sub = observer(&broker, "sub", &["fb/amp/#", "fbdk/amp/#"]).await;
     let mut dev = Dev::connect(broker.port(), 5, "amp");
     assert_eq!(
-        dev.declare(r#"{"fbs": {"M": {"data_out": {"A": "ARRAY [150] OF LREAL"}}}}"#),
+        dev.declare(r#"{"fbs": {"M": {"data_out": {"A": "STRING"}}}}"#),
         0
     );
-    // 301 bytes of JSON; 150 x 9 bytes in fbdk.
-    let values = vec!["1"; 150].join(",");
-    assert_eq!(
-        dev.publish("fb/amp/M/A", format!("[{values}]").as_bytes()),
-        0
-    );
-    let got = sub.next_publish(WAIT).await.expect("the fb/ copy");
-    assert_eq!(got.topic, "fb/amp/M/A");
+    // 603 bytes in fbdk; 3,602 in JSON.
+    let mut payload = vec![0x50, 0x02, 0x58];
+    payload.extend(std::iter::repeat_n(1u8, 600));
+    assert_eq!(dev.publish("fbdk/amp/M/A", &payload), 0);
+    let got = sub.next_publish(WAIT).await.expect("the fbdk/ copy");
+    assert_eq!(got.topic, "fbdk/amp/M/A");
     assert!(
         sub.next_publish(std::time::Duration::from_millis(700))
             .await
             .is_none(),
-        "no fbdk copy over max_packet_bytes"
+        "no fb/ copy over max_packet_bytes"
     );
     let why = diag(&mut diag_sub, "amp", "not_reencoded", &broker).await;
     assert!(why.to_string().contains("max_packet_bytes"), "{why}");
     assert_eq!(
-        broker.metric("fbbus_typed_messages_not_reencoded_total{namespace=\"fbdk\"}"),
+        broker.metric("fbbus_typed_messages_not_reencoded_total{namespace=\"fb\"}"),
         1.0
     );
 }

@@ -279,7 +279,8 @@ async fn restart_keeps_the_registry(signal: &str, reason: &str) {
     let s1 = declare_ok(&mut dev, CONV, &mut diag_sub, &broker).await;
     if signal == "KILL" {
         // A crash loses at most what was not yet written: wait until it was.
-        let file = broker.path("fbbus-registry.json");
+        // The change is appended to the journal beside the snapshot (issue 21).
+        let file = broker.path("fbbus-registry.json.log");
         let deadline = Instant::now() + Duration::from_secs(5);
         while !std::fs::read_to_string(&file).is_ok_and(|t| t.contains("conv-a")) {
             assert!(

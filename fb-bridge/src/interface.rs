@@ -165,6 +165,16 @@ impl Declaration {
         Ok(declaration)
     }
 
+    /// The ports declared, over every FB: event and data, outputs and inputs.
+    pub fn port_count(&self) -> usize {
+        self.fbs
+            .values()
+            .map(|fb| {
+                fb.events_out.len() + fb.events_in.len() + fb.data_out.len() + fb.data_in.len()
+            })
+            .sum()
+    }
+
     /// Checks every FB and port and returns the typed interface, or every mistake found.
     pub fn validate(self) -> Result<Interface, Vec<DeclarationError>> {
         let mut errors = Vec::new();

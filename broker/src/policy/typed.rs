@@ -23,7 +23,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::SystemTime;
+use std::time::{Instant, SystemTime};
 
 use bytes::Bytes;
 use fb_bridge::codec::{self, fbdk, Encoding};
@@ -61,8 +61,9 @@ pub enum Refusal {
     TopicNameInvalid,
     /// 0x99: the payload does not decode to the declared types.
     PayloadFormatInvalid,
-    /// 0x97: a limit of the registry refused a new device (`[fb] max_devices`,
-    /// `max_devices_per_identity`).
+    /// 0x97: a limit refused it: the registry's for a new device (`[fb] max_devices`,
+    /// `max_devices_per_identity`), or a declaration's (size, FBs, ports, encoded size,
+    /// rate).
     QuotaExceeded,
 }
 
@@ -112,6 +113,81 @@ pub enum Check {
     Refused(Rejection),
 }
 
+/// What one device may make the broker read, hold and answer (`[fb]`, issue 21); the
+/// defaults are `[fb]`'s.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    pub max_declaration_bytes: usize,
+    pub max_fbs: usize,
+    pub max_ports: usize,
+    pub declarations_per_minute: u32,
+    pub diag_per_second: f64,
+    pub diag_burst: u32,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_declaration_bytes: 16 * 1024,
+            max_fbs: 64,
+            max_ports: 512,
+            declarations_per_minute: 30,
+            diag_per_second: 10.0,
+            diag_burst: 20,
+        }
+    }
+}
+
+/// A token bucket: `rate` tokens a second, at most `burst` held. One per connection and
+/// kind, so its state is two words and dies with the connection.
+#[derive(Debug)]
+struct Bucket {
+    tokens: f64,
+    at: Instant,
+}
+
+impl Bucket {
+    fn full(burst: f64) -> Bucket {
+        Bucket {
+            tokens: burst,
+            at: Instant::now(),
+        }
+    }
+
+    /// Takes a token, or says in how many seconds one will be there.
+    fn take(&mut self, rate: f64, burst: f64) -> Result<(), f64> {
+        let now = Instant::now();
+        self.tokens = (self.tokens + now.duration_since(self.at).as_secs_f64() * rate).min(burst);
+        self.at = now;
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            Ok(())
+        } else {
+            Err((1.0 - self.tokens) / rate)
+        }
+    }
+}
+
+/// A declaration refused: the errors for the device, and the `[fb]` limit it passed, if
+/// that is why.
+struct Refused {
+    limit: Option<&'static str>,
+    errors: Vec<DeclarationError>,
+}
+
+impl Refused {
+    fn limit(limit: &'static str, error: String) -> Refused {
+        Refused {
+            limit: Some(limit),
+            errors: vec![DeclarationError {
+                fb: None,
+                port: None,
+                error,
+            }],
+        }
+    }
+}
+
 /// Shared by all connections.
 /// The receive buffer of 4diac FORTE's MQTT layer, per subscription, in bytes: a longer
 /// message corrupts that subscription's stream. The default `[fb] fbdk_max_payload`.
@@ -129,6 +205,8 @@ pub struct FbTopics {
     fbdk_max_payload: usize,
     /// `[broker] max_packet_bytes`: a re-encoded copy must fit it as any packet must.
     max_packet: usize,
+    /// Declarations and diagnostics per device (`[fb]`).
+    limits: Limits,
     /// The device profiles (`[fb] profiles_dir`).
     pub profiles: Arc<Profiles>,
     /// The connections speaking for each topics-only device.
@@ -163,6 +241,7 @@ impl FbTopics {
             fbdk_unit,
             fbdk_max_payload: FORTE_RECEIVE_BUFFER,
             max_packet: usize::MAX,
+            limits: Limits::default(),
             profiles: Arc::new(Profiles::none()),
             speakers: Speakers::default(),
             publisher,
@@ -182,6 +261,12 @@ impl FbTopics {
     /// routed (a 60 KB message on an `ARRAY [30000] OF TIME` became 240 KB in `fbdk`).
     pub fn with_max_packet(mut self, bytes: usize) -> FbTopics {
         self.max_packet = bytes;
+        self
+    }
+
+    /// `[fb]`'s limits on declarations and diagnostics.
+    pub fn with_limits(mut self, limits: Limits) -> FbTopics {
+        self.limits = limits;
         self
     }
 
@@ -249,11 +334,6 @@ impl SubscriptionObserver for FbTopics {
     fn unsubscribed(&self, _filter: &str) {}
 }
 
-/// Diagnostics one connection may publish per second, beyond a burst of [`DIAG_BURST`]:
-/// a device looping on a bad message gets its explanation, not a flood.
-const DIAG_PER_SECOND: f64 = 5.0;
-const DIAG_BURST: f64 = 20.0;
-
 /// One connection's typed-topic state.
 pub struct FbSession {
     /// The device it speaks for: its client id, or its profile's device id.
@@ -282,8 +362,17 @@ pub struct FbSession {
     seq: BTreeMap<String, BTreeMap<String, u64>>,
     /// (topic, reason label) pairs already logged.
     logged: BTreeSet<(String, &'static str)>,
-    diag_budget: f64,
-    diag_refill: std::time::Instant,
+    /// Diagnostics this connection may still publish (`[fb] diag_per_second`): a device
+    /// looping on a bad message gets its explanation, not a flood; and how many were
+    /// dropped since the last one published.
+    diag_budget: Bucket,
+    diag_dropped: u64,
+    diag_rate: (f64, f64),
+    /// Declarations it may still send (`[fb] declarations_per_minute`), and when a refusal
+    /// at that limit was last logged.
+    declare_budget: Bucket,
+    declare_logged: Option<Instant>,
+    limits: Limits,
     /// Diagnostics for the device, published by the connection once the packets read
     /// with the publication that caused them are in the router ([`FbSession::take_outbox`]):
     /// a device that subscribes to its diag topic and declares in one write must get the
@@ -306,8 +395,12 @@ impl FbSession {
             activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
-            diag_budget: DIAG_BURST,
-            diag_refill: std::time::Instant::now(),
+            diag_budget: Bucket::full(f64::from(fb.limits.diag_burst)),
+            diag_dropped: 0,
+            diag_rate: (fb.limits.diag_per_second, f64::from(fb.limits.diag_burst)),
+            declare_budget: Bucket::full(f64::from(fb.limits.declarations_per_minute)),
+            declare_logged: None,
+            limits: fb.limits,
             outbox: Vec::new(),
         }
     }
@@ -357,7 +450,7 @@ impl FbSession {
                 true
             }
             Err(full) => {
-                self.registry_full(&profile.device, &full, true);
+                self.registry_full(fb, &profile.device, &full, true);
                 false
             }
         }
@@ -402,6 +495,7 @@ impl FbSession {
     /// publications are answered within the connection's diagnostics budget.
     fn registry_full(
         &mut self,
+        fb: &FbTopics,
         device: &str,
         full: &crate::registry::Full,
         declaration: bool,
@@ -420,7 +514,7 @@ impl FbSession {
                 false,
             ));
         } else {
-            self.diag_to(device, body);
+            self.diag_to(fb, device, body);
         }
         Check::Refused(Rejection {
             refusal: Refusal::QuotaExceeded,
@@ -632,7 +726,7 @@ impl FbSession {
                         .declarations
                         .with_label_values(&["refused"])
                         .inc();
-                    return self.registry_full(&profile.device, &full, false);
+                    return self.registry_full(fb, &profile.device, &full, false);
                 }
             };
             self.by_topics = true;
@@ -873,12 +967,15 @@ impl FbSession {
                  (logged once per topic)"
             );
         }
-        self.diag(json!({
-            "kind": "not_reencoded",
-            "topic": topic,
-            "namespace": namespace,
-            "detail": detail,
-        }));
+        self.diag(
+            fb,
+            json!({
+                "kind": "not_reencoded",
+                "topic": topic,
+                "namespace": namespace,
+                "detail": detail,
+            }),
+        );
     }
 
     /// Gives an event the sequence number and timestamp its publisher left out.
@@ -910,22 +1007,7 @@ impl FbSession {
                 "a device connects with its id as both client id and username",
             );
         }
-        let validated = Declaration::from_json(payload)
-            .map_err(|e| vec![e])
-            .and_then(Declaration::validate)
-            .and_then(|interface| match &self.profile {
-                // A profiled device declares what its profile says, or nothing.
-                Some(profile) if profile.interface != interface => Err(vec![DeclarationError {
-                    fb: None,
-                    port: None,
-                    error: format!(
-                        "differs from the interface of device {}'s profile, which stays in force",
-                        profile.device
-                    ),
-                }]),
-                _ => Ok(interface),
-            });
-        match validated {
+        match self.admit_declaration(fb, payload) {
             Ok(interface) => {
                 let fbs = interface.fbs.len();
                 let old = fb.registry.get(&self.device).map(|r| r.interface);
@@ -940,7 +1022,7 @@ impl FbSession {
                             .with_label_values(&["refused"])
                             .inc();
                         let device = self.device.clone();
-                        return self.registry_full(&device, &full, true);
+                        return self.registry_full(fb, &device, &full, true);
                     }
                 };
                 // A port the new declaration removes or retypes: its retained value would
@@ -964,37 +1046,156 @@ impl FbSession {
                     fbs,
                     "interface declared"
                 );
-                self.outbox.push(BrokerMessage::broker(
-                    topic::diag(&self.device),
-                    json!({"kind": "declaration", "ok": true, "session": self.session, "line": fb.registry.line()}).to_string(),
-                    false,
-                ));
+                self.diag_answer(
+                    json!({"kind": "declaration", "ok": true, "session": self.session, "line": fb.registry.line()}),
+                );
                 Check::Consumed
             }
-            Err(errors) => {
+            Err(Refused { limit, errors }) => {
                 fb.metrics
                     .declarations
                     .with_label_values(&["refused"])
                     .inc();
-                tracing::warn!(
-                    device = self.device,
-                    errors = errors.len(),
-                    first = errors.first().map(ToString::to_string),
-                    "interface declaration refused"
-                );
-                self.outbox.push(BrokerMessage::broker(
-                    topic::diag(&self.device),
-                    // Every declaration is answered (the device waits for it), within the
-                    // diagnostics' size cap.
-                    bounded_diag(json!({"kind": "declaration", "ok": false, "errors": errors})),
-                    false,
-                ));
+                if let Some(limit) = limit {
+                    fb.metrics.limit_refusals.with_label_values(&[limit]).inc();
+                }
+                let body =
+                    json!({"kind": "declaration", "ok": false, "limit": limit, "errors": errors});
+                if limit == Some("declaration_rate") {
+                    // Not answered beyond the diagnostics' rate, and logged once a minute:
+                    // a device re-declaring in a loop costs neither a flood nor a log.
+                    let now = Instant::now();
+                    if self
+                        .declare_logged
+                        .is_none_or(|t| now.duration_since(t).as_secs() >= 60)
+                    {
+                        self.declare_logged = Some(now);
+                        tracing::warn!(
+                            device = self.device,
+                            per_minute = self.limits.declarations_per_minute,
+                            "declarations refused: over [fb] declarations_per_minute \
+                             (logged at most once a minute per device)"
+                        );
+                    }
+                    self.diag(fb, body);
+                } else {
+                    tracing::warn!(
+                        device = self.device,
+                        limit,
+                        errors = errors.len(),
+                        first = errors.first().map(ToString::to_string),
+                        "interface declaration refused"
+                    );
+                    // Every declaration within the rate is answered (the device waits for
+                    // it), within the diagnostics' size cap.
+                    self.diag_answer(body);
+                }
                 // Counted and answered here; `rejected` must not describe it a second time.
                 Check::Refused(Rejection {
-                    refusal: Refusal::PayloadFormatInvalid,
+                    refusal: match limit {
+                        Some(_) => Refusal::QuotaExceeded,
+                        None => Refusal::PayloadFormatInvalid,
+                    },
                     detail: String::new(),
                 })
             }
+        }
+    }
+
+    /// The one place that decides whether a declaration is admitted, cheapest check
+    /// first: the rate, the size, the counts (before the types are parsed), the
+    /// declaration's own validity, each port's worst-case message size, the profile.
+    fn admit_declaration(&mut self, fb: &FbTopics, payload: &[u8]) -> Result<Interface, Refused> {
+        let limits = self.limits;
+        let per_minute = f64::from(limits.declarations_per_minute);
+        if let Err(wait) = self.declare_budget.take(per_minute / 60.0, per_minute) {
+            return Err(Refused::limit(
+                "declaration_rate",
+                format!(
+                    "rate limited, retry after {} s ([fb] declarations_per_minute = {})",
+                    wait.ceil().max(1.0) as u64,
+                    limits.declarations_per_minute
+                ),
+            ));
+        }
+        if payload.len() > limits.max_declaration_bytes {
+            return Err(Refused::limit(
+                "declaration_bytes",
+                format!(
+                    "{} bytes; at most {} ([fb] max_declaration_bytes)",
+                    payload.len(),
+                    limits.max_declaration_bytes
+                ),
+            ));
+        }
+        let declaration = Declaration::from_json(payload).map_err(|e| Refused {
+            limit: None,
+            errors: vec![e],
+        })?;
+        if declaration.fbs.len() > limits.max_fbs {
+            return Err(Refused::limit(
+                "fbs",
+                format!(
+                    "{} FBs declared; at most {} ([fb] max_fbs)",
+                    declaration.fbs.len(),
+                    limits.max_fbs
+                ),
+            ));
+        }
+        let ports = declaration.port_count();
+        if ports > limits.max_ports {
+            return Err(Refused::limit(
+                "ports",
+                format!(
+                    "{ports} ports declared; at most {} ([fb] max_ports)",
+                    limits.max_ports
+                ),
+            ));
+        }
+        let interface = declaration.validate().map_err(|errors| Refused {
+            limit: None,
+            errors,
+        })?;
+        let too_large: Vec<DeclarationError> = interface
+            .outputs()
+            .filter_map(|(f, p)| {
+                let port = interface.output(f, p)?;
+                let (encoding, bytes) = codec::worst::largest(p, &port);
+                let topic = format!("{}/{}/{f}/{p}", encoding.namespace(), self.device);
+                // As a re-encoded copy is measured (`accepted`): payload, topic, header.
+                let packet = bytes + topic.len() + 16;
+                (packet > fb.max_packet).then(|| DeclarationError {
+                    fb: Some(f.to_owned()),
+                    port: Some(p.to_owned()),
+                    error: format!(
+                        "a message can take {bytes} bytes on {}/ (a {packet}-byte packet), more \
+                         than [broker] max_packet_bytes ({}); declare a smaller array",
+                        encoding.namespace(),
+                        fb.max_packet
+                    ),
+                })
+            })
+            .collect();
+        if !too_large.is_empty() {
+            return Err(Refused {
+                limit: Some("encoded_size"),
+                errors: too_large,
+            });
+        }
+        match &self.profile {
+            // A profiled device declares what its profile says, or nothing.
+            Some(profile) if profile.interface != interface => Err(Refused {
+                limit: None,
+                errors: vec![DeclarationError {
+                    fb: None,
+                    port: None,
+                    error: format!(
+                        "differs from the interface of device {}'s profile, which stays in force",
+                        profile.device
+                    ),
+                }],
+            }),
+            _ => Ok(interface),
         }
     }
 
@@ -1041,36 +1242,66 @@ impl FbSession {
                 "typed publication refused (logged once per topic and reason)"
             );
         }
-        self.diag(json!({
-            "kind": "rejected",
-            "topic": topic,
-            "reason": rejection.refusal.label(),
-            "code": rejection.refusal.code(),
-            "detail": rejection.detail,
-        }));
+        self.diag(
+            fb,
+            json!({
+                "kind": "rejected",
+                "topic": topic,
+                "reason": rejection.refusal.label(),
+                "code": rejection.refusal.code(),
+                "detail": rejection.detail,
+            }),
+        );
     }
 
-    /// Queues a diagnostic for `fbbus/diag/<device>`, within the connection's budget.
-    fn diag(&mut self, body: serde_json::Value) {
+    /// Queues a diagnostic for `fbbus/diag/<device>`, within the connection's budget
+    /// (`[fb] diag_per_second`); beyond it, dropped and counted. The first one published
+    /// after drops is preceded by one saying how many.
+    fn diag(&mut self, fb: &FbTopics, body: serde_json::Value) {
         let device = self.device.clone();
-        self.diag_to(&device, body);
+        self.diag_to(fb, &device, body);
     }
 
-    /// [`FbSession::diag`] for `device`'s diag topic.
-    fn diag_to(&mut self, device: &str, body: serde_json::Value) {
-        let now = std::time::Instant::now();
-        self.diag_budget = (self.diag_budget
-            + now.duration_since(self.diag_refill).as_secs_f64() * DIAG_PER_SECOND)
-            .min(DIAG_BURST);
-        self.diag_refill = now;
-        if self.diag_budget >= 1.0 {
-            self.diag_budget -= 1.0;
+    /// [`FbSession::diag`] for `device`'s diag topic (a profiled device this connection
+    /// was refused as).
+    fn diag_to(&mut self, fb: &FbTopics, device: &str, body: serde_json::Value) {
+        let (rate, burst) = self.diag_rate;
+        if self.diag_budget.take(rate, burst).is_err() {
+            self.diag_dropped += 1;
+            fb.metrics.diag_dropped.inc();
+            return;
+        }
+        self.queue_diag(device, body);
+    }
+
+    /// Queues a diagnostic that is always published: the answer to a declaration within
+    /// the declaration rate (the device waits for it). It uses up the budget as any other.
+    fn diag_answer(&mut self, body: serde_json::Value) {
+        let (rate, burst) = self.diag_rate;
+        let _ = self.diag_budget.take(rate, burst);
+        let device = self.device.clone();
+        self.queue_diag(&device, body);
+    }
+
+    fn queue_diag(&mut self, device: &str, body: serde_json::Value) {
+        if self.diag_dropped > 0 {
+            let dropped = std::mem::take(&mut self.diag_dropped);
             self.outbox.push(BrokerMessage::broker(
                 topic::diag(device),
-                bounded_diag(body),
+                json!({
+                    "kind": "diag_dropped",
+                    "dropped": dropped,
+                    "detail": format!("{dropped} diag messages dropped ([fb] diag_per_second)"),
+                })
+                .to_string(),
                 false,
             ));
         }
+        self.outbox.push(BrokerMessage::broker(
+            topic::diag(device),
+            bounded_diag(body),
+            false,
+        ));
     }
 }
 

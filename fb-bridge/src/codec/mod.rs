@@ -13,6 +13,7 @@
 pub mod dinasore;
 pub mod fbdk;
 pub mod json;
+pub mod worst;
 
 use crate::interface::OutputPort;
 use crate::value::{TypeError, Value};
