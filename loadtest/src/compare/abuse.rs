@@ -267,6 +267,10 @@ pub async fn run(fbbus: &Path, p: &AbuseParams, out: &Path) -> Result<()> {
         stop: AtomicBool::new(false),
     });
     let probing = spawn_probe(broker.addr, Arc::clone(&probe))?;
+    // The re-declaring device is registered before the registry flood fills the address's
+    // `max_devices_per_identity`: its flood then meets the declaration rate limit, as a
+    // known device's would, not the registry's.
+    register_redeclarer(broker.addr).await?;
     // The probe connects and its first round trips settle before the idle phase.
     tokio::time::sleep(p.settle.max(Duration::from_millis(500))).await;
 
@@ -486,9 +490,25 @@ async fn registry_flood(addr: SocketAddr, deadline: Instant) -> Result<Flood> {
     })
 }
 
+/// The device of phase 2.
+const REDECLARER: &str = "abuse-redeclare";
+
+/// Declares [`REDECLARER`] once, so it is a known device.
+async fn register_redeclarer(addr: SocketAddr) -> Result<()> {
+    let s = tokio::time::timeout(WAIT, mqtt::connect(addr, REDECLARER, None))
+        .await
+        .context("CONNECT timed out")??;
+    let mut reader = PacketReader::new(s);
+    declare(&mut reader, REDECLARER, SMALL_INTERFACE, 1)
+        .await
+        .context("the re-declaring device's first declaration")?;
+    let _ = reader.get_mut().write_all(&mqtt::DISCONNECT).await;
+    Ok(())
+}
+
 /// 2: one device declares again as soon as its previous declaration is acknowledged.
 async fn redeclaration_flood(addr: SocketAddr, deadline: Instant) -> Result<Flood> {
-    let id = "abuse-redeclare";
+    let id = REDECLARER;
     let s = tokio::time::timeout(WAIT, mqtt::connect(addr, id, None))
         .await
         .context("CONNECT timed out")??;
