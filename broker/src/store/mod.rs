@@ -9,11 +9,11 @@
 //! once; the router's PUBACK/PUBREC for them waits in the session until the writer has
 //! written the batch (`fsync = "always"`: written and synced; `session/durable.rs`): a
 //! publication fbbus acknowledged is in the log. Being handed over before routing, a
-//! publication's record always precedes the `Done` of its deliveries. (Until 2026-11-26
-//! the session waited for the write before routing; the QoS 1 burst went from 0.64x to
-//! the figure in docs/performance.md.) The writer thread takes every batch waiting and
-//! writes them with one `write` (and, by policy, one `fsync`): group commit, so a line of
-//! publishers shares the cost of each sync.
+//! publication's record always precedes the `Done` of its deliveries (until 2026-11-26
+//! the session waited for the write before routing: docs/performance.md has both). The
+//! writer thread takes every batch waiting and writes them with one `write` (and, by
+//! policy, one `fsync`): group commit, so a line of publishers shares the cost of each
+//! sync.
 //!
 //! **What is queued for whom** is not decided on the packet path: the log records
 //! subscriptions and publications, and the writer's copy of the state (`state`) works out
