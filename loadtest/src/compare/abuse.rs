@@ -372,22 +372,7 @@ pub async fn run(fbbus: &Path, p: &AbuseParams, out: &Path) -> Result<()> {
 }
 
 fn header(t: &mut Transcript, fbbus: &Path, p: &AbuseParams) {
-    let m = loadtest::machine::this_machine();
-    t.line(format!(
-        "fbbus-loadtest compare abuse {}",
-        env!("CARGO_PKG_VERSION")
-    ));
-    t.line(format!(
-        "machine:   {} cores, {}, {} MiB RAM, {}",
-        m.cpus, m.cpu_model, m.memory_mib, m.os
-    ));
-    if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
-        let load: Vec<&str> = load.split_whitespace().take(3).collect();
-        t.line(format!(
-            "load:      {} (1, 5, 15 min, at the start: other work on the machine)",
-            load.join(" ")
-        ));
-    }
+    t.machine_lines("abuse");
     t.line(format!(
         "fbbus:     {} ({}; config defaults, [log] level = \"warn\", max_connections 10100, admin on 127.0.0.1)",
         spawn::fbbus_version(fbbus),

@@ -348,6 +348,27 @@ impl Transcript {
         self.0.push_str(text.as_ref());
         self.0.push('\n');
     }
+
+    /// The first lines of a `compare <what>` transcript: the harness, the machine, and the
+    /// load it had at the start (other work skews a measurement).
+    fn machine_lines(&mut self, what: &str) {
+        let m = loadtest::machine::this_machine();
+        self.line(format!(
+            "fbbus-loadtest compare {what} {}",
+            env!("CARGO_PKG_VERSION")
+        ));
+        self.line(format!(
+            "machine:   {} cores, {}, {} MiB RAM, {}",
+            m.cpus, m.cpu_model, m.memory_mib, m.os
+        ));
+        if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
+            let load: Vec<&str> = load.split_whitespace().take(3).collect();
+            self.line(format!(
+                "load:      {} (1, 5, 15 min, at the start: other work on the machine)",
+                load.join(" ")
+            ));
+        }
+    }
 }
 
 /// The scenarios asked for, in the canonical order.

@@ -391,22 +391,7 @@ fn header(
     setups: &[Setup],
     p: &PersistParams,
 ) {
-    let m = loadtest::machine::this_machine();
-    t.line(format!(
-        "fbbus-loadtest compare persistence {}",
-        env!("CARGO_PKG_VERSION")
-    ));
-    t.line(format!(
-        "machine:   {} cores, {}, {} MiB RAM, {}",
-        m.cpus, m.cpu_model, m.memory_mib, m.os
-    ));
-    if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
-        let load: Vec<&str> = load.split_whitespace().take(3).collect();
-        t.line(format!(
-            "load:      {} (1, 5, 15 min, at the start: other work on the machine)",
-            load.join(" ")
-        ));
-    }
+    t.machine_lines("persistence");
     t.line(format!(
         "fbbus:     {} ({}; config defaults, [log] level = \"warn\" (+ broker::store=info with the store on), \
          max_connections 10100)",
