@@ -147,6 +147,18 @@ impl FbSection {
         }
     }
 
+    /// What one device may declare, and how often it may declare and be answered.
+    pub(crate) fn declaration_limits(&self) -> crate::policy::typed::Limits {
+        crate::policy::typed::Limits {
+            max_declaration_bytes: self.max_declaration_bytes,
+            max_fbs: self.max_fbs,
+            max_ports: self.max_ports,
+            declarations_per_minute: self.declarations_per_minute,
+            diag_per_second: self.diag_per_second,
+            diag_burst: self.diag_burst,
+        }
+    }
+
     /// What the device registry holds at most.
     pub(crate) fn registry_limits(&self) -> crate::registry::Limits {
         crate::registry::Limits {

@@ -173,14 +173,7 @@ impl Broker {
             )
             .with_fbdk_max_payload(config.fb.fbdk_max_payload)
             .with_max_packet(config.broker.max_packet_bytes)
-            .with_limits(crate::policy::typed::Limits {
-                max_declaration_bytes: config.fb.max_declaration_bytes,
-                max_fbs: config.fb.max_fbs,
-                max_ports: config.fb.max_ports,
-                declarations_per_minute: config.fb.declarations_per_minute,
-                diag_per_second: config.fb.diag_per_second,
-                diag_burst: config.fb.diag_burst,
-            })
+            .with_limits(config.fb.declaration_limits())
             .with_profiles(Arc::clone(&profiles)),
         );
         // Who is told of subscriptions: typed-topic re-encoding, and the bus bridge, whose

@@ -126,15 +126,9 @@ pub struct Limits {
 }
 
 impl Default for Limits {
+    /// `[fb]`'s defaults, from the one place they are set.
     fn default() -> Self {
-        Limits {
-            max_declaration_bytes: 16 * 1024,
-            max_fbs: 64,
-            max_ports: 512,
-            declarations_per_minute: 30,
-            diag_per_second: 10.0,
-            diag_burst: 20,
-        }
+        crate::config::FbSection::default().declaration_limits()
     }
 }
 
