@@ -336,6 +336,130 @@ pub async fn serve(
     }
 }
 
+/// How much lower the admin thread's scheduling priority is than the packet path's
+/// (`nice` +10: the kernel gives it about a tenth of the CPU time of a normal thread
+/// when both want to run). Its answers wait when the line is busy; the line does not
+/// wait for its answers.
+const ADMIN_NICE: libc::c_int = 10;
+
+/// Runs [`serve`] on a thread and a runtime of its own, at a lower scheduling priority
+/// ([`ADMIN_NICE`]), until `shutdown` resolves or this future is dropped (then the thread
+/// is stopped and joined before the drop returns).
+///
+/// Why a thread (issue 21): on the broker's runtime, six loops polling the device
+/// listing took CPU time from the sessions on the same workers, and a well-behaved
+/// device's p99 round trip grew 5x. The admin plane holds no lock the packet path needs
+/// while it serializes; a thread of its own at a lower priority also keeps it from
+/// taking the packet path's CPU.
+pub async fn serve_apart(
+    socket: TcpListener,
+    limits: Limits,
+    state: AdminState,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) {
+    let socket = match socket.into_std() {
+        Ok(socket) => socket,
+        Err(e) => {
+            tracing::error!(error = %e, "admin endpoint: cannot hand its socket to its thread");
+            return;
+        }
+    };
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let (done, finished) = tokio::sync::oneshot::channel();
+    let nice = admin_nice();
+    let thread = std::thread::Builder::new()
+        .name("fbbus-admin".into())
+        .spawn(move || {
+            let run = std::panic::AssertUnwindSafe(move || {
+                set_nice(nice);
+                let runtime = tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .thread_name("fbbus-admin")
+                    .on_thread_start(move || set_nice(nice))
+                    .build()?;
+                runtime.block_on(async move {
+                    let socket = TcpListener::from_std(socket)?;
+                    let shutdown = async move {
+                        tokio::select! {
+                            () = shutdown => {}
+                            _ = stopped => {}
+                        }
+                    };
+                    serve(socket, limits, state, shutdown).await;
+                    Ok::<_, std::io::Error>(())
+                })?;
+                // Connections still open are cut; a listing being serialized may finish.
+                runtime.shutdown_timeout(Duration::from_secs(1));
+                Ok::<_, std::io::Error>(())
+            });
+            let _ = done.send(std::panic::catch_unwind(run));
+        });
+    let thread = match thread {
+        Ok(thread) => thread,
+        Err(e) => {
+            tracing::error!(error = %e, "admin endpoint: cannot start its thread");
+            return;
+        }
+    };
+    let _joined = Joined {
+        stop: Some(stop),
+        thread: Some(thread),
+    };
+    match finished.await {
+        Ok(Ok(Ok(()))) => {}
+        Ok(Ok(Err(e))) => tracing::error!(error = %e, "admin endpoint: its runtime failed"),
+        Ok(Err(panic)) => std::panic::resume_unwind(panic),
+        Err(_) => panic!("the admin endpoint's thread ended without an answer"),
+    }
+}
+
+/// Stops the admin thread and waits for it when [`serve_apart`] ends or is dropped: after
+/// the broker's tasks are finished, no admin request is served.
+struct Joined {
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for Joined {
+    fn drop(&mut self) {
+        drop(self.stop.take());
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// The admin threads' nice value: the calling thread's (the broker's) plus
+/// [`ADMIN_NICE`], at most 19. Set as an absolute value in every admin thread, because a
+/// thread inherits its creator's: relative steps would add up in the blocking pool.
+fn admin_nice() -> libc::c_int {
+    #[cfg(target_os = "linux")]
+    // SAFETY: gettid and getpriority take no pointers and only read.
+    let base = unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::getpriority(libc::PRIO_PROCESS, tid)
+    };
+    #[cfg(not(target_os = "linux"))]
+    let base = 0;
+    base.saturating_add(ADMIN_NICE).min(19)
+}
+
+/// Sets the calling thread's nice value. On Linux the nice value is per thread
+/// (`setpriority(PRIO_PROCESS, tid)`), and raising it needs no privilege. Elsewhere, or
+/// if it fails, the thread keeps the broker's priority.
+fn set_nice(nice: libc::c_int) {
+    #[cfg(target_os = "linux")]
+    // SAFETY: gettid and setpriority take no pointers and only affect this thread.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        if libc::setpriority(libc::PRIO_PROCESS, tid, nice) != 0 {
+            tracing::debug!("admin endpoint: could not lower its thread's priority");
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -294,7 +294,7 @@ impl Broker {
         let mut admin_shutdown = shutdown_rx.clone();
         tasks.core(
             "admin endpoint",
-            admin::serve(
+            admin::serve_apart(
                 admin_socket,
                 admin::Limits::from(&config.admin),
                 AdminState {

@@ -448,3 +448,44 @@ fn request_bodies_are_size_limited_and_a_slow_body_is_cut() {
         Some(200)
     );
 }
+
+/// Each of `pid`'s threads: its name and its nice value (Linux: `/proc/<pid>/task`).
+fn thread_nice(pid: u32) -> Vec<(String, i64)> {
+    let mut threads = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{pid}/task")).expect("/proc") {
+        let task = task.expect("task").path();
+        let comm = std::fs::read_to_string(task.join("comm")).unwrap_or_default();
+        let stat = std::fs::read_to_string(task.join("stat")).unwrap_or_default();
+        // Field 19 is the nice value; the fields after the `(comm)` start at field 3.
+        if let Some((_, after_comm)) = stat.rsplit_once(") ") {
+            if let Some(n) = after_comm.split(' ').nth(16) {
+                threads.push((comm.trim_end().to_owned(), n.parse().expect("nice")));
+            }
+        }
+    }
+    threads
+}
+
+/// The admin endpoint answers from a thread of its own, at a lower scheduling priority
+/// than the packet path's (issue 21: admin polling must not take the sessions' CPU).
+#[test]
+fn the_admin_endpoint_runs_on_its_own_lower_priority_thread() {
+    let broker = Broker::start();
+    // A listing, so the admin runtime's blocking threads (serialization) exist too.
+    assert_eq!(
+        common::http_get(broker.admin, "/api/v1/devices").map(|(code, _)| code),
+        Some(200)
+    );
+    let threads = thread_nice(broker.child.id());
+    let (admin, others): (Vec<_>, Vec<_>) = threads
+        .into_iter()
+        .partition(|(name, _)| name == "fbbus-admin");
+    assert!(
+        admin.len() >= 2 && admin.iter().all(|(_, nice)| *nice == 10),
+        "the admin thread and its blocking threads, nice 10 (set, not added up): {admin:?}"
+    );
+    assert!(
+        others.len() >= 3 && others.iter().all(|(_, nice)| *nice == 0),
+        "the router, the runtime's workers and the store keep the normal priority: {others:?}"
+    );
+}
