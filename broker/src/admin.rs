@@ -90,40 +90,43 @@ struct DeviceFilter {
 /// One page of the registry, in id order (issue 21): `?limit=N` (default 1,000, at most
 /// 10,000), `?after=<id>` (the page starts after this id), `?status=` filters. The answer
 /// names the next page's `after` in `next` (null on the last page). The page's records
-/// are copied under the registry's lock, and serialized after it is released, on a
-/// blocking thread: 50,000 devices serialized at once (9.5 MB) on a runtime worker
-/// stalled the sessions sharing it.
+/// are copied under the registry's lock (a range walk: only the page's records), and
+/// serialized after it is released, right here on the admin thread: the admin plane is
+/// one thread at a lower priority ([`serve_apart`]), so concurrent listings take turns
+/// instead of taking more cores from the sessions.
 async fn devices(
     State(state): State<AdminState>,
     Query(filter): Query<DeviceFilter>,
 ) -> axum::response::Response {
     let limit = filter.limit.unwrap_or(DEVICES_PAGE);
     if limit == 0 {
-        return (
-            StatusCode::BAD_REQUEST,
-            axum::Json(serde_json::json!({"error": "limit must be at least 1"})),
-        )
-            .into_response();
+        return error(StatusCode::BAD_REQUEST, "limit must be at least 1".into());
     }
     let limit = limit.min(DEVICES_PAGE_MAX);
-    let registry = Arc::clone(&state.registry);
-    let page = tokio::task::spawn_blocking(move || {
-        let status = filter.status.as_deref();
-        let (devices, more) = registry.page(filter.after.as_deref(), limit, |d| {
-            status.is_none_or(|s| d.status.label() == s)
-        });
-        let next = more.then(|| devices.last().map(|d| d.id.clone())).flatten();
-        serde_json::to_vec(&serde_json::json!({
-            "line": registry.line(),
-            "devices": devices,
-            "next": next,
-        }))
-    })
-    .await;
-    match page {
-        Ok(Ok(body)) => ([(header::CONTENT_TYPE, "application/json")], body).into_response(),
-        Ok(Err(e)) => (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
-        Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
+    let registry = &state.registry;
+    let status = filter.status.as_deref();
+    let (devices, more) = registry.page(filter.after.as_deref(), limit, |d| {
+        status.is_none_or(|s| d.status.label() == s)
+    });
+    let next = more
+        .then(|| devices.last().map(|d| d.id.as_str()))
+        .flatten();
+    // Serialized straight from the records (`json!` would build a tree of every field
+    // first).
+    #[derive(serde::Serialize)]
+    struct Page<'a> {
+        line: &'a str,
+        devices: &'a [crate::registry::Record],
+        next: Option<&'a str>,
+    }
+    let body = serde_json::to_vec(&Page {
+        line: registry.line(),
+        devices: &devices,
+        next,
+    });
+    match body {
+        Ok(body) => ([(header::CONTENT_TYPE, "application/json")], body).into_response(),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
     }
 }
 

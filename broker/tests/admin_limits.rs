@@ -471,7 +471,7 @@ fn thread_nice(pid: u32) -> Vec<(String, i64)> {
 #[test]
 fn the_admin_endpoint_runs_on_its_own_lower_priority_thread() {
     let broker = Broker::start();
-    // A listing, so the admin runtime's blocking threads (serialization) exist too.
+    // A listing: it is served on the admin thread.
     assert_eq!(
         common::http_get(broker.admin, "/api/v1/devices").map(|(code, _)| code),
         Some(200)
@@ -481,8 +481,8 @@ fn the_admin_endpoint_runs_on_its_own_lower_priority_thread() {
         .into_iter()
         .partition(|(name, _)| name == "fbbus-admin");
     assert!(
-        admin.len() >= 2 && admin.iter().all(|(_, nice)| *nice == 10),
-        "the admin thread and its blocking threads, nice 10 (set, not added up): {admin:?}"
+        !admin.is_empty() && admin.iter().all(|(_, nice)| *nice == 10),
+        "the admin thread (and any blocking thread of its runtime), nice 10: {admin:?}"
     );
     assert!(
         others.len() >= 3 && others.iter().all(|(_, nice)| *nice == 0),

@@ -118,6 +118,18 @@ pub async fn connect(
     Ok(connect_with(addr, client_id, &packet).await?.0)
 }
 
+/// Like [`connect`], anonymous, from the local address `source` (one of the loopback
+/// addresses 127.0.0.0/8 when the broker is on 127.0.0.1: a broker that limits per
+/// address then sees many hosts).
+pub async fn connect_from(
+    addr: SocketAddr,
+    source: std::net::IpAddr,
+    client_id: &str,
+) -> Result<TcpStream, Error> {
+    let packet = connect_packet(client_id, None);
+    Ok(connect_on(addr, Some(source), client_id, &packet).await?.0)
+}
+
 /// Like [`connect`], anonymous, with clean session `clean`; also returns the CONNACK's
 /// session-present flag (a persistent session the broker kept).
 pub async fn connect_session(
@@ -133,14 +145,33 @@ async fn connect_with(
     client_id: &str,
     packet: &[u8],
 ) -> Result<(TcpStream, bool), Error> {
+    connect_on(addr, None, client_id, packet).await
+}
+
+async fn connect_on(
+    addr: SocketAddr,
+    source: Option<std::net::IpAddr>,
+    client_id: &str,
+    packet: &[u8],
+) -> Result<(TcpStream, bool), Error> {
     let connect_error = |reason: String| Error::Connect {
         id: client_id.to_owned(),
         address: addr.to_string(),
         reason,
     };
-    let mut stream = TcpStream::connect(addr)
-        .await
-        .map_err(|e| connect_error(e.to_string()))?;
+    let stream = match source {
+        None => TcpStream::connect(addr).await,
+        Some(source) => {
+            let socket = if source.is_ipv4() {
+                tokio::net::TcpSocket::new_v4()?
+            } else {
+                tokio::net::TcpSocket::new_v6()?
+            };
+            socket.bind(SocketAddr::new(source, 0))?;
+            socket.connect(addr).await
+        }
+    };
+    let mut stream = stream.map_err(|e| connect_error(e.to_string()))?;
     stream.set_nodelay(true)?;
     stream
         .write_all(packet)

@@ -6,7 +6,9 @@
 //!
 //! 0. `idle`: only the probe;
 //! 1. `registry`: distinct client ids CONNECT, declare a small interface (QoS 1, the PUBACK
-//!    awaited) and DISCONNECT, 8 at a time, at most 50,000;
+//!    awaited) and DISCONNECT, 8 at a time, at most 50,000, from 500 loopback addresses
+//!    (127.0.0.2 on, 100 devices each: the per-address limit lets each address fill its
+//!    share, so the flood meets the line's `max_devices`);
 //! 2. `redeclare`: one client declares the same device again as fast as the broker
 //!    acknowledges (QoS 1, one at a time);
 //! 3. `admin-poll`: 6 loops GET `/api/v1/devices`, following `next` pages;
@@ -55,6 +57,15 @@ const SAMPLE_EVERY: Duration = Duration::from_millis(100);
 const MAX_DEVICES: u64 = 50_000;
 const MAX_RETAINED: u64 = 100_000;
 const REGISTRY_WORKERS: usize = 8;
+/// Devices of phase 1 from one source address: fbbus's default `max_devices_per_identity`.
+const DEVICES_PER_SOURCE: u64 = 100;
+
+/// The loopback address device `n` of phase 1 connects from: 127.0.0.2 on, a new one
+/// every [`DEVICES_PER_SOURCE`] devices (at most 50,000 / 100 = 500 addresses).
+fn registry_source(n: u64) -> std::net::IpAddr {
+    let k = 2 + n / DEVICES_PER_SOURCE;
+    std::net::Ipv4Addr::new(127, 0, (k / 250) as u8, (k % 250) as u8).into()
+}
 const POLLERS: usize = 6;
 const SLOW_HEADERS: usize = 500;
 const PORTS_PER_DECLARATION: usize = 100;
@@ -133,7 +144,8 @@ impl Phase {
             Phase::Idle => "only the probe".into(),
             Phase::Registry => format!(
                 "distinct client ids CONNECT, declare {SMALL_INTERFACE} on fbbus/declare/<id> (QoS 1, PUBACK \
-                 awaited), DISCONNECT; {REGISTRY_WORKERS} at a time, at most {MAX_DEVICES}; ops = devices declared"
+                 awaited), DISCONNECT; {REGISTRY_WORKERS} at a time, at most {MAX_DEVICES}, {DEVICES_PER_SOURCE} \
+                 from each loopback address 127.0.x.y from 127.0.0.2 on; ops = devices declared"
             ),
             Phase::Redeclare => "one client declares the same device again as soon as the previous declaration \
                  is acknowledged (QoS 1); ops = declarations acknowledged"
@@ -447,7 +459,9 @@ async fn registry_flood(addr: SocketAddr, deadline: Instant) -> Result<Flood> {
                     break;
                 }
                 let id = format!("abuse-dev-{n:05}");
-                let s = match tokio::time::timeout(WAIT, mqtt::connect(addr, &id, None)).await {
+                let from = registry_source(n);
+                let s = match tokio::time::timeout(WAIT, mqtt::connect_from(addr, from, &id)).await
+                {
                     Ok(Ok(s)) => s,
                     _ => {
                         refused.fetch_add(1, Ordering::Relaxed);
