@@ -7,11 +7,21 @@
 //! `PUT /api/v1/profiles/{device}` (a profile in TOML, as `fbbus declare` sends it);
 //! `DELETE /api/v1/devices/{id}` forgets an offline device (`fbbus devices forget`).
 //!
-//! Bound to loopback by default; it exposes no secret. Its commands (putting a profile,
-//! forgetting a device) are refused (403) to any peer that is not on the broker's own
-//! host, by one extractor, [`LoopbackOnly`]: the endpoint has no authentication, and an
-//! admin bound to a plant network for Prometheus must not let that network retype or
-//! remove the line's devices. Remote admin writes are refused, whatever the bind.
+//! Who may ask, in two rules, each in one place:
+//! - Credentials: with `[admin] password_file` set, every request, whatever its route
+//!   (and a path no route serves), needs HTTP Basic credentials of a user of that file,
+//!   or it is answered 401 (429 while its address is throttled) before any route sees
+//!   it: one layer around the whole router, `admin_auth`, so a route added later is
+//!   covered too. The file is required when `[admin] bind` is not a loopback address
+//!   (the broker refuses to start without it, as it refuses a non-loopback MQTT listener
+//!   without `[auth] password_file`); on loopback without it the endpoint is open, as
+//!   anyone on the broker's host can read its files anyway.
+//! - Writes from the host only: the commands (putting a profile, forgetting a device)
+//!   are refused (403) to any peer that is not on the broker's own host, by one
+//!   extractor, [`LoopbackOnly`], credentials or not: an admin bound to a plant network
+//!   for Prometheus must not let that network retype or remove the line's devices.
+//!
+//! It exposes no secret: no password, hash or key is in any answer.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -29,6 +39,7 @@ use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 
+use crate::admin_auth::{self, AdminAuth};
 use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::profiles::{Profiles, PutError};
@@ -40,10 +51,16 @@ pub struct AdminState {
     pub health: Arc<Health>,
     pub registry: Arc<Registry>,
     pub profiles: Arc<Profiles>,
+    /// `[admin] password_file`: every request must carry credentials of its users.
+    pub auth: Option<Arc<AdminAuth>>,
 }
 
+/// Every admin route. With `state.auth`, the credential check is the outermost layer, so
+/// it answers for every route above and for the fallback (an unknown path is a 401, not a
+/// 404, to a client without credentials): add a route above it, never after.
 pub fn routes(state: AdminState) -> Router {
-    Router::new()
+    let auth = state.auth.clone();
+    let router = Router::new()
         .route("/metrics", get(metrics))
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(readyz))
@@ -53,7 +70,14 @@ pub fn routes(state: AdminState) -> Router {
         .route("/api/v1/profiles/:device", put(put_profile))
         // A request body larger than this is refused (413) before it is read further.
         .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
-        .with_state(state)
+        .with_state(state);
+    match auth {
+        Some(auth) => router.layer(axum::middleware::from_fn_with_state(
+            auth,
+            admin_auth::require,
+        )),
+        None => router,
+    }
 }
 
 async fn metrics(State(state): State<AdminState>) -> impl IntoResponse {
@@ -165,9 +189,9 @@ fn error(code: StatusCode, message: String) -> Response {
 }
 
 /// The request comes from the broker's own host: extracting it refuses (403) any other
-/// peer. Every route that changes something takes it, so the rule is in one place; the
-/// endpoint has no authentication (a later change may check Basic credentials against
-/// the password file here).
+/// peer. Every route that changes something takes it, so the rule is in one place. It
+/// comes on top of the credentials (`admin_auth`, checked before any route), not instead:
+/// a remote admin with the right password still may not write.
 pub struct LoopbackOnly;
 
 #[axum::async_trait]

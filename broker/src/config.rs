@@ -6,7 +6,9 @@
 //!
 //! Validation refuses a file with the file name, the key and what is wrong. The security
 //! rules live here because they are configuration facts: a listener that is reachable from
-//! the network must require a password, and anonymous access is a loopback-only privilege.
+//! the network must require a password, anonymous access is a loopback-only privilege, and
+//! an admin endpoint reachable from the network must require credentials of its own
+//! (`[admin] password_file`, never the devices' `[auth] password_file`).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -356,8 +358,12 @@ pub struct TlsSection {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AdminSection {
-    /// HTTP admin endpoint: /metrics, /healthz, /readyz.
+    /// HTTP admin endpoint: /metrics, /healthz, /readyz, the registry API.
     pub bind: SocketAddr,
+    /// `user:PHC` lines (argon2id, `fbbus passwd`) the admin endpoint checks HTTP Basic
+    /// credentials against, on every route. Required on a non-loopback `bind`; a file of
+    /// its own, so that a device's MQTT password never opens the admin plane.
+    pub password_file: Option<PathBuf>,
     /// Admin connections open at once at most; beyond, a new one is closed at once.
     pub max_connections: usize,
     /// A request's header must arrive within this; an admin connection lives at most
@@ -370,6 +376,7 @@ impl Default for AdminSection {
     fn default() -> Self {
         AdminSection {
             bind: SocketAddr::from(([127, 0, 0, 1], 9883)),
+            password_file: None,
             max_connections: 64,
             header_timeout_ms: 5_000,
             connection_timeout_ms: 60_000,
@@ -455,6 +462,9 @@ impl Config {
         if let Some(p) = self.auth.acl_file.as_mut() {
             fix(p)
         }
+        if let Some(p) = self.admin.password_file.as_mut() {
+            fix(p)
+        }
         if !self.fb.registry_file.as_os_str().is_empty() {
             fix(&mut self.fb.registry_file);
         }
@@ -514,6 +524,19 @@ impl Config {
                 file,
                 "admin.header_timeout_ms",
                 "must be at least 1 and at most admin.connection_timeout_ms",
+            ));
+        }
+        if !a.bind.ip().to_canonical().is_loopback() && a.password_file.is_none() {
+            return Err(invalid(
+                file,
+                "admin.bind",
+                format!(
+                    "{} is not a loopback address, so the admin endpoint must require \
+                     credentials: set [admin] password_file (create one with \
+                     `fbbus passwd FILE add USER`; a file of its own, not [auth] password_file), \
+                     or bind to 127.0.0.1",
+                    a.bind
+                ),
             ));
         }
         let p = &self.persistence;
@@ -770,6 +793,27 @@ impl Config {
         if let Some(p) = &self.auth.acl_file {
             check("auth.acl_file".into(), p)?;
         }
+        if let Some(p) = &self.admin.password_file {
+            check("admin.password_file".into(), p)?;
+            let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+                (Ok(a), Ok(b)) => a == b,
+                _ => a == b,
+            };
+            if self
+                .auth
+                .password_file
+                .as_deref()
+                .is_some_and(|m| same(m, p))
+            {
+                return Err(invalid(
+                    file,
+                    "admin.password_file",
+                    "is also [auth] password_file: every device's MQTT password would open the \
+                     admin plane; give the admin endpoint a file of its own \
+                     (`fbbus passwd FILE add USER`)",
+                ));
+            }
+        }
         if let Some(tls) = self.bridge.as_ref().and_then(|b| b.tls.as_ref()) {
             check("bridge.tls.root_ca".into(), &tls.root_ca)?;
             check("bridge.tls.cert".into(), &tls.cert)?;
@@ -830,6 +874,79 @@ mod tests {
         assert!(err.contains("line.toml"), "{err}");
         assert!(err.contains("listener[0].bind"), "{err}");
         assert!(err.contains("password_file"), "{err}");
+    }
+
+    /// Issue 18: an admin endpoint off loopback needs its own password file; the MQTT
+    /// password file does not count (a device's password must not open the admin plane).
+    #[test]
+    fn non_loopback_admin_needs_an_admin_password_file() {
+        let listener = "[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n";
+        for bind in [
+            "0.0.0.0:9883",
+            "10.1.0.5:9883",
+            "[::]:9883",
+            "[::ffff:10.1.0.5]:9883",
+        ] {
+            for auth in ["", "[auth]\npassword_file = \"p\"\n"] {
+                let err = Config::parse(
+                    &format!("{auth}{listener}[admin]\nbind = \"{bind}\"\n"),
+                    "line.toml",
+                )
+                .unwrap_err()
+                .to_string();
+                for part in [
+                    "line.toml",
+                    "admin.bind",
+                    "[admin] password_file",
+                    "fbbus passwd",
+                ] {
+                    assert!(err.contains(part), "{bind} {auth}: {err}");
+                }
+            }
+            let c = Config::parse(
+                &format!("{listener}[admin]\nbind = \"{bind}\"\npassword_file = \"admin\"\n"),
+                "f",
+            )
+            .unwrap();
+            assert_eq!(c.admin.password_file, Some(PathBuf::from("admin")));
+        }
+        for bind in [
+            "127.0.0.1:9883",
+            "127.0.0.2:9883",
+            "[::1]:9883",
+            "[::ffff:127.0.0.1]:9883",
+        ] {
+            let c = Config::parse(&format!("{listener}[admin]\nbind = \"{bind}\"\n"), "f").unwrap();
+            assert_eq!(c.admin.password_file, None);
+        }
+    }
+
+    /// The admin password file is not the MQTT one, and it must exist.
+    #[test]
+    fn admin_password_file_is_its_own_and_exists() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("passwd"), "").unwrap();
+        std::fs::write(dir.path().join("admin-passwd"), "").unwrap();
+        let load = |auth: &str, admin: &str| {
+            let path = dir.path().join("line.toml");
+            std::fs::write(
+                &path,
+                format!(
+                    "[auth]\npassword_file = \"{auth}\"\n[[listener]]\nname=\"a\"\n\
+                     bind=\"127.0.0.1:1\"\n[admin]\nbind=\"0.0.0.0:0\"\npassword_file = \"{admin}\"\n"
+                ),
+            )
+            .unwrap();
+            Config::load(&path).map_err(|e| e.to_string())
+        };
+        let c = load("passwd", "admin-passwd").unwrap();
+        assert_eq!(c.admin.password_file, Some(dir.path().join("admin-passwd")));
+        let err = load("passwd", "./passwd").unwrap_err();
+        assert!(err.contains("admin.password_file"), "{err}");
+        assert!(err.contains("[auth] password_file"), "{err}");
+        let err = load("passwd", "missing").unwrap_err();
+        assert!(err.contains("admin.password_file"), "{err}");
+        assert!(err.contains("does not exist"), "{err}");
     }
 
     #[test]

@@ -32,6 +32,7 @@
 //! helpers. `docs/architecture.md` walks through the packet path and the module map.
 
 mod admin;
+mod admin_auth;
 mod authenticator;
 #[cfg(feature = "bridge")]
 mod bridge;

@@ -54,7 +54,8 @@ enum Command {
     /// Manage an argon2id password file, like mosquitto_passwd.
     Passwd(PasswdArgs),
     /// Show the device registry of a running broker (from its admin endpoint), or
-    /// `forget` a device.
+    /// `forget` a device. An admin endpoint with `[admin] password_file` takes the
+    /// credentials from FBBUS_ADMIN_USER and FBBUS_ADMIN_PASSWORD in the environment.
     #[command(args_conflicts_with_subcommands = true)]
     Devices {
         #[command(subcommand)]
@@ -76,6 +77,8 @@ enum Command {
     },
     /// Put a device profile (TOML) into a running broker from its host: checked against
     /// every other profile, written into its profiles directory, in force at once.
+    /// Credentials, for an admin endpoint with `[admin] password_file`: FBBUS_ADMIN_USER
+    /// and FBBUS_ADMIN_PASSWORD in the environment.
     Declare {
         /// The profile file (docs/runtimes.md).
         file: PathBuf,

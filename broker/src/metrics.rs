@@ -134,6 +134,9 @@ pub struct Metrics {
     /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
     pub admin_connections: IntGauge,
     pub admin_refused: IntCounter,
+    /// Admin requests refused for their credentials (`[admin] password_file`), by reason:
+    /// missing, invalid, throttled.
+    pub admin_auth_failures: IntCounterVec,
     /// The router's offline persistent sessions, which it updates itself
     /// (`RouterHooks::saved_sessions`); copied into the two metrics below at each scrape.
     pub router_sessions: Arc<SavedSessions>,
@@ -256,6 +259,17 @@ impl Metrics {
             admin_refused: counter(
                 "fbbus_admin_connections_refused_total",
                 "Admin HTTP connections closed at once because [admin] max_connections were open",
+            ),
+            admin_auth_failures: with_series(
+                counter_vec(
+                    "fbbus_admin_auth_failures_total",
+                    "Admin HTTP requests refused for their credentials ([admin] password_file), \
+                     by reason (missing: no HTTP Basic credentials, 401; invalid: unknown user, \
+                     wrong password or a malformed header, 401; throttled: too many recent \
+                     failures from the address, 429)",
+                    &["reason"],
+                ),
+                &[&["missing"], &["invalid"], &["throttled"]],
             ),
             typed_accepted: counter(
                 "fbbus_typed_messages_accepted_total",

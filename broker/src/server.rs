@@ -11,6 +11,7 @@ use tokio::sync::{watch, Semaphore};
 use tokio_rustls::TlsAcceptor;
 
 use crate::admin::{self, AdminState};
+use crate::admin_auth::AdminAuth;
 use crate::authenticator::Authenticator;
 use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
@@ -91,6 +92,7 @@ impl Broker {
         let Files {
             passwords,
             acl,
+            admin_passwords,
             mut tls,
             profiles,
         } = Files::load(&config)?;
@@ -302,18 +304,32 @@ impl Broker {
                     health: Arc::clone(&health),
                     registry: Arc::clone(&registry),
                     profiles: Arc::clone(&profiles),
+                    auth: admin_passwords.as_ref().map(|file| {
+                        Arc::new(AdminAuth::new(
+                            Arc::clone(file),
+                            &config.auth.throttle,
+                            Arc::clone(&metrics),
+                        ))
+                    }),
                 },
                 async move {
                     let _ = admin_shutdown.changed().await;
                 },
             ),
         );
-        tracing::info!(addr = %admin_addr, "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
+        tracing::info!(addr = %admin_addr, credentials = admin_passwords.is_some(),
+            "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
+        if admin_passwords.as_ref().is_some_and(|f| f.get().is_empty()) {
+            tracing::warn!(
+                "[admin] password_file has no user: every admin request is refused until one \
+                 is added (`fbbus passwd FILE add USER`; the file is reloaded when it changes)"
+            );
+        }
 
         tasks.core(
             "file watcher",
             watch_files(
-                passwords,
+                [passwords, admin_passwords].into_iter().flatten().collect(),
                 acl,
                 profiles,
                 Duration::from_millis(config.auth.reload_poll_ms),
@@ -408,6 +424,8 @@ fn bind(name: &str, addr: SocketAddr) -> Result<TcpListener, StartError> {
 struct Files {
     passwords: Option<Arc<WatchedFile<PasswordFile>>>,
     acl: Option<Arc<WatchedFile<AclRules>>>,
+    /// `[admin] password_file`.
+    admin_passwords: Option<Arc<WatchedFile<PasswordFile>>>,
     /// One entry per listener, in config order.
     tls: Vec<Option<TlsAcceptor>>,
     profiles: Arc<Profiles>,
@@ -416,15 +434,27 @@ struct Files {
 impl Files {
     fn load(config: &Config) -> Result<Files, StartError> {
         let passwords = match &config.auth.password_file {
-            Some(path) => Some(Arc::new(load_watched("password file", path, |p| {
-                PasswordFile::load(p).map_err(|e| e.to_string())
-            })?)),
+            Some(path) => Some(Arc::new(load_watched(
+                "password file",
+                "password_file",
+                path,
+                |p| PasswordFile::load(p).map_err(|e| e.to_string()),
+            )?)),
             None => None,
         };
         let acl = match &config.auth.acl_file {
-            Some(path) => Some(Arc::new(load_watched("ACL file", path, |p| {
+            Some(path) => Some(Arc::new(load_watched("ACL file", "acl_file", path, |p| {
                 AclRules::load(p).map_err(|e| e.to_string())
             })?)),
+            None => None,
+        };
+        let admin_passwords = match &config.admin.password_file {
+            Some(path) => Some(Arc::new(load_watched(
+                "admin password file",
+                "admin_password_file",
+                path,
+                |p| PasswordFile::load(p).map_err(|e| e.to_string()),
+            )?)),
             None => None,
         };
         let tls = config
@@ -454,6 +484,7 @@ impl Files {
         Ok(Files {
             passwords,
             acl,
+            admin_passwords,
             tls,
             profiles: Arc::new(profiles),
         })
@@ -470,16 +501,13 @@ pub fn check(config: &Config) -> Result<(), StartError> {
     Files::load(config).map(|_| ())
 }
 
+/// `kind` names the file in errors, `label` in logs and `fbbus_file_reloads_total`.
 fn load_watched<T>(
     kind: &'static str,
+    label: &'static str,
     path: &std::path::Path,
     loader: impl Fn(&std::path::Path) -> Result<T, String> + Send + Sync + 'static,
 ) -> Result<WatchedFile<T>, StartError> {
-    let label = if kind == "password file" {
-        "password_file"
-    } else {
-        "acl_file"
-    };
     WatchedFile::load(label, path, loader).map_err(|message| StartError::File {
         kind,
         path: path.display().to_string(),
@@ -487,10 +515,10 @@ fn load_watched<T>(
     })
 }
 
-/// Reloads the password and ACL files and the profiles directory when they change, and
-/// at once on SIGHUP.
+/// Reloads the password files (`[auth]`'s and `[admin]`'s), the ACL file and the profiles
+/// directory when they change, and at once on SIGHUP.
 async fn watch_files(
-    passwords: Option<Arc<WatchedFile<PasswordFile>>>,
+    passwords: Vec<Arc<WatchedFile<PasswordFile>>>,
     acl: Option<Arc<WatchedFile<AclRules>>>,
     profiles: Arc<Profiles>,
     poll: Duration,
@@ -514,7 +542,7 @@ async fn watch_files(
                 true
             }
         };
-        if let Some(p) = &passwords {
+        for p in &passwords {
             p.reload(force, &metrics);
         }
         if let Some(a) = &acl {

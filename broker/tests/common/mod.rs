@@ -73,6 +73,9 @@ pub struct Broker {
     pub dir: tempfile::TempDir,
     pub log: PathBuf,
     pub config: PathBuf,
+    /// The `Authorization` header value this harness sends to the admin endpoint (its
+    /// readiness poll, `metrics`) when the config sets `[admin] password_file`.
+    pub admin_authorization: Option<String>,
 }
 
 pub struct Options {
@@ -146,6 +149,20 @@ impl Broker {
         admin: SocketAddr,
         env: &[(&'static str, String)],
     ) -> Broker {
+        Broker::spawn_as(dir, config, mqtt, admin, env, None)
+    }
+
+    /// [`Broker::spawn_with_env`] for a config whose admin endpoint wants credentials
+    /// (`[admin] password_file`): the harness sends `admin_authorization` (an
+    /// `Authorization` header value) to it.
+    pub fn spawn_as(
+        dir: tempfile::TempDir,
+        config: PathBuf,
+        mqtt: SocketAddr,
+        admin: SocketAddr,
+        env: &[(&'static str, String)],
+        admin_authorization: Option<String>,
+    ) -> Broker {
         let log = dir.path().join("broker.log");
         let child = Command::new(fbbus_bin())
             .args(["serve", "--config", config.to_str().unwrap()])
@@ -162,6 +179,7 @@ impl Broker {
             dir,
             log,
             config,
+            admin_authorization,
         };
         broker.wait_ready();
         broker
@@ -173,7 +191,8 @@ impl Broker {
             if let Ok(Some(status)) = self.child.try_wait() {
                 panic!("broker exited with {status}: {}", self.log_text());
             }
-            if http_get(self.admin, "/readyz").is_some_and(|(code, _)| code == 200) {
+            let auth = self.admin_authorization.as_deref();
+            if http_get_as(self.admin, "/readyz", auth).is_some_and(|(code, _)| code == 200) {
                 return;
             }
             std::thread::sleep(Duration::from_millis(50));
@@ -190,7 +209,9 @@ impl Broker {
     }
 
     pub fn metrics(&self) -> String {
-        http_get(self.admin, "/metrics").expect("metrics").1
+        http_get_as(self.admin, "/metrics", self.admin_authorization.as_deref())
+            .expect("metrics")
+            .1
     }
 
     /// The value of one series, e.g. `fbbus_acl_denied_total{action="publish"}`; 0 if absent.
@@ -266,9 +287,25 @@ pub fn metric_value(text: &str, series: &str) -> f64 {
 
 /// A minimal HTTP/1.0 GET: (status code, body).
 pub fn http_get(addr: SocketAddr, path: &str) -> Option<(u16, String)> {
+    http_get_as(addr, path, None)
+}
+
+/// [`http_get`] with an `Authorization` header value.
+pub fn http_get_as(
+    addr: SocketAddr,
+    path: &str,
+    authorization: Option<&str>,
+) -> Option<(u16, String)> {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).ok()?;
     s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    write!(s, "GET {path} HTTP/1.0\r\nHost: localhost\r\n\r\n").ok()?;
+    let authorization = authorization
+        .map(|a| format!("Authorization: {a}\r\n"))
+        .unwrap_or_default();
+    write!(
+        s,
+        "GET {path} HTTP/1.0\r\nHost: localhost\r\n{authorization}\r\n"
+    )
+    .ok()?;
     let mut text = String::new();
     s.read_to_string(&mut text).ok()?;
     let code = text.split_whitespace().nth(1)?.parse().ok()?;
