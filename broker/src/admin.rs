@@ -40,6 +40,8 @@ pub struct AdminState {
     pub health: Arc<Health>,
     pub registry: Arc<Registry>,
     pub profiles: Arc<Profiles>,
+    /// The line console's routes (`console`), unless `[console] enabled = false`.
+    pub console: Option<Arc<crate::console::Console>>,
 }
 
 pub fn routes(state: AdminState) -> Router {
@@ -51,6 +53,7 @@ pub fn routes(state: AdminState) -> Router {
         .route("/api/v1/devices/:id", get(device).delete(forget_device))
         .route("/api/v1/profiles", get(profiles))
         .route("/api/v1/profiles/:device", put(put_profile))
+        .merge(crate::console::routes(state.console.clone()))
         // A request body larger than this is refused (413) before it is read further.
         .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(state)
