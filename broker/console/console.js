@@ -513,13 +513,15 @@
       const yEvent = (i) => yHead + 14 + i * ROW;
       const yData = (i) => yBody + 14 + i * ROW;
       const portY = {};
+      // Input types go left of the WITH lines.
+      const withIn = ei.filter((e) => ((f.events_in[e].with) || []).some((d) => d in (f.data_in || {}))).length;
       const addPort = (side, kind, label, y, type) => {
         const inSide = side === 'in';
         const x = inSide ? x0 : x1;
         g.appendChild(svg('line', { x1: inSide ? x - 12 : x, y1: y - 4, x2: inSide ? x : x + 12, y2: y - 4, class: kind === 'event' ? 'stub event' : 'stub data' }));
         const t = svg('text', { x: inSide ? x + 6 : x - 6, y: y, class: 'port ' + kind, 'text-anchor': inSide ? 'start' : 'end' }, label);
         g.appendChild(t);
-        if (type) g.appendChild(svg('text', { x: inSide ? x - 14 : x + 14, y: y, class: 'ptype', 'text-anchor': inSide ? 'end' : 'start' }, type));
+        if (type) g.appendChild(svg('text', { x: inSide ? x - 22 - withIn * 7 : x + 14, y: y, class: 'ptype', 'text-anchor': inSide ? 'end' : 'start' }, type));
       };
       ei.forEach((p, i) => { portY['ei:' + p] = yEvent(i); addPort('in', 'event', p, yEvent(i)); });
       eo.forEach((p, i) => { portY['eo:' + p] = yEvent(i); addPort('out', 'event', p, yEvent(i)); });

@@ -100,10 +100,15 @@ def shot(name):
     if not SHOTS:
         return
     os.makedirs(SHOTS, exist_ok=True)
+    # The whole page, not the window: the viewport made as tall as the content.
     height = driver.execute_script("return document.documentElement.scrollHeight")
-    driver.set_window_size(1280, max(700, min(int(height) + 40, 2400)))
-    driver.save_screenshot(os.path.join(SHOTS, name))
-    driver.set_window_size(1280, 1000)
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
+        "width": 1280, "height": max(600, min(int(height), 3000)),
+        "deviceScaleFactor": 1, "mobile": False})
+    try:
+        driver.save_screenshot(os.path.join(SHOTS, name))
+    finally:
+        driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
 
 
 def go(hash_):
@@ -187,6 +192,11 @@ try:
              and "unreachable" not in text('#bridge-rows tr[data-line="line-b"]'))
     wait_for("the device counts", lambda: text("#count-offline") == "1" and text("#count-online") == "3")
     wait_for("messages in the charts", lambda: text("#chart-msgs_in-value") not in ("", "–", "0/s"))
+    if SHOTS:
+        # Charts worth looking at: half a minute of samples.
+        wait_for("30 s of rates", lambda: driver.execute_script(
+            "return document.querySelector('#chart-msgs_in polyline').getAttribute('points').split(' ').length") >= 30,
+            timeout=45)
     shot("line.png")
 
     say("ready-for-stop")
