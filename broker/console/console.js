@@ -9,6 +9,7 @@
   const SVG = 'http://www.w3.org/2000/svg';
   const PAGE = 100;             // rows drawn at once in the devices view
   const LIST_PAGE = 1000;       // devices per API request
+  const FIRST_PAGE = 100;       // the first request's: the first rows drawn sooner
   const STATUS_ICON = { online: '●', silent: '◐', offline: '■', unreachable: '▲' };
 
   const S = {
@@ -85,11 +86,13 @@
     let after = null, first = true;
     try {
       for (;;) {
-        const q = '/api/v1/devices?limit=' + LIST_PAGE + (after ? '&after=' + encodeURIComponent(after) : '');
+        // A small first page draws the first rows at once; the rest comes in large pages.
+        const q = '/api/v1/devices?limit=' + (first ? FIRST_PAGE : LIST_PAGE) + (after ? '&after=' + encodeURIComponent(after) : '');
         const page = await getJson(q);
         if (page.line) S.line = page.line;
         for (const r of page.devices) fresh.set(r.id, r);
-        if (first) { S.devices = fresh; first = false; scheduleRender(true); }
+        // The first load draws its first page at once; a reload keeps the old list whole.
+        if (first) { if (S.devices.size === 0) { S.devices = fresh; scheduleRender(true); } first = false; }
         if (!page.next) break;
         after = page.next;
       }
