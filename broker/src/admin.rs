@@ -53,6 +53,8 @@ pub struct AdminState {
     pub profiles: Arc<Profiles>,
     /// `[admin] password_file`: every request must carry credentials of its users.
     pub auth: Option<Arc<AdminAuth>>,
+    /// The line console's routes (`console`), unless `[console] enabled = false`.
+    pub console: Option<Arc<crate::console::Console>>,
 }
 
 /// Every admin route. With `state.auth`, the credential check is the outermost layer, so
@@ -68,6 +70,7 @@ pub fn routes(state: AdminState) -> Router {
         .route("/api/v1/devices/:id", get(device).delete(forget_device))
         .route("/api/v1/profiles", get(profiles))
         .route("/api/v1/profiles/:device", put(put_profile))
+        .merge(crate::console::routes(state.console.clone()))
         // A request body larger than this is refused (413) before it is read further.
         .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(state);

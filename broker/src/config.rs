@@ -74,6 +74,9 @@ pub struct Config {
     pub admin: AdminSection,
     #[serde(default)]
     pub log: LogSection,
+    /// The line console on the admin endpoint (`console`).
+    #[serde(default)]
+    pub console: ConsoleSection,
     #[serde(default)]
     pub fb: FbSection,
     /// What survives a restart (`store`).
@@ -380,6 +383,31 @@ impl Default for AdminSection {
             max_connections: 64,
             header_timeout_ms: 5_000,
             connection_timeout_ms: 60_000,
+        }
+    }
+}
+
+/// The line console (`console`): the page on the admin endpoint, and what it keeps.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ConsoleSection {
+    /// Serve the console (`/`, `/console/*`, the feed) and keep the last port values and
+    /// refusals it shows. false: none of it, and no `fbbus:console` router link.
+    pub enabled: bool,
+    /// Last values of declared output ports kept at most, over every device; beyond,
+    /// a new port's value is not kept (counted in `fbbus_console_dropped_total`).
+    pub max_port_values: usize,
+    /// Refusals (from `fbbus/diag/<device>`) kept at most, over every device (and at
+    /// most `console::activity::REFUSALS_PER_DEVICE` per device).
+    pub max_refusals: usize,
+}
+
+impl Default for ConsoleSection {
+    fn default() -> Self {
+        ConsoleSection {
+            enabled: true,
+            max_port_values: 100_000,
+            max_refusals: 20_000,
         }
     }
 }

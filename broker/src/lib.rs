@@ -38,6 +38,7 @@ mod authenticator;
 mod bridge;
 mod broker_publisher;
 pub mod config;
+mod console;
 mod context;
 mod health;
 mod identity;

@@ -106,6 +106,9 @@ pub struct Metrics {
     pub reloads: IntCounterVec,
     pub typed_accepted: IntCounter,
     pub typed_rejected: IntCounterVec,
+    /// Every typed publication refused, whatever its labels (the console's rates: the
+    /// labelled series would have to be summed).
+    pub typed_refused_all: std::sync::atomic::AtomicU64,
     pub typed_not_reencoded: IntCounterVec,
     pub declarations: IntCounterVec,
     /// Diagnostics not published on `fbbus/diag/<device>`: over `[fb] diag_per_second`.
@@ -280,6 +283,7 @@ impl Metrics {
                 "Publications on typed FB topics refused, by device, port (fb.port) and reason",
                 &["device", "port", "reason"],
             ),
+            typed_refused_all: Default::default(),
             typed_not_reencoded: counter_vec(
                 "fbbus_typed_messages_not_reencoded_total",
                 "Accepted typed publications not delivered in one encoding because it cannot \
@@ -505,6 +509,8 @@ impl Metrics {
         self.typed_rejected
             .with_label_values(&[device, port, reason])
             .inc();
+        self.typed_refused_all
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Removes the series labelled with the forgotten device `device`: its

@@ -51,6 +51,13 @@
 //! the device's own last will reason. Remote records are never persisted: they are
 //! learned again from the bus after a restart. Local changes are handed to the bridge
 //! through [`Registry::observe`].
+//!
+//! **Watched by the line console.** Every change of any record, local or remote, and
+//! every removal is also sent on a bounded broadcast channel ([`Registry::changes`],
+//! [`CHANGES_CAPACITY`] changes): the console's live feed (`console::feed`) sends each
+//! to the open pages. A page that lags behind by more than the capacity is told to
+//! reload the list (the channel drops the oldest changes, never blocks a writer); the
+//! bridge's own observer stays the unbounded one above.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -66,6 +73,22 @@ use tokio::sync::Notify;
 use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::metrics::Metrics;
 use crate::silence::{Activity, Bound, Periods, Verdict};
+
+/// Record changes the console's broadcast channel holds ([`Registry::changes`]): a
+/// receiver further behind than this is told it lagged and reloads. 4,096 covers a
+/// line of 1,000 devices all changing at once (a broker restart) with room to spare;
+/// each slot is an `Arc` and the record's JSON, shared by every receiver.
+pub const CHANGES_CAPACITY: usize = 4096;
+
+/// One change of the registry, as the console's live feed sends it.
+#[derive(Debug, Clone)]
+pub enum Change {
+    /// A device's record as it is now, with its JSON (the one published on
+    /// `fbbus/devices/<id>`, serialized once for every receiver).
+    Record(Arc<Record>, bytes::Bytes),
+    /// A device was forgotten.
+    Removed(Arc<str>),
+}
 
 /// The longest a change waits before it is on disk.
 pub const PERSIST_INTERVAL: Duration = Duration::from_millis(200);
@@ -430,7 +453,24 @@ pub struct Registry {
     journal: Mutex<Journal>,
     /// Receives every change of a local device's record (the bridge announces them).
     observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<Record>>,
+    /// Every change of any record, for the console ([`Registry::changes`]).
+    changes: tokio::sync::broadcast::Sender<Change>,
+    /// The other lines on the bus and whether they are reachable, as the bridge last
+    /// saw them ([`Registry::lines`]).
+    lines: Mutex<BTreeMap<String, LineState>>,
 }
+
+/// Another line of the bus as the bridge sees it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct LineState {
+    pub reachable: bool,
+    /// When it last changed (RFC 3339, UTC).
+    pub since: String,
+}
+
+/// Other lines remembered in [`Registry::lines`] at most: a line's name comes from a bus
+/// key, which any peer of an unauthenticated bus may write.
+pub const MAX_LINES: usize = 256;
 
 #[derive(Debug, thiserror::Error)]
 #[error("registry file {path}: {message}")]
@@ -547,6 +587,8 @@ impl Registry {
             dirty: Notify::new(),
             journal: Mutex::new(journal),
             observer: std::sync::OnceLock::new(),
+            changes: tokio::sync::broadcast::channel(CHANGES_CAPACITY).0,
+            lines: Mutex::new(BTreeMap::new()),
         });
         {
             let devices = registry
@@ -712,6 +754,7 @@ impl Registry {
     /// Removes `id` (checked by the caller), clears what it retained, and tells.
     fn remove(&self, devices: &mut Devices, id: &str, reason: ForgetReason) -> Option<Record> {
         let record = devices.remove(id)?;
+        let _ = self.changes.send(Change::Removed(id.into()));
         self.publisher
             .publish(Message::broker(topic::device_record(id), Vec::new(), true));
         for clear in retained_clears(id, record.interface.outputs()) {
@@ -975,11 +1018,64 @@ impl Registry {
         self.announce_count(&devices);
     }
 
+    /// Every change of a record (local or remote) and every removal from now on, on a
+    /// channel of [`CHANGES_CAPACITY`]: a receiver that falls further behind gets
+    /// `Lagged` and must read the registry again.
+    pub fn changes(&self) -> tokio::sync::broadcast::Receiver<Change> {
+        self.changes.subscribe()
+    }
+
+    /// This line's online devices now (O(1): the counts follow every change).
+    pub fn line_online(&self) -> i64 {
+        self.devices
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .counts
+            .online_here
+    }
+
+    /// The other lines the bridge has seen, by name, and whether they are reachable.
+    pub fn lines(&self) -> BTreeMap<String, LineState> {
+        self.lines
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// The bridge reached `line` (its liveliness token appeared).
+    pub fn line_reachable(&self, line: &str) {
+        self.note_line(line, true);
+    }
+
+    fn note_line(&self, line: &str, reachable: bool) {
+        if line == self.line {
+            return;
+        }
+        let mut lines = self.lines.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(state) = lines.get_mut(line) {
+            if state.reachable != reachable {
+                *state = LineState {
+                    reachable,
+                    since: now(),
+                };
+            }
+        } else if lines.len() < MAX_LINES {
+            lines.insert(
+                line.to_owned(),
+                LineState {
+                    reachable,
+                    since: now(),
+                },
+            );
+        }
+    }
+
     /// `line` cannot be reached: every device of it is unreachable.
     pub fn line_unreachable(&self, line: &str) {
         if line == self.line {
             return;
         }
+        self.note_line(line, false);
         let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let mut changed = Vec::new();
         devices.update_all(
@@ -1013,7 +1109,13 @@ impl Registry {
                 let _ = observer.send(record.clone());
             }
         }
-        let payload = serde_json::to_vec(record).expect("a record serializes");
+        let payload = bytes::Bytes::from(serde_json::to_vec(record).expect("a record serializes"));
+        // Without a receiver (no console) nothing is cloned.
+        if self.changes.receiver_count() > 0 {
+            let _ = self
+                .changes
+                .send(Change::Record(Arc::new(record.clone()), payload.clone()));
+        }
         self.publisher.publish(Message::broker(
             topic::device_record(&record.id),
             payload,

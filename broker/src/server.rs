@@ -293,6 +293,26 @@ impl Broker {
             crate::session::lifetime::expire_sessions(Arc::clone(&ctx), shutdown_rx.clone()),
         );
 
+        // The line console: its own router link, so the packet path never waits for it.
+        let console = if config.console.enabled {
+            let link = ctx
+                .router
+                .link(crate::console::activity::CLIENT_ID, true, 0)
+                .await
+                .map_err(|e| StartError::Router(e.to_string()))?;
+            Some(crate::console::Console::start(
+                &config.console,
+                Duration::from_millis(config.admin.connection_timeout_ms),
+                config.bridge.is_some(),
+                Arc::clone(&registry),
+                Arc::clone(&profiles),
+                Arc::clone(&metrics),
+                (link.0, link.1),
+                &tasks,
+            ))
+        } else {
+            None
+        };
         let mut admin_shutdown = shutdown_rx.clone();
         tasks.core(
             "admin endpoint",
@@ -311,6 +331,7 @@ impl Broker {
                             Arc::clone(&metrics),
                         ))
                     }),
+                    console,
                 },
                 async move {
                     let _ = admin_shutdown.changed().await;
@@ -318,7 +339,7 @@ impl Broker {
             ),
         );
         tracing::info!(addr = %admin_addr, credentials = admin_passwords.is_some(),
-            "admin endpoint: /metrics /healthz /readyz /api/v1/devices");
+            "admin endpoint: /metrics /healthz /readyz /api/v1/devices, console at /");
         if admin_passwords.as_ref().is_some_and(|f| f.get().is_empty()) {
             tracing::warn!(
                 "[admin] password_file has no user: every admin request is refused until one \

@@ -35,6 +35,7 @@ pub(super) async fn bus_events(
             Event::LineUp(line) => {
                 liveliness("line_up");
                 tracing::info!(line, "line reachable");
+                registry.line_reachable(&line);
                 // Every record of the line, online or not, in the background: the
                 // events keep flowing meanwhile.
                 let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));

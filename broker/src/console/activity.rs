@@ -1,0 +1,601 @@
+//! What the console shows of a device beyond its record: the last value and time of each
+//! declared output port, its recent refusals (`fbbus/diag/<device>`), and when it last
+//! went offline and why.
+//!
+//! **Off the packet path.** The admin plane never holds what routing needs. The values
+//! come from the broker's own router link `fbbus:console` ([`CLIENT_ID`]), subscribed at
+//! QoS 0 to `fb/#` (every accepted typed publication, canonical JSON whatever the
+//! device's encoding) and `fbbus/diag/#` (the broker's own diagnostics), and read by one
+//! task ([`run`]). Tapping the typed stage instead would have cost a lock or a queue per
+//! accepted publication on the sessions' threads; the link costs the router one more
+//! subscriber, and when this task falls behind the router pauses the link (it is woken
+//! again, the way the health probe's link is) — the devices never wait for the console.
+//! The declared interfaces are followed from the registry's change channel, so no
+//! message takes the registry's lock here either.
+//!
+//! **Bounded; hostile input.** Topics and payloads are whatever a device sent: values
+//! are kept only for declared output ports of registered devices, as lossy UTF-8 cut to
+//! [`VALUE_MAX_CHARS`] characters (at a character boundary), at most
+//! `[console] max_port_values` in all; refusals at most [`REFUSALS_PER_DEVICE`] per
+//! device and `[console] max_refusals` in all, each cut to [`REFUSAL_MAX_CHARS`]; offline
+//! times at most [`OFFLINE_PER_DEVICE`] per device. What is not kept is counted
+//! (`fbbus_console_dropped_total`). A forgotten device's entries are freed with it, and
+//! a port a new declaration removes loses its value.
+//!
+//! **Live.** A page viewing a device asks for its port changes ([`Activity::watch`]);
+//! changes of watched devices are coalesced and sent every [`FLUSH`] (a 10 ms port
+//! makes 4 events a second, not 100); refusals are sent as they come.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, SystemTime};
+
+use bytes::Bytes;
+use fb_bridge::topic::{self, TypedTopic};
+use fb_bridge::Interface;
+use prometheus::{IntCounterVec, IntGaugeVec, Opts};
+use rumqttd::local::{LinkRx, LinkTx};
+use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe};
+use rumqttd::Notification;
+use serde::Serialize;
+use tokio::sync::broadcast;
+
+use crate::metrics::Metrics;
+use crate::registry::{Change, Registry, Status};
+
+/// The console's router link; clients may not take it (`fbbus:` prefix).
+pub const CLIENT_ID: &str = "fbbus:console";
+/// The longest value text kept per port, in characters.
+pub const VALUE_MAX_CHARS: usize = 200;
+/// Refusals kept per device, the newest.
+pub const REFUSALS_PER_DEVICE: usize = 20;
+/// The longest refusal text (reason and detail) kept, in characters.
+pub const REFUSAL_MAX_CHARS: usize = 512;
+/// Offline times kept per device, the newest.
+pub const OFFLINE_PER_DEVICE: usize = 10;
+/// How often the changed ports of watched devices are sent.
+pub const FLUSH: Duration = Duration::from_millis(250);
+/// Port and refusal events the feeds' channel holds; a feed further behind resyncs.
+pub const EVENTS_CAPACITY: usize = 1024;
+
+/// `[console]` limits.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    pub max_port_values: usize,
+    pub max_refusals: usize,
+}
+
+/// One output port's last value.
+#[derive(Debug, Clone, Serialize)]
+pub struct PortValue {
+    /// The canonical JSON payload as text, cut to [`VALUE_MAX_CHARS`].
+    pub value: String,
+    pub truncated: bool,
+    /// When the console received it.
+    #[serde(serialize_with = "rfc3339")]
+    pub at: SystemTime,
+    /// A retained value delivered when the console subscribed: `at` is then the
+    /// console's start, not the publication's time.
+    pub retained: bool,
+}
+
+/// One diagnostic of `fbbus/diag/<device>` other than an accepted declaration.
+#[derive(Debug, Clone, Serialize)]
+pub struct Refusal {
+    #[serde(serialize_with = "rfc3339")]
+    pub at: SystemTime,
+    /// `rejected`, `declaration`, `diag_dropped`, `not_reencoded`, ...
+    pub kind: String,
+    pub topic: Option<String>,
+    pub reason: Option<String>,
+    pub code: Option<u64>,
+    /// What was wrong, cut to [`REFUSAL_MAX_CHARS`].
+    pub detail: String,
+}
+
+/// A time the device went offline (or unreachable), and why.
+#[derive(Debug, Clone, Serialize)]
+pub struct Offline {
+    pub since: String,
+    pub status: Status,
+    pub reason: Option<String>,
+}
+
+/// An event for the feeds: one device's changed ports, or a refusal.
+#[derive(Debug, Clone)]
+pub enum Event {
+    Ports { device: Arc<str>, json: Bytes },
+    Refusal { json: Bytes },
+}
+
+/// What `/api/v1/devices/{id}/activity` answers.
+#[derive(Debug, Serialize)]
+pub struct DeviceActivity {
+    /// By `FB.PORT`.
+    pub ports: BTreeMap<String, PortValue>,
+    pub refusals: Vec<Refusal>,
+    pub offline: Vec<Offline>,
+}
+
+#[derive(Default)]
+struct Device {
+    /// By FB, then port: looked up without allocating.
+    ports: HashMap<String, HashMap<String, PortValue>>,
+    /// Newest last.
+    refusals: VecDeque<Refusal>,
+    offline: VecDeque<Offline>,
+    /// The last status seen, to note the changes to offline.
+    status: Option<Status>,
+}
+
+#[derive(Default)]
+struct State {
+    /// Every registered device's declared interface, from the registry's changes.
+    interfaces: HashMap<String, Arc<Interface>>,
+    devices: HashMap<String, Device>,
+    port_values: usize,
+    refusals: usize,
+    /// Devices some page views, with how many pages.
+    watched: HashMap<String, usize>,
+    /// Changed ports of watched devices since the last flush: device -> FB.PORT.
+    pending: HashMap<String, std::collections::BTreeSet<(String, String)>>,
+}
+
+/// The console's view of device activity, shared by its task and the admin routes.
+pub struct Activity {
+    state: Mutex<State>,
+    events: broadcast::Sender<Event>,
+    limits: Limits,
+    entries: IntGaugeVec,
+    dropped: IntCounterVec,
+}
+
+impl Activity {
+    pub fn new(limits: Limits, metrics: &Metrics) -> Arc<Activity> {
+        let entries = IntGaugeVec::new(
+            Opts::new(
+                "fbbus_console_entries",
+                "What the line console keeps: port_values, refusals",
+            ),
+            &["what"],
+        )
+        .expect("valid metric");
+        let dropped = IntCounterVec::new(
+            Opts::new(
+                "fbbus_console_dropped_total",
+                "Port values and refusals the line console did not keep ([console] limits)",
+            ),
+            &["what"],
+        )
+        .expect("valid metric");
+        for what in ["port_values", "refusals"] {
+            entries.with_label_values(&[what]);
+            dropped.with_label_values(&[what]);
+        }
+        metrics.register(Box::new(entries.clone()));
+        metrics.register(Box::new(dropped.clone()));
+        Arc::new(Activity {
+            state: Mutex::new(State::default()),
+            events: broadcast::channel(EVENTS_CAPACITY).0,
+            limits,
+            entries,
+            dropped,
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Port and refusal events from now on.
+    pub fn events(&self) -> broadcast::Receiver<Event> {
+        self.events.subscribe()
+    }
+
+    /// A page views `device`: its port changes are sent until the returned guard drops.
+    pub fn watch(self: &Arc<Self>, device: &str) -> Watch {
+        *self.lock().watched.entry(device.to_owned()).or_default() += 1;
+        Watch {
+            activity: Arc::clone(self),
+            device: device.to_owned(),
+        }
+    }
+
+    /// The device's last port values, refusals and offline times; None if the console
+    /// knows nothing of it.
+    pub fn device(&self, id: &str) -> Option<DeviceActivity> {
+        let state = self.lock();
+        let device = state.devices.get(id)?;
+        let ports = device
+            .ports
+            .iter()
+            .flat_map(|(fb, ports)| {
+                ports
+                    .iter()
+                    .map(move |(port, value)| (format!("{fb}.{port}"), value.clone()))
+            })
+            .collect();
+        Some(DeviceActivity {
+            ports,
+            refusals: device.refusals.iter().cloned().collect(),
+            offline: device.offline.iter().cloned().collect(),
+        })
+    }
+
+    /// A registry change: the device's interface (a removed port loses its value), its
+    /// offline times; a forgotten device's entries are freed.
+    fn changed(&self, change: &Change) {
+        let mut state = self.lock();
+        match change {
+            Change::Removed(id) => {
+                state.interfaces.remove(&**id);
+                state.pending.remove(&**id);
+                if let Some(device) = state.devices.remove(&**id) {
+                    state.port_values -= device.ports.values().map(HashMap::len).sum::<usize>();
+                    state.refusals -= device.refusals.len();
+                }
+            }
+            Change::Record(record, _) => {
+                let state = &mut *state;
+                let new_interface = state
+                    .interfaces
+                    .get(&record.id)
+                    .is_none_or(|i| !Arc::ptr_eq(i, &record.interface));
+                if new_interface {
+                    state
+                        .interfaces
+                        .insert(record.id.clone(), Arc::clone(&record.interface));
+                }
+                let device = state.devices.entry(record.id.clone()).or_default();
+                if new_interface {
+                    let interface = &record.interface;
+                    let mut removed = 0;
+                    device.ports.retain(|fb, ports| {
+                        let before = ports.len();
+                        ports.retain(|port, _| interface.output(fb, port).is_some());
+                        removed += before - ports.len();
+                        !ports.is_empty()
+                    });
+                    state.port_values -= removed;
+                }
+                let offline = matches!(record.status, Status::Offline | Status::Unreachable);
+                if offline && device.status != Some(record.status) {
+                    if device.offline.len() == OFFLINE_PER_DEVICE {
+                        device.offline.pop_front();
+                    }
+                    device.offline.push_back(Offline {
+                        since: record.since.clone(),
+                        status: record.status,
+                        reason: record.last_will_reason.clone(),
+                    });
+                }
+                device.status = Some(record.status);
+            }
+        }
+        self.count(&state);
+    }
+
+    /// Reads every record again (the change channel lagged): devices no longer in the
+    /// registry are freed, the others' interfaces are taken.
+    fn resync(&self, registry: &Registry) {
+        let records = registry.list();
+        let ids: std::collections::HashSet<&str> = records.iter().map(|r| r.id.as_str()).collect();
+        let gone: Vec<String> = self
+            .lock()
+            .interfaces
+            .keys()
+            .filter(|id| !ids.contains(id.as_str()))
+            .cloned()
+            .collect();
+        for id in gone {
+            self.changed(&Change::Removed(id.into()));
+        }
+        for record in records {
+            self.changed(&Change::Record(Arc::new(record), Bytes::new()));
+        }
+    }
+
+    fn count(&self, state: &State) {
+        self.entries
+            .with_label_values(&["port_values"])
+            .set(state.port_values as i64);
+        self.entries
+            .with_label_values(&["refusals"])
+            .set(state.refusals as i64);
+    }
+
+    /// One publication the console link received.
+    fn received(&self, state: &mut State, topic: &[u8], payload: &[u8], retained: bool) {
+        let Ok(topic) = std::str::from_utf8(topic) else {
+            return;
+        };
+        if let Some(device) = topic.strip_prefix(topic::DIAG) {
+            self.refused(state, device, payload);
+        } else if let Some(t) = TypedTopic::parse(topic) {
+            self.port(state, t, payload, retained);
+        }
+    }
+
+    fn port(&self, state: &mut State, t: TypedTopic<'_>, payload: &[u8], retained: bool) {
+        let declared = state
+            .interfaces
+            .get(t.device)
+            .is_some_and(|i| i.output(t.fb, t.port).is_some());
+        if !declared {
+            return;
+        }
+        let State {
+            devices,
+            port_values,
+            watched,
+            pending,
+            ..
+        } = state;
+        if !devices.contains_key(t.device) {
+            devices.insert(t.device.to_owned(), Device::default());
+        }
+        let Some(device) = devices.get_mut(t.device) else {
+            return;
+        };
+        let at = SystemTime::now();
+        let existing = device
+            .ports
+            .get_mut(t.fb)
+            .and_then(|ports| ports.get_mut(t.port));
+        match existing {
+            Some(value) => {
+                value.truncated = set_text(&mut value.value, payload, VALUE_MAX_CHARS);
+                value.at = at;
+                value.retained = retained;
+            }
+            None if *port_values >= self.limits.max_port_values => {
+                self.dropped.with_label_values(&["port_values"]).inc();
+                return;
+            }
+            None => {
+                let mut value = String::new();
+                let truncated = set_text(&mut value, payload, VALUE_MAX_CHARS);
+                device.ports.entry(t.fb.to_owned()).or_default().insert(
+                    t.port.to_owned(),
+                    PortValue {
+                        value,
+                        truncated,
+                        at,
+                        retained,
+                    },
+                );
+                *port_values += 1;
+            }
+        }
+        if watched.contains_key(t.device) {
+            pending
+                .entry(t.device.to_owned())
+                .or_default()
+                .insert((t.fb.to_owned(), t.port.to_owned()));
+        }
+    }
+
+    fn refused(&self, state: &mut State, device: &str, payload: &[u8]) {
+        if !state.interfaces.contains_key(device) {
+            // Not a registered device (a refused first declaration): nothing to show it
+            // under, and nothing that bounds the ids.
+            return;
+        }
+        let Ok(body) = serde_json::from_slice::<serde_json::Value>(payload) else {
+            return;
+        };
+        let field = |k: &str| body.get(k).and_then(|v| v.as_str()).map(str::to_owned);
+        let kind = field("kind").unwrap_or_else(|| "unknown".into());
+        if kind == "declaration" && body.get("ok").and_then(|v| v.as_bool()) == Some(true) {
+            return;
+        }
+        let detail = match body.get("detail").and_then(|v| v.as_str()) {
+            Some(d) => d.to_owned(),
+            // A refused declaration carries its errors, a limit.
+            None => body
+                .get("errors")
+                .or_else(|| body.get("limit"))
+                .map(|v| v.to_string())
+                .unwrap_or_default(),
+        };
+        let mut cut = String::new();
+        set_text(&mut cut, detail.as_bytes(), REFUSAL_MAX_CHARS);
+        let short = |s: Option<String>| {
+            s.map(|s| {
+                let mut out = String::new();
+                set_text(&mut out, s.as_bytes(), REFUSAL_MAX_CHARS);
+                out
+            })
+        };
+        let refusal = Refusal {
+            at: SystemTime::now(),
+            kind: short(Some(kind)).unwrap_or_default(),
+            topic: short(field("topic")),
+            reason: short(field("reason").or_else(|| field("limit"))),
+            code: body.get("code").and_then(|v| v.as_u64()),
+            detail: cut,
+        };
+        let entry = state.devices.entry(device.to_owned()).or_default();
+        if entry.refusals.len() == REFUSALS_PER_DEVICE {
+            entry.refusals.pop_front();
+            state.refusals -= 1;
+        } else if state.refusals >= self.limits.max_refusals {
+            self.dropped.with_label_values(&["refusals"]).inc();
+            return;
+        }
+        let json = serde_json::to_vec(&serde_json::json!({"device": device, "refusal": &refusal}))
+            .map(Bytes::from)
+            .unwrap_or_default();
+        entry.refusals.push_back(refusal);
+        state.refusals += 1;
+        let _ = self.events.send(Event::Refusal { json });
+    }
+
+    /// Sends the changed ports of the watched devices.
+    fn flush(&self) {
+        let mut state = self.lock();
+        if state.pending.is_empty() {
+            return;
+        }
+        let pending = std::mem::take(&mut state.pending);
+        for (id, ports) in pending {
+            let Some(device) = state.devices.get(&id) else {
+                continue;
+            };
+            let values: BTreeMap<String, &PortValue> = ports
+                .iter()
+                .filter_map(|(fb, port)| {
+                    let value = device.ports.get(fb)?.get(port)?;
+                    Some((format!("{fb}.{port}"), value))
+                })
+                .collect();
+            let Ok(json) = serde_json::to_vec(&serde_json::json!({"device": id, "ports": values}))
+            else {
+                continue;
+            };
+            let _ = self.events.send(Event::Ports {
+                device: id.as_str().into(),
+                json: json.into(),
+            });
+        }
+        self.count(&state);
+    }
+}
+
+/// A page's interest in one device's ports; dropping it ends the interest.
+pub struct Watch {
+    activity: Arc<Activity>,
+    device: String,
+}
+
+impl Watch {
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+}
+
+impl Drop for Watch {
+    fn drop(&mut self) {
+        let mut state = self.activity.lock();
+        if let Some(n) = state.watched.get_mut(&self.device) {
+            *n -= 1;
+            if *n == 0 {
+                state.watched.remove(&self.device);
+                state.pending.remove(&self.device);
+            }
+        }
+    }
+}
+
+/// `text` := `bytes` as lossy UTF-8, at most `max` characters (cut at a character
+/// boundary); returns whether it was cut. Reuses `text`'s allocation.
+pub fn set_text(text: &mut String, bytes: &[u8], max: usize) -> bool {
+    // No character is longer than 4 bytes: what lies beyond cannot be shown.
+    let limit = bytes.len().min(max.saturating_mul(4));
+    let lossy = String::from_utf8_lossy(&bytes[..limit]);
+    text.clear();
+    let cut = match lossy.char_indices().nth(max) {
+        Some((at, _)) => {
+            text.push_str(&lossy[..at]);
+            true
+        }
+        None => {
+            text.push_str(&lossy);
+            false
+        }
+    };
+    cut || limit < bytes.len()
+}
+
+fn rfc3339<S: serde::Serializer>(at: &SystemTime, s: S) -> Result<S::Ok, S::Error> {
+    s.collect_str(&humantime::format_rfc3339_millis(*at))
+}
+
+/// The console's task: follows the registry's interfaces, reads the console link, sends
+/// the watched devices' port changes every [`FLUSH`]. Ends when the router is gone.
+pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx, LinkRx)) {
+    let (mut tx, mut rx) = link;
+    let mut changes = registry.changes();
+    activity.resync(&registry);
+    let filter = |path: &str| Filter {
+        path: path.to_owned(),
+        qos: QoS::AtMostOnce,
+        nolocal: false,
+        // Retain flag set only on what the subscription itself delivers.
+        preserve_retain: false,
+        // The retained values are the last values known before the console started.
+        retain_forward_rule: RetainForwardRule::OnEverySubscribe,
+    };
+    let subscribe = Packet::Subscribe(
+        Subscribe {
+            pkid: 0,
+            filters: vec![filter("fb/#"), filter("fbbus/diag/#")],
+        },
+        None,
+    );
+    if tx.send(subscribe).await.is_err() {
+        return;
+    }
+    let mut tick = tokio::time::interval(FLUSH);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            change = changes.recv() => match change {
+                Ok(change) => activity.changed(&change),
+                Err(broadcast::error::RecvError::Lagged(_)) => activity.resync(&registry),
+                Err(broadcast::error::RecvError::Closed) => return,
+            },
+            notification = rx.next() => {
+                let Ok(mut next) = notification else { return };
+                // Everything the router delivered at once, under one lock.
+                let mut unscheduled = false;
+                {
+                    let mut state = activity.lock();
+                    loop {
+                        match next {
+                            Some(Notification::Forward(forward)) => {
+                                let p = &forward.publish;
+                                activity.received(&mut state, &p.topic, &p.payload, p.retain);
+                            }
+                            Some(Notification::Unschedule) => unscheduled = true,
+                            _ => {}
+                        }
+                        next = match rx.recv_deadline(std::time::Instant::now()) {
+                            Ok(n) => n,
+                            Err(rumqttd::local::LinkError::RecvTimeout(_)) => break,
+                            Err(_) => return,
+                        };
+                    }
+                }
+                // The router paused the link (its queue for it was full): wake it.
+                if unscheduled && rx.wake().await.is_err() {
+                    return;
+                }
+            }
+            _ = tick.tick() => activity.flush(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn text_is_cut_at_a_character_boundary() {
+        let mut t = String::new();
+        assert!(!set_text(&mut t, b"42", 200));
+        assert_eq!(t, "42");
+        let long = "é".repeat(300);
+        assert!(set_text(&mut t, long.as_bytes(), 200));
+        assert_eq!(t.chars().count(), 200);
+        // Invalid UTF-8, a multi-byte character split by the byte limit.
+        let mut bytes = vec![0xff, 0xfe];
+        bytes.extend("€".repeat(10).as_bytes());
+        assert!(set_text(&mut t, &bytes, 3));
+        assert_eq!(t.chars().count(), 3);
+        assert!(set_text(&mut t, "€€€€".as_bytes(), 1));
+        assert_eq!(t, "€");
+        assert!(!set_text(&mut t, b"", 0));
+    }
+}

@@ -1,0 +1,217 @@
+"""What a person sees in the line console, checked in headless Chromium over WebDriver.
+
+Run by broker/tests/console.rs:  console_browser.py <admin URL> [<screenshot dir>]
+
+The Rust test owns the broker, the devices and the second line; this script drives the
+browser and tells the test when to act, one line on stdout each, and waits for its answer
+on stdin:
+
+    ready-for-kill   -> the test kills press-2 without DISCONNECT, answers "killed"
+    ready-for-stop   -> the test stops line-b, answers "stopped"
+    done
+
+A failed check prints "FAIL <what>" and exits non-zero. Every wait is bounded.
+"""
+
+import os
+import sys
+import tempfile
+import shutil
+
+os.environ.setdefault("SE_OFFLINE", "true")  # never ask the internet for a driver
+
+from selenium import webdriver  # noqa: E402
+from selenium.common.exceptions import (  # noqa: E402
+    NoSuchElementException, StaleElementReferenceException, TimeoutException, WebDriverException)
+from selenium.webdriver.chrome.service import Service  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
+from selenium.webdriver.support.ui import WebDriverWait, Select  # noqa: E402
+
+URL = sys.argv[1].rstrip("/")
+SHOTS = sys.argv[2] if len(sys.argv) > 2 else ""
+WAIT = 20
+
+FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--disable-dev-shm-usage", "--window-size=1280,1000",
+]
+
+
+def say(line):
+    print(line, flush=True)
+
+
+profile = tempfile.mkdtemp(prefix="fbbus-console-chromium-")
+options = webdriver.ChromeOptions()
+options.binary_location = "/usr/bin/chromium"
+for flag in FLAGS + ["--user-data-dir=" + profile]:
+    options.add_argument(flag)
+driver = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=options)
+driver.set_page_load_timeout(WAIT)
+driver.set_script_timeout(WAIT)
+
+
+def finish(code):
+    try:
+        driver.quit()
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+    sys.exit(code)
+
+
+def fail(what):
+    try:
+        body = driver.find_element(By.TAG_NAME, "main").text[:1500]
+    except WebDriverException:
+        body = "?"
+    say("FAIL " + what + " | page: " + body.replace("\n", " / "))
+    finish(1)
+
+
+def wait_for(what, check, timeout=WAIT):
+    try:
+        # The page redraws what changed: an element found a moment ago may be gone.
+        return WebDriverWait(driver, timeout, poll_frequency=0.1, ignored_exceptions=(
+            NoSuchElementException, StaleElementReferenceException)).until(lambda d: check())
+    except TimeoutException:
+        fail(what + " (waited %d s)" % timeout)
+
+
+def text(css):
+    try:
+        return " ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, css))
+    except WebDriverException:
+        return ""
+
+
+def row(device):
+    return text('#devices-rows tr[data-id="%s"]' % device)
+
+
+def answer(want):
+    line = sys.stdin.readline().strip()
+    if line != want:
+        fail("expected %r from the test, got %r" % (want, line))
+
+
+def shot(name):
+    if not SHOTS:
+        return
+    os.makedirs(SHOTS, exist_ok=True)
+    # The whole page, not the window: the viewport made as tall as the content.
+    height = driver.execute_script("return document.documentElement.scrollHeight")
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
+        "width": 1280, "height": max(600, min(int(height), 3000)),
+        "deviceScaleFactor": 1, "mobile": False})
+    try:
+        driver.save_screenshot(os.path.join(SHOTS, name))
+    finally:
+        driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+
+
+def go(hash_):
+    driver.execute_script("location.hash = arguments[0]", hash_)
+
+
+try:
+    # Devices view: every device of the bus, local and remote, with its status.
+    driver.get(URL + "/#/devices")
+    for device in ["press-1", "press-2", "bad-1"]:
+        wait_for(device + " online in the devices view",
+                 lambda: "online" in row(device) and "line-a" in row(device))
+    wait_for("remote-1 of line-b online", lambda: "online" in row("remote-1") and "line-b" in row("remote-1"))
+    wait_for("the FBs column", lambda: "CONV (CONVEYOR)" in row("press-1"))
+    # Loaded once: a reload would lose this.
+    driver.execute_script("window.__sameLoad = 'yes'")
+
+    # Keyboard: the first Tab reaches the skip link, whose focus is visible.
+    driver.find_element(By.TAG_NAME, "body").send_keys(Keys.TAB)
+    wait_for("the skip link takes the first Tab",
+             lambda: driver.execute_script("return document.activeElement.id") == "skip")
+
+    say("ready-for-kill")
+    answer("killed")
+    wait_for("press-2 offline with its reason, live",
+             lambda: "offline" in row("press-2") and "connection lost" in row("press-2"))
+    if driver.execute_script("return window.__sameLoad") != "yes":
+        fail("the page reloaded")
+
+    # Filter by status, search, sort.
+    Select(driver.find_element(By.ID, "filter-status")).select_by_value("offline")
+    wait_for("the offline filter", lambda: row("press-2") and not row("press-1"))
+    Select(driver.find_element(By.ID, "filter-status")).select_by_value("")
+    search = driver.find_element(By.ID, "search")
+    search.send_keys("remote")
+    wait_for("the search", lambda: row("remote-1") and not row("press-1"))
+    search.clear()
+    search.send_keys(Keys.BACKSPACE)
+    wait_for("the search cleared", lambda: row("press-1"))
+    driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click()
+    wait_for("sorted by id, descending", lambda: driver.find_element(
+        By.CSS_SELECTOR, "#devices-rows tr").get_attribute("data-id") == "remote-1")
+    driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click()
+
+    # The refused device: its refusal with the reason.
+    driver.find_element(By.LINK_TEXT, "bad-1").click()
+    wait_for("bad-1's refusal with its reason",
+             lambda: "payload_format_invalid" in text("#refusals")
+             and "fb/bad-1/CONV/POSITION" in text("#refusals"))
+
+    # The publishing device: its FB box, ports, WITH associations and last values.
+    go("#/device/press-1")
+    wait_for("the CONV FB box", lambda: driver.find_elements(By.CSS_SELECTOR, 'figure[data-fb="CONV"] svg'))
+    box = 'figure[data-fb="CONV"] svg '
+    ports = ["START", "MOVED", "TICK", "SPEED", "POSITION", "SENSOR_IN", "ID"]
+    wait_for("every port drawn in the FB box", lambda: all(
+        p in driver.execute_script(
+            "return Array.from(document.querySelectorAll(arguments[0])).map(t => t.textContent)",
+            box + "text.port") for p in ports))
+    wait_for("the WITH associations drawn (START WITH SPEED, MOVED WITH POSITION, SENSOR_IN)",
+             lambda: len(driver.find_elements(By.CSS_SELECTOR, box + "line.with")) >= 2)
+
+    def position():
+        value = text('#ports-rows tr[data-port="CONV.POSITION"] td.value')
+        return value if value.isdigit() else None
+
+    first = wait_for("CONV.POSITION's last value", position)
+    wait_for("CONV.POSITION's value changing live", lambda: position() not in (None, first))
+    wait_for("CONV.MOVED's last event", lambda: "SENSOR_IN" in text('#ports-rows tr[data-port="CONV.MOVED"] td.value'))
+    wait_for("the value drawn beside the FB box", lambda: driver.find_elements(By.CSS_SELECTOR, box + "text.pvalue"))
+    shot("device.png")
+
+    # The killed device: its offline time and reason.
+    go("#/device/press-2")
+    wait_for("press-2's offline time with its reason", lambda: "connection lost" in text("#offline-times"))
+
+    # Line view: counts, charts, the bridge's other line.
+    driver.find_element(By.ID, "nav-line").click()
+    wait_for("line-b reachable in the bridge links",
+             lambda: "reachable" in text('#bridge-rows tr[data-line="line-b"]')
+             and "unreachable" not in text('#bridge-rows tr[data-line="line-b"]'))
+    wait_for("the device counts", lambda: text("#count-offline") == "1" and text("#count-online") == "3")
+    wait_for("messages in the charts", lambda: text("#chart-msgs_in-value") not in ("", "–", "0/s"))
+    if SHOTS:
+        # Charts worth looking at: half a minute of samples.
+        wait_for("30 s of rates", lambda: driver.execute_script(
+            "return document.querySelector('#chart-msgs_in polyline').getAttribute('points').split(' ').length") >= 30,
+            timeout=45)
+    shot("line.png")
+
+    say("ready-for-stop")
+    answer("stopped")
+    driver.find_element(By.ID, "nav-devices").click()
+    wait_for("remote-1 unreachable once line-b stopped", lambda: "unreachable" in row("remote-1"), timeout=30)
+    if driver.execute_script("return window.__sameLoad") != "yes":
+        fail("the page reloaded")
+    shot("devices.png")
+    driver.find_element(By.ID, "nav-line").click()
+    wait_for("line-b unreachable in the bridge links",
+             lambda: "unreachable" in text('#bridge-rows tr[data-line="line-b"]'))
+    say("done")
+    finish(0)
+except SystemExit:
+    raise
+except Exception as e:  # noqa: BLE001 - any failure is reported to the test
+    fail("%s: %s" % (type(e).__name__, e))
