@@ -79,6 +79,12 @@ def wait_for(what, check, timeout=WAIT):
         fail(what + " (waited %d s)" % timeout)
 
 
+def act(what, do):
+    """Does `do` (find an element and use it), again if the page redrew the element in
+    between (a live page replaces rows and boxes as changes arrive)."""
+    return wait_for(what, lambda: do() or True)
+
+
 def text(css):
     try:
         return " ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, css))
@@ -127,7 +133,7 @@ try:
     driver.execute_script("window.__sameLoad = 'yes'")
 
     # Keyboard: the first Tab reaches the skip link, whose focus is visible.
-    driver.find_element(By.TAG_NAME, "body").send_keys(Keys.TAB)
+    act("Tab", lambda: driver.find_element(By.TAG_NAME, "body").send_keys(Keys.TAB))
     wait_for("the skip link takes the first Tab",
              lambda: driver.execute_script("return document.activeElement.id") == "skip")
 
@@ -139,22 +145,21 @@ try:
         fail("the page reloaded")
 
     # Filter by status, search, sort.
-    Select(driver.find_element(By.ID, "filter-status")).select_by_value("offline")
+    act("the status filter", lambda: Select(driver.find_element(By.ID, "filter-status")).select_by_value("offline"))
     wait_for("the offline filter", lambda: row("press-2") and not row("press-1"))
-    Select(driver.find_element(By.ID, "filter-status")).select_by_value("")
-    search = driver.find_element(By.ID, "search")
-    search.send_keys("remote")
+    act("the status filter", lambda: Select(driver.find_element(By.ID, "filter-status")).select_by_value(""))
+    act("the search", lambda: driver.find_element(By.ID, "search").send_keys("remote"))
     wait_for("the search", lambda: row("remote-1") and not row("press-1"))
-    search.clear()
-    search.send_keys(Keys.BACKSPACE)
+    act("clearing the search", lambda: driver.find_element(By.ID, "search").clear())
+    act("clearing the search", lambda: driver.find_element(By.ID, "search").send_keys(Keys.BACKSPACE))
     wait_for("the search cleared", lambda: row("press-1"))
-    driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click()
+    act("the id column's sort button", lambda: driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click())
     wait_for("sorted by id, descending", lambda: driver.find_element(
         By.CSS_SELECTOR, "#devices-rows tr").get_attribute("data-id") == "remote-1")
-    driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click()
+    act("the id column's sort button", lambda: driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click())
 
     # The refused device: its refusal with the reason.
-    driver.find_element(By.LINK_TEXT, "bad-1").click()
+    act("the link to bad-1", lambda: driver.find_element(By.LINK_TEXT, "bad-1").click())
     wait_for("bad-1's refusal with its reason",
              lambda: "payload_format_invalid" in text("#refusals")
              and "fb/bad-1/CONV/POSITION" in text("#refusals"))
@@ -186,7 +191,7 @@ try:
     wait_for("press-2's offline time with its reason", lambda: "connection lost" in text("#offline-times"))
 
     # Line view: counts, charts, the bridge's other line.
-    driver.find_element(By.ID, "nav-line").click()
+    act("the Line tab", lambda: driver.find_element(By.ID, "nav-line").click())
     wait_for("line-b reachable in the bridge links",
              lambda: "reachable" in text('#bridge-rows tr[data-line="line-b"]')
              and "unreachable" not in text('#bridge-rows tr[data-line="line-b"]'))
@@ -201,12 +206,12 @@ try:
 
     say("ready-for-stop")
     answer("stopped")
-    driver.find_element(By.ID, "nav-devices").click()
+    act("the Devices tab", lambda: driver.find_element(By.ID, "nav-devices").click())
     wait_for("remote-1 unreachable once line-b stopped", lambda: "unreachable" in row("remote-1"), timeout=30)
     if driver.execute_script("return window.__sameLoad") != "yes":
         fail("the page reloaded")
     shot("devices.png")
-    driver.find_element(By.ID, "nav-line").click()
+    act("the Line tab", lambda: driver.find_element(By.ID, "nav-line").click())
     wait_for("line-b unreachable in the bridge links",
              lambda: "unreachable" in text('#bridge-rows tr[data-line="line-b"]'))
     say("done")
