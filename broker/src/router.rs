@@ -176,6 +176,17 @@ impl RouterHandle {
             .map_err(|e| LinkRefused(e.to_string()))
     }
 
+    /// A link for one of the broker's observers (the line console): clean, and its lag
+    /// never holds publishers back (`slow_subscriber_hold_ms` does not apply); what its
+    /// filters' logs drop before it reads it, it skips. The devices never wait for it.
+    pub async fn observer_link(&self, client_id: &str) -> Linked {
+        self.builder(client_id, true, 0)
+            .holds_publishers(false)
+            .build_async()
+            .await
+            .map_err(|e| LinkRefused(e.to_string()))
+    }
+
     /// [`RouterHandle::link`] for callers that must link while holding a lock: blocks the
     /// thread (and tells tokio so) until the router answers.
     pub fn link_blocking(&self, client_id: &str, clean_session: bool) -> Linked {

@@ -297,7 +297,7 @@ impl Broker {
         let console = if config.console.enabled {
             let link = ctx
                 .router
-                .link(crate::console::activity::CLIENT_ID, true, 0)
+                .observer_link(crate::console::activity::CLIENT_ID)
                 .await
                 .map_err(|e| StartError::Router(e.to_string()))?;
             Some(crate::console::Console::start(

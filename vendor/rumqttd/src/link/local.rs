@@ -66,6 +66,8 @@ pub struct LinkBuilder<'a> {
     dynamic_filters: bool,
     // default to 0, indicating to not use topic alias
     topic_alias_max: u16,
+    // fbbus: true by default (`Connection::holds_publishers`)
+    holds_publishers: bool,
 }
 
 impl<'a> LinkBuilder<'a> {
@@ -79,6 +81,7 @@ impl<'a> LinkBuilder<'a> {
             last_will_properties: None,
             dynamic_filters: false,
             topic_alias_max: 0,
+            holds_publishers: true,
         }
     }
 
@@ -107,6 +110,13 @@ impl<'a> LinkBuilder<'a> {
 
     pub fn clean_session(mut self, clean: bool) -> Self {
         self.clean_session = clean;
+        self
+    }
+
+    /// fbbus: false for an observer link whose lag must never hold publishers back: it
+    /// skips what its filters' logs drop before it reads it.
+    pub fn holds_publishers(mut self, holds: bool) -> Self {
+        self.holds_publishers = holds;
         self
     }
 
@@ -145,6 +155,7 @@ impl<'a> LinkBuilder<'a> {
         connection
             .last_will(self.last_will, self.last_will_properties)
             .topic_alias_max(self.topic_alias_max);
+        connection.holds_publishers = self.holds_publishers;
         let incoming = Incoming::new(connection.client_id.to_owned());
         let (outgoing, link_rx) = Outgoing::new(connection.client_id.to_owned());
         let pending = PendingLink {

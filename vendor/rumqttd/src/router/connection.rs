@@ -37,6 +37,10 @@ pub struct Connection {
     pub(crate) broker_topic_aliases: Option<Box<BrokerAliases>>,
     /// subscription IDs for a connection
     pub(crate) subscription_ids: BTreeMap<Filter, usize>,
+    /// fbbus: whether publishers are held back while this connection lags (`holds`);
+    /// false for an observer such as fbbus's line console, which must never make a
+    /// device wait: it skips what it was too slow to read instead.
+    pub holds_publishers: bool,
 }
 
 impl Connection {
@@ -70,6 +74,7 @@ impl Connection {
             topic_aliases: BTreeMap::new(),
             broker_topic_aliases: None,
             subscription_ids: BTreeMap::new(),
+            holds_publishers: true,
         }
     }
 

@@ -1306,24 +1306,34 @@ impl Router {
     }
 
     /// fbbus: the lowest offset a live reader of the filter reads next (`holds`): the
-    /// subscriptions of connected clients that are not marked slow, wherever their request
+    /// subscriptions of connected clients that are not marked slow (nor of a connection
+    /// that never holds publishers: `Connection::holds_publishers`), wherever their request
     /// is (scheduled, just notified, parked), shared ones at their group's cursor.
     fn lowest_live_cursor(&self, filter_idx: FilterIdx) -> Option<u64> {
         let groups = &self.shared_subscriptions;
+        let holds = |id: &ConnectionId| {
+            self.connections
+                .get(*id)
+                .is_none_or(|connection| connection.holds_publishers)
+        };
         self.scheduler
             .trackers
             .iter()
-            .flat_map(|(_, tracker)| tracker.data_requests.iter())
-            .chain(self.notifications.iter().map(|(_, request)| request))
+            .flat_map(|(id, tracker)| tracker.data_requests.iter().map(move |r| (id, r)))
+            .chain(
+                self.notifications
+                    .iter()
+                    .map(|(id, request)| (*id, request)),
+            )
             .chain(
                 self.datalog
                     .native
                     .get(filter_idx)
                     .into_iter()
-                    .flat_map(|data| data.waiters.waiters().iter().map(|(_, r)| r)),
+                    .flat_map(|data| data.waiters.waiters().iter().map(|(id, r)| (*id, r))),
             )
-            .filter(|request| request.filter_idx == filter_idx && !request.slow)
-            .map(|request| reads_from(request, groups))
+            .filter(|(id, request)| request.filter_idx == filter_idx && !request.slow && holds(id))
+            .map(|(_, request)| reads_from(request, groups))
             .min()
     }
 
@@ -2840,6 +2850,55 @@ mod fbbus_tests {
             })
             .flatten()
             .collect()
+    }
+
+    /// Publishes `n` messages of 1 KiB on `topic` from `publisher`, one device read each;
+    /// how many of them the router took (a held publisher's stay in its incoming buffer).
+    fn publish_kib(router: &mut Router, publisher: &Client, topic: &str, n: usize) -> usize {
+        let payload = "x".repeat(1024);
+        for _ in 0..n {
+            let publish = Publish::new(topic.to_owned(), payload.clone(), false);
+            send(router, publisher, Packet::Publish(publish, None));
+        }
+        n - publisher.incoming.lock().len()
+    }
+
+    /// fbbus: a subscriber that stops reading holds the publishers of its filter back
+    /// (`holds`), unless its connection does not hold publishers (an observer such as the
+    /// line console): then the publisher goes on, and the observer skips.
+    #[test]
+    fn an_observer_that_stops_reading_never_holds_publishers() {
+        for (holds_publishers, held) in [(true, true), (false, false)] {
+            let mut router = router(16);
+            router.holds = Holds::new(std::time::Duration::from_secs(60));
+            let mut connection = Connection::new(None, "reader".to_owned(), true, false);
+            connection.holds_publishers = holds_publishers;
+            let incoming = Incoming::new("reader".to_owned());
+            let (outgoing, _wakeups) = Outgoing::new("reader".to_owned());
+            let (reader_in, reader_out) = (incoming.buffer(), outgoing.buffer());
+            router.handle_new_connection(connection, incoming, outgoing);
+            let reader = Client {
+                id: router.connection_map["reader"],
+                incoming: reader_in,
+                outgoing: reader_out,
+                _wakeups,
+            };
+            run(&mut router);
+            send(&mut router, &reader, subscribe(&["t/#"], QoS::AtMostOnce));
+            reader.drain();
+            // The reader never drains again: 200 packets fill its outgoing buffer, and the
+            // filter's log (10 segments of 10 KiB) fills behind it.
+            let publisher = connect(&mut router, "pub", true);
+            let taken = publish_kib(&mut router, &publisher, "t/a", 400);
+            if held {
+                assert!(
+                    taken < 400,
+                    "a reader that holds: the publisher is held ({taken})"
+                );
+            } else {
+                assert_eq!(taken, 400, "an observer holds nobody back");
+            }
+        }
     }
 
     /// A persistent session with a shared subscription leaves with a delivery it did not
