@@ -422,10 +422,14 @@ async fn the_console_in_a_browser_shows_the_line_live() {
             expect(&python, "done", Duration::from_secs(90));
         }))
     });
+    // The script quits Chromium and its driver when it is done or has failed; killing it
+    // first would leave both running.
+    let exited = python.wait_exit(Duration::from_secs(30));
     publisher.abort();
     drop((press, bad, remote));
     if let Err(panic) = outcome {
         eprintln!("line A's log:\n{}", a.broker.log_text());
         std::panic::resume_unwind(panic);
     }
+    assert!(exited, "the browser script did not exit after `done`");
 }

@@ -292,6 +292,20 @@ impl Python {
         self.stdin.flush().unwrap();
     }
 
+    /// Waits up to `within` for the program to exit by itself (a browser script quits its
+    /// browser first: killed, it would leave Chromium and its driver running); whether
+    /// it did. Dropping kills it in any case.
+    pub fn wait_exit(&mut self, within: Duration) -> bool {
+        let deadline = std::time::Instant::now() + within;
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        false
+    }
+
     /// The program's next line, if one comes within `within`.
     pub fn next_line(&self, within: Duration) -> Option<String> {
         self.lines.recv_timeout(within).ok()
