@@ -203,7 +203,10 @@ def run(pages, seconds):
     stop.set()
     for t in threads:
         t.join(timeout=3)
-    delivered = [l for l in out.stdout.splitlines() if "msg/s" in l or "delivered" in l][:3]
+    # The loadtest's summary: its header line and the line after it (the figures).
+    lines = out.stdout.splitlines()
+    at = next((i for i, l in enumerate(lines) if l.strip().startswith("summary")), None)
+    delivered = [lines[at], lines[at + 2]] if at is not None and at + 2 < len(lines) else lines[-3:]
     return cpu, wall, peak[0], delivered
 
 
