@@ -1,0 +1,242 @@
+//! Issue 21: past each limit a client can fill, a flood many times the limit is refused and
+//! leaves the broker's resident memory where it was at the limit. Each test fills one
+//! limit, reads the broker's VmRSS, floods far past the limit with messages that would
+//! take tens of megabytes if they were kept, and checks the refusals were counted and
+//! resident memory grew by less than [`SLACK_KIB`].
+//!
+//! The control that shows a test can fail: each flood's kept size (given per test) is
+//! several times the slack, so a limit that stopped working would fail it.
+
+mod common;
+
+use std::time::Duration;
+
+use common::raw::{self, Connect, RawClient};
+use common::{Broker, Options};
+
+/// What resident memory may grow by during a refused flood: allocator caches and the
+/// per-connection buffers of the moment, not what the flood would have stored.
+const SLACK_KIB: u64 = 8 * 1024;
+
+/// The broker process's resident memory, in KiB.
+fn rss_kib(broker: &Broker) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{}/status", broker.child.id()))
+        .expect("/proc/<pid>/status");
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .expect("VmRSS")
+}
+
+fn client(broker: &Broker, id: &str, version: u8) -> RawClient {
+    let mut c = RawClient::connect(broker.port());
+    c.stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    assert_eq!(
+        c.handshake(&Connect {
+            version,
+            client_id: id,
+            ..Default::default()
+        }),
+        0,
+        "{id}"
+    );
+    c
+}
+
+/// An MQTT 5 QoS 0 publication, retained if `retain`.
+fn publish0(topic: &str, payload: &[u8], retain: bool) -> Vec<u8> {
+    let mut packet = raw::publish_v5(topic, None, 0, 0, payload);
+    if retain {
+        packet[0] |= 0x01;
+    }
+    packet
+}
+
+/// An MQTT 5 QoS 1 publication on `topic` and its PUBACK: every packet the client sent before it
+/// has been taken by the broker (one connection's packets are handled in order).
+fn barrier(c: &mut RawClient, topic: &str, pkid: u16) {
+    c.send(&raw::publish_v5(topic, None, 1, pkid, b"barrier"));
+    loop {
+        let (byte1, body) = c.read_packet().expect("PUBACK of the barrier");
+        if byte1 >> 4 == 4 && body.get(..2) == Some(&pkid.to_be_bytes()[..]) {
+            return;
+        }
+    }
+}
+
+fn assert_bounded(what: &str, at_limit: u64, after: u64, kept_would_be_kib: u64) {
+    let grew = after.saturating_sub(at_limit);
+    assert!(
+        kept_would_be_kib > 3 * SLACK_KIB,
+        "the flood must be large enough to fail this check if it were kept"
+    );
+    assert!(
+        grew < SLACK_KIB,
+        "{what}: resident memory grew by {grew} KiB during the refused flood (at the limit \
+         {at_limit} KiB, after {after} KiB); kept, the flood would take ~{kept_would_be_kib} KiB"
+    );
+}
+
+/// Retained messages on new topics past `max_retained_messages`: 40,000 of 1 KiB (40 MiB
+/// if kept) refused, counted, resident memory unchanged.
+#[test]
+fn a_retained_flood_past_the_limit_leaves_memory_bounded() {
+    const MAX: usize = 100;
+    const FLOOD: usize = 40_000;
+    let broker = Broker::start_with(
+        Options {
+            extra: format!("max_retained_messages = {MAX}\n"),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let mut p = client(&broker, "flooder", 5);
+    let payload = [b'r'; 1024];
+    for i in 0..MAX {
+        p.send(&publish0(&format!("flood/kept/{i}"), &payload, true));
+    }
+    barrier(&mut p, "flood/barrier", 1);
+    let at_limit = rss_kib(&broker);
+    for i in 0..FLOOD {
+        p.send(&publish0(&format!("flood/new/{i:05}"), &payload, true));
+    }
+    barrier(&mut p, "flood/barrier", 2);
+    let refused = r#"fbbus_limit_refusals_total{limit="retained_messages"}"#;
+    assert!(broker.wait_metric(refused, FLOOD as f64) >= FLOOD as f64);
+    assert_eq!(broker.metric("fbbus_retained_messages"), MAX as f64);
+    assert_bounded("retained flood", at_limit, rss_kib(&broker), FLOOD as u64);
+}
+
+/// Devices past `max_devices`: 1,000 new devices each declaring ~12 KiB of interface
+/// (tens of MiB if kept, parsed) refused, counted, resident memory unchanged.
+#[test]
+fn a_device_flood_past_the_limit_leaves_memory_bounded() {
+    const MAX: usize = 20;
+    const FLOOD: usize = 1_000;
+    let broker = Broker::start_with(
+        Options {
+            extra: format!(
+                "[fb]\nregistry_file = \"\"\nmax_devices = {MAX}\nmax_devices_per_identity = 100000\n\
+                 declarations_per_minute = 100000\n"
+            ),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    // Two FBs (at most 256 ports each) with 225 INT outputs of 20-character names each:
+    // about 12 KiB of JSON.
+    let fb = |name: &str| {
+        let ports: Vec<String> = (0..225)
+            .map(|p| format!("\"OUTPUT_PORT_{p:08}\":\"INT\""))
+            .collect();
+        format!(
+            "\"{name}\":{{\"type\":\"FLOOD\",\"data_out\":{{{}}}}}",
+            ports.join(",")
+        )
+    };
+    let declaration = format!("{{\"fbs\":{{{},{}}}}}", fb("F1"), fb("F2"));
+    assert!(declaration.len() > 12_000);
+    let declare = |id: &str| -> u8 {
+        let mut c = client(&broker, id, 5);
+        c.send(&raw::publish_v5(
+            &format!("fbbus/declare/{id}"),
+            None,
+            1,
+            1,
+            declaration.as_bytes(),
+        ));
+        loop {
+            let (byte1, body) = c.read_packet().expect("PUBACK of the declaration");
+            if byte1 >> 4 == 4 {
+                return body.get(2).copied().unwrap_or(0);
+            }
+        }
+    };
+    for i in 0..MAX {
+        assert_eq!(
+            declare(&format!("kept-{i:02}")),
+            0,
+            "device {i} within the limit"
+        );
+    }
+    let at_limit = rss_kib(&broker);
+    for i in 0..FLOOD {
+        assert_eq!(
+            declare(&format!("flood-{i:04}")),
+            0x97,
+            "device {i} past the limit"
+        );
+    }
+    let refused = r#"fbbus_limit_refusals_total{limit="devices"}"#;
+    assert!(broker.wait_metric(refused, FLOOD as f64) >= FLOOD as f64);
+    assert_bounded(
+        "device flood",
+        at_limit,
+        rss_kib(&broker),
+        (FLOOD * 12 * 4) as u64,
+    );
+}
+
+/// Ill-typed publications on 20,000 invented port names of a declared device: refused,
+/// counted in one `other` series (no series per invented name), `/metrics` and resident
+/// memory unchanged. Kept as series, the issue measured 3.5 MB of `/metrics` and 37 MB of
+/// resident memory for 25,000 names.
+#[test]
+fn a_flood_of_invented_port_names_leaves_metrics_and_memory_bounded() {
+    const FLOOD: usize = 20_000;
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nregistry_file = \"\"\ndiag_per_second = 1\ndiag_burst = 1\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let mut d = client(&broker, "dev-labels", 5);
+    d.send(&raw::publish_v5(
+        "fbbus/declare/dev-labels",
+        None,
+        1,
+        1,
+        br#"{"fbs":{"F":{"type":"T","data_out":{"V":"INT"}}}}"#,
+    ));
+    loop {
+        let (byte1, body) = d.read_packet().expect("PUBACK of the declaration");
+        if byte1 >> 4 == 4 {
+            assert_eq!(body.get(2).copied().unwrap_or(0), 0, "declared");
+            break;
+        }
+    }
+    // One refusal first, so the `other` series exists before the limit is measured.
+    d.send(&publish0("fb/dev-labels/F/INVENTED_00000", b"\"x\"", false));
+    barrier(&mut d, "labels/barrier", 2);
+    let metrics_at_limit = broker.metrics().len();
+    let at_limit = rss_kib(&broker);
+    for i in 1..=FLOOD {
+        d.send(&publish0(
+            &format!("fb/dev-labels/F/INVENTED_{i:05}"),
+            b"\"x\"",
+            false,
+        ));
+    }
+    barrier(&mut d, "labels/barrier", 3);
+    let metrics_after = broker.metrics();
+    assert!(
+        !metrics_after.contains("INVENTED_"),
+        "no series per invented port name"
+    );
+    assert!(
+        metrics_after.len() < metrics_at_limit + 2048,
+        "/metrics grew from {metrics_at_limit} to {} bytes",
+        metrics_after.len()
+    );
+    // 25,000 names took 37 MB of series in the issue: ~1.5 KiB each.
+    assert_bounded(
+        "port-name flood",
+        at_limit,
+        rss_kib(&broker),
+        (FLOOD * 3 / 2) as u64,
+    );
+}
