@@ -40,6 +40,7 @@ mod broker_publisher;
 pub mod config;
 mod console;
 mod context;
+mod fd_budget;
 mod health;
 mod identity;
 mod listener;

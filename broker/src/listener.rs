@@ -15,7 +15,7 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
@@ -41,6 +41,7 @@ impl Listener {
     /// Accepts connections until the broker shuts down.
     pub async fn run(self, ctx: Arc<Context>, slots: Arc<Semaphore>) {
         let mut shutdown = ctx.shutdown.clone();
+        let (mut last_warning, mut refused_unlogged) = (None, 0u64);
         loop {
             let (tcp, peer) = tokio::select! {
                 _ = shutdown.changed() => return,
@@ -56,7 +57,21 @@ impl Listener {
             };
             let Ok(slot) = Arc::clone(&slots).try_acquire_owned() else {
                 ctx.metrics.refused("max_connections");
-                tracing::warn!(%peer, "max_connections reached; connection closed");
+                // Logged once a minute, with how many were refused since: a flood of
+                // connections must not become a flood of log lines.
+                refused_unlogged += 1;
+                if last_warning.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
+                    last_warning = Some(Instant::now());
+                    tracing::warn!(
+                        listener = self.policy.name,
+                        %peer,
+                        refused = refused_unlogged,
+                        "connection limit reached (fbbus_connection_limit: [broker] \
+                         max_connections, or the open-file limit); new connections are closed \
+                         at once (fbbus_connects_refused_total{{reason=\"max_connections\"}})"
+                    );
+                    refused_unlogged = 0;
+                }
                 continue;
             };
             let _ = tcp.set_nodelay(true);

@@ -136,6 +136,9 @@ pub struct Metrics {
     pub limit_refusals: IntCounterVec,
     /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
     pub admin_connections: IntGauge,
+    /// MQTT connections the listeners accept at once: `[broker] max_connections`, or less
+    /// if the open-file limit is lower (`fd_budget`).
+    pub connection_limit: IntGauge,
     pub admin_refused: IntCounter,
     /// Admin requests refused for their credentials (`[admin] password_file`), by reason:
     /// missing, invalid, throttled.
@@ -254,6 +257,12 @@ impl Metrics {
                  sessions_per_identity, devices, devices_per_identity, declaration_bytes, fbs, \
                  ports, encoded_size, declaration_rate)",
                 &["limit"],
+            ),
+            connection_limit: gauge(
+                "fbbus_connection_limit",
+                "MQTT connections accepted at once: [broker] max_connections, or less if the \
+                 process's open-file limit (RLIMIT_NOFILE) cannot hold it beside the admin \
+                 endpoint's share (logged at start)",
             ),
             admin_connections: gauge(
                 "fbbus_admin_connections",

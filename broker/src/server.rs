@@ -274,7 +274,11 @@ impl Broker {
                 source,
             })?;
 
-        let slots = Arc::new(Semaphore::new(config.broker.max_connections));
+        // Each plane its share of the process's file descriptors (`fd_budget`).
+        let budget =
+            crate::fd_budget::apply(config.broker.max_connections, config.admin.max_connections);
+        metrics.connection_limit.set(budget.mqtt as i64);
+        let slots = Arc::new(Semaphore::new(budget.mqtt));
         let bound: Vec<_> = listeners
             .iter()
             .map(|l| (l.policy.name.clone(), l.local_addr()))
