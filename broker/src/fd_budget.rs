@@ -50,6 +50,8 @@ pub fn share(soft: u64, hard: u64, mqtt: usize, admin: usize) -> Budget {
 /// Raises the soft `RLIMIT_NOFILE` as far as `mqtt` + `admin` + [`RESERVE`] need (within
 /// the hard limit) and returns the shares. Logs what it did; where the limits cannot be
 /// read (not Unix), the configured `mqtt` stands.
+// `rlim_t` is u64 here, not on every Unix: the casts are needed elsewhere.
+#[allow(clippy::unnecessary_cast)]
 pub fn apply(mqtt: usize, admin: usize) -> Budget {
     #[cfg(unix)]
     {
