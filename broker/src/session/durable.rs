@@ -17,6 +17,10 @@
 
 use std::collections::{HashMap, VecDeque};
 
+/// A map keyed by packet id. foldhash, not SipHash: five hashes per stored message, and
+/// its keys are bounded by the in-flight window, so a flood of colliding ids costs nothing.
+pub(super) type ByPkid<V> = HashMap<u16, V, foldhash::fast::RandomState>;
+
 use rumqttd::protocol::Packet;
 use tokio::sync::oneshot;
 
@@ -24,13 +28,13 @@ use tokio::sync::oneshot;
 pub(super) struct Durable {
     /// Stored messages on their way to the client: router packet id -> (message number,
     /// client packet id). Bounded by the in-flight window.
-    pub stored_out: HashMap<u16, (u64, u16)>,
+    pub stored_out: ByPkid<(u64, u16)>,
     /// Writes not confirmed yet, oldest first: their number and the writer's answer.
     pending: VecDeque<(u64, oneshot::Receiver<()>)>,
     /// Client packet ids of stored publications -> the number of the write that has them.
     /// Bounded by the Receive Maximum fbbus announces (the client cannot have more
     /// publications unacknowledged).
-    unwritten: HashMap<u16, u64>,
+    unwritten: ByPkid<u64>,
     /// Acknowledgements from the router that wait for a write, and those behind them.
     held: VecDeque<Packet>,
     /// Writes handed over, and the last one confirmed (all before it are too).
