@@ -474,9 +474,17 @@
     }
     // Will and offline times.
     const will = a.profile_will;
-    $('device-will').textContent = will && Object.keys(will).length
-      ? 'Broker-side will (profile): ' + Object.keys(will).map((k) => k + ' = ' + will[k]).join('; ')
-      : 'No broker-side will (profile). A will the device set on its connection is published by the broker as set; the registry records why it went offline.';
+    const own = a.will;
+    const parts = [];
+    if (own) {
+      parts.push('Will on its connection: ' + own.topic + ' = ' + own.payload + (own.truncated ? ' …' : '') +
+        ' (QoS ' + own.qos + (own.retain ? ', retained' : '') + (own.delay_s ? ', after ' + own.delay_s + ' s' : '') + ')');
+    }
+    if (will && Object.keys(will).length) {
+      parts.push('Broker-side will (profile): ' + Object.keys(will).map((k) => k + ' = ' + will[k]).join('; '));
+    }
+    $('device-will').textContent = parts.length ? parts.join('. ')
+      : 'No will: its connection set none' + (r.status === 'online' ? '' : ' (or it is not connected)') + ', and no profile gives one.';
     const off = $('offline-times'); clear(off);
     for (const o of (a.offline || []).slice().reverse()) {
       const li = el('li');

@@ -310,6 +310,7 @@ impl Broker {
                 config.bridge.is_some(),
                 Arc::clone(&registry),
                 Arc::clone(&profiles),
+                Arc::clone(&ctx.wills),
                 Arc::clone(&metrics),
                 (link.0, link.1),
                 &tasks,

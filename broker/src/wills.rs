@@ -90,9 +90,55 @@ struct Delayed {
     task: AbortHandle,
 }
 
+/// A connection's will as the line console shows it ([`Wills::armed`]): text cut to
+/// [`ArmedWill::MAX_CHARS`] characters, so the table costs at most a few hundred bytes per
+/// connection.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ArmedWill {
+    pub topic: String,
+    pub payload: String,
+    /// The topic or the payload was cut.
+    pub truncated: bool,
+    pub qos: u8,
+    pub retain: bool,
+    /// MQTT 5 will delay (0: at once).
+    pub delay_s: u64,
+}
+
+impl ArmedWill {
+    pub const MAX_CHARS: usize = 200;
+
+    fn of(will: &Will) -> ArmedWill {
+        let (topic, cut_topic) = excerpt(&will.topic);
+        let (payload, cut_payload) = excerpt(&will.payload);
+        ArmedWill {
+            topic,
+            payload,
+            truncated: cut_topic || cut_payload,
+            qos: will.qos,
+            retain: will.retain,
+            delay_s: will.delay.as_secs(),
+        }
+    }
+}
+
+/// At most [`ArmedWill::MAX_CHARS`] characters of `bytes` as lossy UTF-8, cut at a
+/// character boundary; whether it was cut.
+fn excerpt(bytes: &[u8]) -> (String, bool) {
+    let text = String::from_utf8_lossy(bytes);
+    match text.char_indices().nth(ArmedWill::MAX_CHARS) {
+        Some((at, _)) => (text[..at].to_owned(), true),
+        None => (text.into_owned(), false),
+    }
+}
+
 /// Publishes wills and keeps the delayed ones until they are due.
 pub struct Wills {
     publisher: Arc<BrokerPublisher>,
+    /// By client id: the will each connection holds now, with the connection's session
+    /// number (a takeover's new connection arms before the old one disarms). One entry per
+    /// connection: bounded by `[broker] max_connections`.
+    armed: Mutex<HashMap<String, (u64, ArmedWill)>>,
     /// By client id: the delayed wills' tasks, with whose identity and connection
     /// (session number) they are.
     delayed: Mutex<HashMap<String, Vec<Delayed>>>,
@@ -107,11 +153,38 @@ impl Wills {
     pub fn new(publisher: Arc<BrokerPublisher>, metrics: Arc<Metrics>, tasks: Tasks) -> Arc<Wills> {
         Arc::new(Wills {
             publisher,
+            armed: Mutex::new(HashMap::new()),
             delayed: Mutex::new(HashMap::new()),
             metrics,
             tasks,
             store: OnceLock::new(),
         })
+    }
+
+    /// Connection `session` of `client_id` holds `will` (the line console shows it).
+    pub fn arm(&self, client_id: &str, session: u64, will: &Will) {
+        self.armed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(client_id.to_owned(), (session, ArmedWill::of(will)));
+    }
+
+    /// Connection `session` of `client_id` ended or dropped its will; a newer
+    /// connection's will stays.
+    pub fn disarm(&self, client_id: &str, session: u64) {
+        let mut armed = self.armed.lock().unwrap_or_else(PoisonError::into_inner);
+        if armed.get(client_id).is_some_and(|(s, _)| *s == session) {
+            armed.remove(client_id);
+        }
+    }
+
+    /// The will the connection of `client_id` holds now, if any.
+    pub fn armed(&self, client_id: &str) -> Option<ArmedWill> {
+        self.armed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(client_id)
+            .map(|(_, will)| will.clone())
     }
 
     /// Keeps delayed wills, and wills that are retained or queued for persistent
@@ -298,5 +371,24 @@ fn publish_properties(p: LastWillProperties) -> PublishProperties {
         user_properties: p.user_properties,
         subscription_identifiers: Vec::new(),
         content_type: p.content_type,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A will's text as the console shows it: cut at a character boundary, multi-byte and
+    /// invalid UTF-8 included, never a panic.
+    #[test]
+    fn a_will_excerpt_is_cut_at_a_character_boundary() {
+        let long = "ü€".repeat(300);
+        let (text, cut) = excerpt(long.as_bytes());
+        assert!(cut);
+        assert_eq!(text.chars().count(), ArmedWill::MAX_CHARS);
+        let (text, cut) = excerpt(&[0xff, 0xfe, b'a']);
+        assert!(!cut);
+        assert_eq!(text, "\u{fffd}\u{fffd}a");
+        assert_eq!(excerpt(b""), (String::new(), false));
     }
 }

@@ -243,6 +243,10 @@ async fn console_routes_serve_the_page_the_summary_the_activity_and_the_feed() {
     let id = &activity["ports"]["CONV.ID"];
     assert_eq!(id["truncated"], true, "{id}");
     assert_eq!(id["value"].as_str().unwrap().chars().count(), 200, "{id}");
+    // The will its connection holds.
+    assert_eq!(activity["will"]["topic"], "plant/belt-1/will", "{activity}");
+    assert_eq!(activity["will"]["payload"], "gone", "{activity}");
+    assert_eq!(activity["will"]["qos"], 1, "{activity}");
     let refused = &activity["refusals"][0];
     assert_eq!(refused["kind"], "rejected", "{refused}");
     assert_eq!(refused["reason"], "payload_format_invalid", "{refused}");
@@ -272,6 +276,8 @@ async fn console_routes_serve_the_page_the_summary_the_activity_and_the_feed() {
         activity["offline"][0]["reason"], "connection lost",
         "{activity}"
     );
+    // Its will fired with the connection: none is held any more.
+    assert!(activity["will"].is_null(), "{activity}");
 
     // The line summary: name, version, the rates' history, no bridge.
     let line = wait_json(admin, "/api/v1/line", |l| {

@@ -38,6 +38,8 @@ use crate::supervisor::Tasks;
 pub struct Console {
     registry: Arc<Registry>,
     profiles: Arc<Profiles>,
+    /// The wills connections hold now (a device's, by its client id).
+    wills: Arc<crate::wills::Wills>,
     activity: Arc<activity::Activity>,
     stats: Arc<stats::Stats>,
     started: Instant,
@@ -57,6 +59,7 @@ impl Console {
         bridge: bool,
         registry: Arc<Registry>,
         profiles: Arc<Profiles>,
+        wills: Arc<crate::wills::Wills>,
         metrics: Arc<Metrics>,
         link: (rumqttd::local::LinkTx, rumqttd::local::LinkRx),
         tasks: &Tasks,
@@ -84,6 +87,7 @@ impl Console {
         Arc::new(Console {
             registry,
             profiles,
+            wills,
             activity,
             stats,
             started: Instant::now(),
@@ -124,7 +128,7 @@ async fn line(State(console): State<Arc<Console>>) -> Response {
 }
 
 /// A device's activity: last port values, refusals, offline times, observed periods,
-/// the silence bound, its profile's will. 404 for a device the registry does not hold.
+/// the silence bound, its profile's will and the will its connection holds. 404 for a device the registry does not hold.
 async fn device_activity(State(console): State<Arc<Console>>, Path(id): Path<String>) -> Response {
     let Some(record) = console.registry.get(&id) else {
         return (
@@ -156,6 +160,8 @@ async fn device_activity(State(console): State<Arc<Console>>, Path(id): Path<Str
         "periods": periods,
         "silence": {"factor": bound.factor, "min_s": bound.floor.as_secs_f64()},
         "profile_will": will,
+        // The will its connection holds now (the device's client id is its id).
+        "will": console.wills.armed(&id),
     });
     let mut response = axum::Json(body).into_response();
     assets::secure(&mut response);

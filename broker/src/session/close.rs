@@ -186,6 +186,9 @@ impl Session {
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;
         }
+        if self.will.is_some() {
+            self.ctx.wills.disarm(&self.client_id, self.session);
+        }
         let will = self.will.take().filter(|_| end.fires_will());
         let own_will = will.is_some();
         let (ctx, session) = (&self.ctx, self.session);

@@ -159,6 +159,9 @@ impl Session {
         let owner = ctx.identity.owner(username.as_deref());
         let (persistent, journal) =
             stored_session(ctx, &client_id, &owner, version, lifetime, session_present);
+        if let Some(will) = &will {
+            ctx.wills.arm(&client_id, linked.session, will);
+        }
         let mut session = Session {
             io,
             peer,

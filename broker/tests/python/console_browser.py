@@ -137,6 +137,13 @@ try:
     wait_for("the skip link takes the first Tab",
              lambda: driver.execute_script("return document.activeElement.id") == "skip")
 
+    # press-2's device view: the will its connection holds.
+    go("#/device/press-2")
+    wait_for("press-2's will on its connection",
+             lambda: "plant/press-2/will" in text("#device-will") and "gone" in text("#device-will"))
+    act("the Devices tab", lambda: driver.find_element(By.ID, "nav-devices").click())
+    wait_for("the devices list again", lambda: row("press-1"))
+
     say("ready-for-kill")
     answer("killed")
     wait_for("press-2 offline with its reason, live",
