@@ -755,11 +755,13 @@ impl Registry {
     fn remove(&self, devices: &mut Devices, id: &str, reason: ForgetReason) -> Option<Record> {
         let record = devices.remove(id)?;
         let _ = self.changes.send(Change::Removed(id.into()));
-        self.publisher
-            .publish(Message::broker(topic::device_record(id), Vec::new(), true));
+        // The values first, the record last: one ordered queue, so whoever sees the
+        // record cleared knows the values are cleared too (a new subscriber gets none).
         for clear in retained_clears(id, record.interface.outputs()) {
             self.publisher.publish(clear);
         }
+        self.publisher
+            .publish(Message::broker(topic::device_record(id), Vec::new(), true));
         self.metrics.forget_device(id);
         self.metrics
             .registry_forgotten
