@@ -250,7 +250,21 @@ fn retained_messages_beyond_the_limits_are_not_retained_and_counted() {
     assert_eq!(broker.metric("fbbus_retained_messages"), MAX as f64);
     assert!(broker
         .log_text()
-        .contains("retained publication on a new topic not retained"));
+        .contains("retained publication not retained"));
+
+    // A larger replacement beyond max_retained_bytes: refused (0x97), and the old value
+    // is cleared, not left stale; a smaller replacement always works.
+    let mut p = v5(&broker, "replacer");
+    assert_eq!(retain(&mut p, 5, 1, "flood/00", &big), 0x97);
+    assert!(
+        !retained(&broker, "flood/#")
+            .iter()
+            .any(|(t, _)| t == "flood/00"),
+        "the replaced value is cleared"
+    );
+    assert_eq!(broker.metric("fbbus_retained_messages"), (MAX - 1) as f64);
+    assert_eq!(retain(&mut p, 5, 2, "flood/01", b"tiny"), 0);
+    assert!(retained(&broker, "flood/#").contains(&("flood/01".to_owned(), b"tiny".to_vec())));
 }
 
 /// Issue 21: one identity (here the peer address: no password file) holds at most

@@ -332,11 +332,16 @@ impl State {
         if message.payload.is_empty() {
             return;
         }
-        if counted
-            && old.is_none()
-            && (self.retained_counted >= limits.max_retained
-                || self.retained_counted_bytes + router_size(message) > limits.max_retained_bytes)
-        {
+        // The router's rule (rumqttd `retain_refusal`): a new topic within the count and
+        // the bytes; a replacement no larger always; a larger one within the bytes. A
+        // refused replacement leaves the old value cleared, as in the router.
+        let size = router_size(message);
+        let over_bytes = self.retained_counted_bytes + size > limits.max_retained_bytes;
+        let refused = match &old {
+            Some(old) => size > router_size(old) && over_bytes,
+            None => self.retained_counted >= limits.max_retained || over_bytes,
+        };
+        if counted && refused {
             drops.retained_limit += 1;
             return;
         }
@@ -631,6 +636,13 @@ mod tests {
             s.apply(r, tight, &mut d);
         }
         assert_eq!((s.retained.len(), d.retained_limit), (1, 1));
+        // As the router: a smaller replacement is kept; a larger one beyond the bytes is
+        // refused and clears the old value.
+        s.apply(publish(3, "a", 0, true, "1234"), tight, &mut d);
+        assert_eq!(&s.retained[b"a".as_slice()].payload[..], b"1234");
+        s.apply(publish(4, "a", 0, true, "1234567890"), tight, &mut d);
+        assert!(s.retained.is_empty(), "the stale value is cleared");
+        assert_eq!(d.retained_limit, 2);
     }
 
     #[test]

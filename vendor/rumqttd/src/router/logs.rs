@@ -367,17 +367,27 @@ impl DataLog {
     }
 
     /// fbbus: the bound a retained message of `size` bytes on `topic` would go beyond, if
-    /// any. Replacing an existing retained message is never refused.
+    /// any. Replacing an existing retained message by one no larger is never refused; a
+    /// larger one is refused if the bytes without the old one plus the new one would go
+    /// beyond `max_retained_bytes` (else 100,000 small retained messages, each replaced by
+    /// a 64 KB one, would take 6.4 GB).
     pub fn retain_refusal(&self, topic: &str, size: usize) -> Option<RetainLimit> {
-        if self.retained_publishes.contains_key(topic) || self.retained_uncounted(topic) {
+        if self.retained_uncounted(topic) {
             return None;
         }
-        if self.retained_counted >= self.config.max_retained_messages {
-            Some(RetainLimit::Messages)
-        } else if self.retained_bytes.saturating_add(size) > self.config.max_retained_bytes {
-            Some(RetainLimit::Bytes)
-        } else {
-            None
+        let old = self
+            .retained_publishes
+            .get(topic)
+            .map(|old| retained::size(&old.publish.topic, &old.publish.payload));
+        let others = self.retained_bytes.saturating_sub(old.unwrap_or(0));
+        let over_bytes = others.saturating_add(size) > self.config.max_retained_bytes;
+        match old {
+            Some(old) if size <= old => None,
+            Some(_) => over_bytes.then_some(RetainLimit::Bytes),
+            None if self.retained_counted >= self.config.max_retained_messages => {
+                Some(RetainLimit::Messages)
+            }
+            None => over_bytes.then_some(RetainLimit::Bytes),
         }
     }
 
@@ -402,8 +412,10 @@ impl DataLog {
     }
 
     /// Keeps `publish` as the retained message of `topic`. fbbus: unless it is on a new
-    /// topic beyond `max_retained_messages` or `max_retained_bytes` (`retained`): then it
-    /// is not kept, counted in the stats, and the first refusal of each bound is warned.
+    /// topic beyond `max_retained_messages` or `max_retained_bytes`, or a larger
+    /// replacement beyond `max_retained_bytes` (`retained`): then it is not kept (and the
+    /// replaced one is cleared), counted in the stats, and the first refusal of each bound
+    /// is warned.
     pub fn insert_to_retained_publishes(
         &mut self,
         publish: Publish,
@@ -423,10 +435,14 @@ impl DataLog {
                     topic,
                     setting,
                     value,
-                    "retained publication on a new topic not retained: the retained store \
-                     is full (routed to current subscribers; logged once, counted after)"
+                    "retained publication not retained: the retained store is full (routed \
+                     to current subscribers; a larger replacement clears the old value; \
+                     logged once, counted after)"
                 );
             }
+            // A larger replacement that does not fit clears the old value: a stale last
+            // value would be worse than none.
+            self.remove_from_retained_publishes(topic);
             return Err(limit);
         }
         let counted = !self.retained_uncounted(&topic);
@@ -708,8 +724,9 @@ mod test {
     }
 
     /// fbbus: a retained message on a new topic beyond `max_retained_messages` or
-    /// `max_retained_bytes` is not kept and is counted; replacing and clearing always
-    /// work; uncounted prefixes are neither counted nor refused.
+    /// `max_retained_bytes` is not kept and is counted; clearing and replacing by a message
+    /// no larger always work, a larger replacement within the bytes; uncounted prefixes
+    /// are neither counted nor refused.
     #[test]
     fn the_retained_store_is_bounded() {
         use crate::protocol::Publish;
@@ -754,6 +771,21 @@ mod test {
         data.remove_from_retained_publishes("own/x".into());
         assert_eq!((stats.messages(), stats.bytes()), (2, 15));
         assert_eq!(data.read_retained_messages("#").len(), 2);
+        // A larger replacement within the bytes is kept; beyond them it is refused and
+        // the old value is cleared (a stale last value would mislead); a smaller one is
+        // always kept.
+        let within = "x".repeat(80);
+        assert_eq!(retain(&mut data, "a", &within), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (2, 86));
+        assert_eq!(
+            retain(&mut data, "c", &"y".repeat(20)),
+            Err(RetainLimit::Bytes)
+        );
+        assert_eq!((stats.messages(), stats.bytes()), (1, 81));
+        assert_eq!(stats.refused(RetainLimit::Bytes), 2);
+        assert_eq!(retain(&mut data, "a", "1"), Ok(()));
+        assert_eq!((stats.messages(), stats.bytes()), (1, 2));
+        assert_eq!(data.read_retained_messages("#").len(), 1);
     }
 
     /// fbbus: the topic cache starts over at `MAX_CACHED_TOPICS` instead of growing with

@@ -4,7 +4,9 @@
 //! `RouterConfig::max_retained_messages` and `max_retained_bytes` bound what clients can
 //! make the router keep: a retained publication on a topic without a retained message
 //! that would go beyond either is not retained (it is still routed to the subscribers of
-//! the moment). Replacing or clearing a retained message always works. Topics under
+//! the moment). Clearing a retained message always works, and so does replacing it by
+//! one no larger; a larger replacement beyond `max_retained_bytes` is refused and clears
+//! the old one (a stale last value would mislead more than none). Topics under
 //! `RouterConfig::retained_uncounted_prefixes` (the embedder's own, e.g. fbbus's
 //! `fbbus/`) are neither counted nor refused: the embedder bounds them itself.
 
