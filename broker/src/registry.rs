@@ -1452,31 +1452,30 @@ impl Journal {
         if bytes.is_empty() {
             return Ok(());
         }
-        let file = match &mut self.file {
-            Some(file) => file,
-            None => self.file.insert(
-                std::fs::OpenOptions::new()
-                    .create(true)
-                    .append(true)
-                    .open(journal_path(path))?,
-            ),
-        };
+        let file = self.open(path)?;
         file.write_all(bytes)?;
         file.sync_data()?;
         self.bytes += bytes.len() as u64;
         Ok(())
     }
 
-    fn truncate(&mut self, path: &Path) -> std::io::Result<()> {
-        let file = match &mut self.file {
-            Some(file) => file,
-            None => self.file.insert(
+    /// The journal file, opened (created, for appending) on first use.
+    fn open(&mut self, path: &Path) -> std::io::Result<&mut std::fs::File> {
+        if self.file.is_none() {
+            self.file = Some(
                 std::fs::OpenOptions::new()
                     .create(true)
                     .append(true)
                     .open(journal_path(path))?,
-            ),
-        };
+            );
+        }
+        self.file
+            .as_mut()
+            .ok_or_else(|| std::io::Error::other("the registry journal is not open"))
+    }
+
+    fn truncate(&mut self, path: &Path) -> std::io::Result<()> {
+        let file = self.open(path)?;
         file.set_len(0)?;
         file.sync_all()?;
         self.bytes = 0;
