@@ -179,9 +179,7 @@ impl Session {
         }
         // Handed over without waiting: nothing here depends on it being written.
         if let Some(store) = &self.ctx.store {
-            if !self.journal.is_empty() {
-                store.write_now(std::mem::take(&mut self.journal));
-            }
+            store.submit_now(&self.client_id, &mut self.journal);
         }
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;

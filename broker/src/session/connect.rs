@@ -235,9 +235,10 @@ fn stored_session(
     version: Version,
     lifetime: SessionLifetime,
     session_present: bool,
-) -> (bool, Vec<crate::store::Record>) {
+) -> (bool, crate::store::Journal) {
+    let mut journal = crate::store::Journal::default();
     let Some(store) = &ctx.store else {
-        return (false, Vec::new());
+        return (false, journal);
     };
     let persistent = matches!(lifetime.remains(), Remains::Kept(e) if e != Some(Duration::ZERO));
     if persistent {
@@ -258,15 +259,17 @@ fn stored_session(
                 .map(|d| d.as_secs().min(u32::MAX as u64) as u32),
             fresh: !session_present,
         };
-        (true, vec![record])
+        journal.push(record);
+        (true, journal)
     } else if store.has_session(client_id) {
         store.set_session(client_id, false);
         let record = crate::store::Record::Ended {
             client: client_id.into(),
         };
-        (false, vec![record])
+        journal.push(record);
+        (false, journal)
     } else {
-        (false, Vec::new())
+        (false, journal)
     }
 }
 

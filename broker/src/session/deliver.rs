@@ -29,6 +29,9 @@ impl Session {
     /// (`session::write`) is for at most a batch, which any client that reads takes in
     /// time. Small messages (a line's usual traffic) still go out in one write per batch.
     pub(super) async fn deliver(&mut self) -> Result<(), End> {
+        // Writes the store confirmed since the last wake: the acknowledgements in this
+        // batch that waited only for them leave now, not after another wake.
+        self.release_written();
         let mut unscheduled = false;
         // With overlapping subscriptions the router's batch is read whole first, so the
         // copies of one message are all known before one is chosen (`copies`).

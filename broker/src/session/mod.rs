@@ -231,7 +231,7 @@ struct Session {
     /// The session outlives its connection and the store keeps it ([`persist`]).
     persistent: bool,
     /// Records for the store, written with the next batch ([`persist`]).
-    journal: Vec<crate::store::Record>,
+    journal: crate::store::Journal,
     /// Stored messages on their way to the client, and acknowledgements that wait for the
     /// store, allocated on first use ([`durable`]).
     durable: Option<Box<durable::Durable>>,

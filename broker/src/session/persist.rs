@@ -38,7 +38,8 @@ impl Session {
         };
         // The client's packet ids of the stored QoS 1/2 publications: their PUBACK/PUBREC
         // waits for this write.
-        let mut acknowledged = Vec::new();
+        let mut acknowledged = Vec::with_capacity(self.to_router.len());
+        self.journal.reserve(self.to_router.len());
         for packet in &mut self.to_router {
             let Packet::Publish(publish, properties) = packet else {
                 continue;
@@ -70,11 +71,8 @@ impl Session {
                 },
             });
         }
-        if self.journal.is_empty() {
-            return;
-        }
-        let records = std::mem::take(&mut self.journal);
-        if let Some(written) = store.submit(records, !acknowledged.is_empty()).await {
+        let wait = !acknowledged.is_empty();
+        if let Some(written) = store.submit(&self.client_id, &mut self.journal, wait).await {
             self.durable().submitted(&acknowledged, written);
         }
     }
@@ -171,14 +169,13 @@ impl Session {
         else {
             return;
         };
-        let client = Arc::clone(&self.client_id);
         if done {
             if let Some((seq, _)) = stored_out.remove(&router_pkid) {
-                self.journal.push(Record::Done { client, seq });
+                self.journal.done(seq);
             }
         } else if let Some((seq, client_pkid)) = stored_out.get(&router_pkid) {
             self.journal.push(Record::Qos2 {
-                client,
+                client: Arc::clone(&self.client_id),
                 seq: *seq,
                 state: Qos2::Received(*client_pkid),
             });
@@ -281,7 +278,7 @@ impl Session {
                 let Some(b) = rare.backlog_out.remove(&ack.pkid) else {
                     return false;
                 };
-                self.journal.push(Record::Done { client, seq: b.seq });
+                self.journal.done(b.seq);
                 self.ids.finish_local(ack.pkid);
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
             }
@@ -307,7 +304,7 @@ impl Session {
                 let Some(b) = rare.backlog_out.remove(&comp.pkid) else {
                     return false;
                 };
-                self.journal.push(Record::Done { client, seq: b.seq });
+                self.journal.done(b.seq);
                 self.ids.finish_local(comp.pkid);
                 self.outstanding_out = self.outstanding_out.saturating_sub(1);
             }

@@ -202,9 +202,18 @@ impl Log {
 
 /// Appends `record` to `out` as the log stores it.
 pub fn frame(record: &Record, out: &mut Vec<u8>) {
+    frame_body(out, |out| record.encode(out));
+}
+
+/// A `Done` record, framed ([`super::record::encode_done`]).
+pub fn frame_done(client: &str, seq: u64, out: &mut Vec<u8>) {
+    frame_body(out, |out| super::record::encode_done(client, seq, out));
+}
+
+fn frame_body(out: &mut Vec<u8>, body: impl FnOnce(&mut Vec<u8>)) {
     let start = out.len();
     out.extend_from_slice(&[0; 8]);
-    record.encode(out);
+    body(out);
     let body = &out[start + 8..];
     let length = body.len() as u32;
     let crc = crc32fast::hash(body);

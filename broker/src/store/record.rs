@@ -219,11 +219,7 @@ impl Record {
                     w.qos2(t.qos2);
                 }
             }
-            Record::Done { client, seq } => {
-                w.u8(DONE);
-                w.str(client);
-                w.u64(*seq);
-            }
+            Record::Done { client, seq } => encode_done(client, *seq, w.0),
             Record::Qos2 { client, seq, state } => {
                 w.u8(QOS2);
                 w.str(client);
@@ -345,6 +341,15 @@ impl Record {
     }
 }
 
+/// A `Done` record's body, written without building a [`Record`] (the writer writes one
+/// for every delivered stored message, from the numbers in a session's journal).
+pub fn encode_done(client: &str, seq: u64, out: &mut Vec<u8>) {
+    let mut w = Writer(out);
+    w.u8(DONE);
+    w.str(client);
+    w.u64(seq);
+}
+
 struct Writer<'a>(&'a mut Vec<u8>);
 
 impl Writer<'_> {
@@ -393,7 +398,56 @@ impl Writer<'_> {
             }
         }
     }
+    /// A message as the v5 PUBLISH packet MQTT would carry (packet id 1 for QoS 1/2: it
+    /// means nothing here), then its publisher.
     fn message(&mut self, m: &Message) {
+        if m.properties.is_some() || !self.plain_publish(m) {
+            self.publish_with_properties(m);
+        }
+        self.str(&m.publisher);
+    }
+
+    /// The common case, a PUBLISH without properties, written straight into the record:
+    /// the same bytes rumqttd writes (`plain_publish_is_what_rumqttd_writes`), without its
+    /// intermediate buffer and reference-counted copies. False (nothing written) for sizes
+    /// MQTT cannot carry.
+    fn plain_publish(&mut self, m: &Message) -> bool {
+        let qos = m.qos.min(2);
+        let remaining = 2 + m.topic.len() + if qos > 0 { 2 } else { 0 } + 1 + m.payload.len();
+        if m.topic.len() > u16::MAX as usize || remaining > MAX_REMAINING_LENGTH {
+            return false;
+        }
+        let mut length = [0u8; 4];
+        let mut n = 0;
+        let mut rest = remaining;
+        loop {
+            let mut byte = (rest % 128) as u8;
+            rest /= 128;
+            if rest > 0 {
+                byte |= 0x80;
+            }
+            length[n] = byte;
+            n += 1;
+            if rest == 0 {
+                break;
+            }
+        }
+        self.u32((1 + n + remaining) as u32);
+        self.u8(0b0011_0000 | u8::from(m.retain) | (qos << 1));
+        self.0.extend_from_slice(&length[..n]);
+        self.0
+            .extend_from_slice(&(m.topic.len() as u16).to_be_bytes());
+        self.0.extend_from_slice(&m.topic);
+        if qos > 0 {
+            self.0.extend_from_slice(&1u16.to_be_bytes());
+        }
+        // No properties: their length, 0.
+        self.u8(0);
+        self.0.extend_from_slice(&m.payload);
+        true
+    }
+
+    fn publish_with_properties(&mut self, m: &Message) {
         let mut publish = Publish::with_qos(
             m.topic.clone(),
             m.payload.clone(),
@@ -422,9 +476,11 @@ impl Writer<'_> {
             let _ = V5.write(Packet::Publish(publish, None), &mut packet);
         }
         self.bytes(&packet);
-        self.str(&m.publisher);
     }
 }
+
+/// The largest Remaining Length MQTT can encode (four bytes of 7 bits).
+const MAX_REMAINING_LENGTH: usize = 268_435_455;
 
 struct Reader<'a>(&'a [u8]);
 
@@ -514,6 +570,32 @@ mod tests {
                 ..Default::default()
             })),
             publisher: "plc-1".into(),
+        }
+    }
+
+    #[test]
+    fn plain_publish_is_what_rumqttd_writes() {
+        // Sizes around each step of the Remaining Length (1, 2 and 3 bytes), each QoS.
+        for payload_len in [0, 1, 120, 127, 128, 16_380, 16_384, 70_000] {
+            for qos in 0..=2 {
+                for retain in [false, true] {
+                    let m = Message {
+                        topic: Bytes::from_static("Förderband/1/é".as_bytes()),
+                        payload: Bytes::from(vec![0xa5; payload_len]),
+                        qos,
+                        retain,
+                        properties: None,
+                        publisher: "plc-1".into(),
+                    };
+                    let (mut fast, mut slow) = (Vec::new(), Vec::new());
+                    assert!(Writer(&mut fast).plain_publish(&m));
+                    Writer(&mut slow).publish_with_properties(&m);
+                    assert_eq!(
+                        fast, slow,
+                        "{payload_len} bytes, QoS {qos}, retain {retain}"
+                    );
+                }
+            }
         }
     }
 

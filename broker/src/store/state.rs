@@ -129,19 +129,29 @@ impl Subscribers {
 
     /// The sessions with a filter matching `topic`, with what their matching filters ask
     /// together (MQTT 4.7: a filter starting with a wildcard does not match a topic
-    /// starting with `$`). In client id order: replay decides as the writer did.
-    fn matching(&self, topic: &str) -> BTreeMap<ClientId, Wanted> {
-        let mut out = BTreeMap::new();
+    /// starting with `$`), into `out`. In client id order: replay decides as the writer did.
+    fn matching(&self, topic: &str, out: &mut Vec<(ClientId, Wanted)>) {
+        out.clear();
         let mut levels = topic.split('/');
-        self.walk(&mut levels, topic.starts_with('$'), &mut out);
-        out
+        self.walk(&mut levels, topic.starts_with('$'), out);
+        if out.len() > 1 {
+            out.sort_by(|a, b| a.0.cmp(&b.0));
+            // One entry per session: its matching filters together.
+            out.dedup_by(|later, kept| {
+                let same = later.0 == kept.0;
+                if same {
+                    kept.1 = kept.1.and(later.1);
+                }
+                same
+            });
+        }
     }
 
     fn walk<'t>(
         &self,
         levels: &mut (impl Iterator<Item = &'t str> + Clone),
         dollar: bool,
-        out: &mut BTreeMap<ClientId, Wanted>,
+        out: &mut Vec<(ClientId, Wanted)>,
     ) {
         if !dollar {
             add(out, &self.rest);
@@ -159,12 +169,8 @@ impl Subscribers {
     }
 }
 
-fn add(out: &mut BTreeMap<ClientId, Wanted>, entries: &BTreeMap<ClientId, Wanted>) {
-    for (client, wanted) in entries {
-        out.entry(Arc::clone(client))
-            .and_modify(|w| *w = w.and(*wanted))
-            .or_insert(*wanted);
-    }
+fn add(out: &mut Vec<(ClientId, Wanted)>, entries: &BTreeMap<ClientId, Wanted>) {
+    out.extend(entries.iter().map(|(c, w)| (Arc::clone(c), *w)));
 }
 
 #[derive(Default)]
@@ -185,6 +191,9 @@ pub struct State {
     retained_counted: usize,
     retained_counted_bytes: usize,
     subscribers: Subscribers,
+    /// The sessions one publication matches, kept between publications (no allocation
+    /// per message on the writer's path).
+    matches: Vec<(ClientId, Wanted)>,
 }
 
 impl State {
@@ -228,9 +237,19 @@ impl State {
                 filter,
                 options,
             } => {
+                // The tree holds the state's own copy of the client id (the key of its
+                // session), not the record's, which the session's task shares: the
+                // writer clones it for every publication that matches.
+                let Some(own) = self
+                    .sessions
+                    .get_key_value(&*client)
+                    .map(|(k, _)| k.clone())
+                else {
+                    return;
+                };
                 if let Some(s) = self.sessions.get_mut(&*client) {
                     if !filter.starts_with("$share/") {
-                        self.subscribers.insert(&filter, &client, &options);
+                        self.subscribers.insert(&filter, &own, &options);
                     }
                     self.subscribed += s.subscriptions.is_empty() as usize;
                     s.subscriptions.insert(filter, options);
@@ -268,16 +287,7 @@ impl State {
                     self.enqueue(&t.client, seq, &message, t.qos, t.qos2, limits, drops);
                 }
             }
-            Record::Done { client, seq } => {
-                if let Some(q) = self
-                    .sessions
-                    .get_mut(&*client)
-                    .and_then(|s| s.queue.remove(&seq))
-                {
-                    self.bytes = self.bytes.saturating_sub(q.message.size());
-                    self.queued = self.queued.saturating_sub(1);
-                }
-            }
+            Record::Done { client, seq } => self.done(&client, &[seq]),
             Record::Qos2 { client, seq, state } => {
                 if let Some(q) = self
                     .sessions
@@ -301,6 +311,22 @@ impl State {
                 self.wills.remove(&*client);
             }
         }
+    }
+
+    /// `client` is done with the stored messages `seqs` (its `Done` records).
+    pub fn done(&mut self, client: &str, seqs: &[u64]) {
+        let Some(s) = self.sessions.get_mut(client) else {
+            return;
+        };
+        let (mut bytes, mut count) = (0, 0);
+        for seq in seqs {
+            if let Some(q) = s.queue.remove(seq) {
+                bytes += q.message.size();
+                count += 1;
+            }
+        }
+        self.bytes = self.bytes.saturating_sub(bytes);
+        self.queued = self.queued.saturating_sub(count);
     }
 
     fn end(&mut self, client: &str) {
@@ -368,7 +394,9 @@ impl State {
         let Ok(topic) = std::str::from_utf8(&message.topic) else {
             return;
         };
-        for (client, wanted) in self.subscribers.matching(topic) {
+        let mut matches = std::mem::take(&mut self.matches);
+        self.subscribers.matching(topic, &mut matches);
+        for (client, wanted) in matches.drain(..) {
             if wanted.no_local && *message.publisher == *client {
                 continue;
             }
@@ -377,6 +405,7 @@ impl State {
                 self.enqueue(&client, seq, message, qos, None, limits, drops);
             }
         }
+        self.matches = matches;
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -665,7 +694,12 @@ mod tests {
             tree.insert(f, &ClientId::from(f), &options(1, false));
         }
         let got = |tree: &Subscribers, t: &str| -> BTreeSet<String> {
-            tree.matching(t).keys().map(|c| c.to_string()).collect()
+            let mut out = Vec::new();
+            tree.matching(t, &mut out);
+            let names: Vec<String> = out.iter().map(|(c, _)| c.to_string()).collect();
+            // One entry per session, in client id order.
+            assert!(names.windows(2).all(|w| w[0] < w[1]), "{names:?}");
+            names.into_iter().collect()
         };
         for t in topics {
             let want: BTreeSet<String> = filters
@@ -682,7 +716,15 @@ mod tests {
         tree.insert("m/+", &m, &options(1, true));
         tree.insert("m/#", &m, &options(2, false));
         tree.insert("m/x", &m, &options(0, true));
-        let wanted = |tree: &Subscribers, t| tree.matching(t).get("m").copied();
+        let wanted = |tree: &Subscribers, t| {
+            let mut out = Vec::new();
+            tree.matching(t, &mut out);
+            assert!(
+                out.iter().filter(|(c, _)| &**c == "m").count() <= 1,
+                "one entry per session"
+            );
+            out.iter().find(|(c, _)| &**c == "m").map(|(_, w)| *w)
+        };
         assert_eq!(
             wanted(&tree, "m/x"),
             Some(Wanted {

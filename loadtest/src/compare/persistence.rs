@@ -47,6 +47,7 @@ use hdrhistogram::Histogram;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::watch;
 
+use loadtest::broker_process;
 use loadtest::broker_process::spawn::{self, Kind, Persistence, Running, Spec};
 use loadtest::raw_client::{self as mqtt, PacketReader};
 use loadtest::scrape;
@@ -125,7 +126,9 @@ impl Measure {
                  PUBLISHes as fast as their PUBACKs allow ({} unacknowledged at most). msg/s = delivered / \
                  (last receipt - first send); lost = sent - delivered. fbbus: not stored = \
                  fbbus_store_not_stored_total (over max_queued_messages or max_bytes: routed, not stored); \
-                 writes, fsyncs = the store's, with their mean time. Deadline {} s.",
+                 writes, fsyncs = the store's, with their mean time. broker CPU = the broker's CPU time \
+                 over the burst per delivered message (its threads' schedstat), split into the runtime's \
+                 workers (sessions), the router and the store's writer thread. Deadline {} s.",
                 p.publishers,
                 p.messages,
                 p.window,
@@ -163,6 +166,7 @@ impl Measure {
                 "not stored",
                 "writes (mean)",
                 "fsyncs (mean)",
+                "broker CPU us/msg (workers+router+store)",
             ],
             Measure::Latency => &["p50 ms", "p99 ms", "max ms", "delivered", "lost"],
             Measure::Restart => &[
@@ -751,9 +755,15 @@ async fn throughput(broker: &Running, p: &PersistParams) -> Result<Figures> {
             (conn, result)
         }));
     }
+    let cpu_before = broker_process::cpu_ns_by_thread(broker.pid());
     let first_send = Instant::now();
     go_tx.send(true).ok();
     let received = receive_acking(&mut sub, p.publishers, p.messages, &done, end_at, epoch).await;
+    let cpu = cpu_per_message(
+        &cpu_before,
+        &broker_process::cpu_ns_by_thread(broker.pid()),
+        received.delivered,
+    );
     let mut note = None;
     let mut conns = Vec::new();
     for task in tasks {
@@ -804,10 +814,42 @@ async fn throughput(broker: &Running, p: &PersistParams) -> Result<Figures> {
             not_stored,
             writes,
             fsyncs,
+            cpu,
         ],
         keys: vec![rate],
         note,
     })
+}
+
+/// The broker's CPU time per delivered message between two readings of
+/// [`broker_process::cpu_ns_by_thread`], in microseconds: the total, then the runtime's
+/// workers (`fbbus`), the router (`router-*`) and the store's writer (`fbbus-store`). Shows
+/// where a setup's extra cost goes; "-" where /proc cannot be read.
+fn cpu_per_message(
+    before: &std::collections::BTreeMap<String, u64>,
+    after: &std::collections::BTreeMap<String, u64>,
+    delivered: u64,
+) -> String {
+    if after.is_empty() || delivered == 0 {
+        return "-".into();
+    }
+    let spent = |pick: &dyn Fn(&str) -> bool| -> f64 {
+        let sum = |m: &std::collections::BTreeMap<String, u64>| -> u64 {
+            m.iter().filter(|(n, _)| pick(n)).map(|(_, ns)| *ns).sum()
+        };
+        sum(after).saturating_sub(sum(before)) as f64 / 1000.0 / delivered as f64
+    };
+    // Another broker (Mosquitto: one thread): the total only.
+    if !after.keys().any(|n| n.starts_with("router")) {
+        return format!("{:.2}", spent(&|_| true));
+    }
+    format!(
+        "{:.2} ({:.2}+{:.2}+{:.2})",
+        spent(&|_| true),
+        spent(&|n| n == "fbbus" || n.starts_with("tokio")),
+        spent(&|n| n.starts_with("router")),
+        spent(&|n| n == "fbbus-store"),
+    )
 }
 
 async fn latency(broker: &Running, p: &PersistParams) -> Result<Figures> {
