@@ -38,9 +38,9 @@ impl Session {
         };
         // The client's packet ids of the stored QoS 1/2 publications: their PUBACK/PUBREC
         // waits for this write.
-        let mut acknowledged = Vec::with_capacity(self.to_router.len());
-        self.journal.reserve(self.to_router.len());
-        for packet in &mut self.to_router {
+        let mut acknowledged = Vec::new();
+        let batch = self.to_router.len();
+        for (i, packet) in self.to_router.iter_mut().enumerate() {
             let Packet::Publish(publish, properties) = packet else {
                 continue;
             };
@@ -56,6 +56,12 @@ impl Session {
             }
             let seq = store.number();
             origin.stored = seq;
+            // Room for the rest of the batch at the first stored publication: one
+            // allocation, none for a batch that stores nothing.
+            if acknowledged.capacity() == 0 {
+                acknowledged.reserve(batch - i);
+                self.journal.reserve(batch - i);
+            }
             if wire_qos > 0 {
                 acknowledged.push(pkid);
             }

@@ -36,12 +36,12 @@ impl Journal {
         self.records.is_empty() && self.done.is_empty()
     }
 
-    /// Everything recorded so far, leaving room for as much again (a session's batches
-    /// tend to be alike: no regrowing from empty each time).
+    /// Everything recorded so far. The numbers leave room for as many again (a session's
+    /// batches tend to be alike); the records are reserved by the next batch that has
+    /// any ([`Journal::reserve`]).
     pub fn take(&mut self) -> (Vec<Record>, Vec<u64>) {
-        let (records, done) = (self.records.len().min(256), self.done.len().min(4096));
-        let records = std::mem::replace(&mut self.records, Vec::with_capacity(records));
-        let done = std::mem::replace(&mut self.done, Vec::with_capacity(done));
-        (records, done)
+        let room = self.done.len().min(4096);
+        let done = std::mem::replace(&mut self.done, Vec::with_capacity(room));
+        (std::mem::take(&mut self.records), done)
     }
 }

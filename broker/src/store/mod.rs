@@ -34,6 +34,7 @@
 
 mod journal;
 mod log;
+mod queue;
 pub mod record;
 pub mod restore;
 mod state;
@@ -350,7 +351,7 @@ impl Store {
                 .queue
                 .iter()
                 .map(|(seq, q)| Backlogged {
-                    seq: *seq,
+                    seq,
                     message: Arc::clone(&q.message),
                     qos: q.qos,
                     qos2: q.qos2,

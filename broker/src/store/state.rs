@@ -15,6 +15,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
+use super::queue::Queue;
 use super::record::{ClientId, Message, Options, Qos2, Record, Target};
 
 /// Limits on what the store keeps.
@@ -47,7 +48,7 @@ pub struct StoredSession {
     /// Unix seconds since it is offline; None while connected.
     pub offline_at: Option<u64>,
     pub subscriptions: BTreeMap<String, Options>,
-    pub queue: BTreeMap<u64, Queued>,
+    pub queue: Queue,
 }
 
 /// Why a message was not stored.
@@ -69,7 +70,10 @@ struct Subscribers {
     /// Sessions with `#` below this node (it matches this level too).
     rest: BTreeMap<ClientId, Wanted>,
     plus: Option<Box<Subscribers>>,
-    levels: HashMap<String, Subscribers>,
+    /// foldhash, not SipHash: looked up for every level of every stored publication. Its
+    /// keys are the levels of persistent sessions' filters, which `max_subscriptions` and
+    /// the session limits bound, and its seed is random: no flood of colliding names.
+    levels: HashMap<String, Subscribers, foldhash::fast::RandomState>,
 }
 
 /// What a session's matching subscriptions ask of a publication: the best QoS among them,
@@ -218,7 +222,7 @@ impl State {
                         expiry,
                         offline_at: None,
                         subscriptions: BTreeMap::new(),
-                        queue: BTreeMap::new(),
+                        queue: Queue::default(),
                     });
                 s.owner = owner;
                 s.v5 = v5;
@@ -292,7 +296,7 @@ impl State {
                 if let Some(q) = self
                     .sessions
                     .get_mut(&*client)
-                    .and_then(|s| s.queue.get_mut(&seq))
+                    .and_then(|s| s.queue.get_mut(seq))
                 {
                     q.qos2 = Some(state);
                 }
@@ -320,7 +324,7 @@ impl State {
         };
         let (mut bytes, mut count) = (0, 0);
         for seq in seqs {
-            if let Some(q) = s.queue.remove(seq) {
+            if let Some(q) = s.queue.remove(*seq) {
                 bytes += q.message.size();
                 count += 1;
             }
@@ -335,7 +339,7 @@ impl State {
             for f in s.subscriptions.keys() {
                 self.subscribers.remove(f, client);
             }
-            for q in s.queue.values() {
+            for (_, q) in s.queue.iter() {
                 self.bytes = self.bytes.saturating_sub(q.message.size());
             }
             self.queued = self.queued.saturating_sub(s.queue.len());
@@ -435,7 +439,7 @@ impl State {
             qos,
             qos2,
         };
-        if s.queue.insert(seq, queued).is_none() {
+        if s.queue.insert(seq, queued) {
             self.bytes += message.size();
             self.queued += 1;
         }
@@ -476,9 +480,9 @@ impl State {
         }
         let mut by_seq: BTreeMap<u64, (Arc<Message>, Vec<Target>)> = BTreeMap::new();
         for (client, s) in &self.sessions {
-            for (seq, q) in &s.queue {
+            for (seq, q) in s.queue.iter() {
                 by_seq
-                    .entry(*seq)
+                    .entry(seq)
                     .or_insert_with(|| (Arc::clone(&q.message), Vec::new()))
                     .1
                     .push(Target {
@@ -575,7 +579,7 @@ mod tests {
         s.sessions[client]
             .queue
             .iter()
-            .map(|(seq, q)| (*seq, q.qos))
+            .map(|(seq, q)| (seq, q.qos))
             .collect()
     }
 
@@ -774,7 +778,16 @@ mod tests {
         let (t, _) = state(s.snapshot());
         assert_eq!(queue(&t, "a"), queue(&s, "a"));
         assert_eq!(queue(&t, "b"), queue(&s, "b"));
-        assert_eq!(t.sessions["a"].queue[&1].qos2, Some(Qos2::Received(4)));
+        assert_eq!(
+            t.sessions["a"]
+                .queue
+                .iter()
+                .find(|(seq, _)| *seq == 1)
+                .unwrap()
+                .1
+                .qos2,
+            Some(Qos2::Received(4))
+        );
         assert_eq!(t.sessions["b"].offline_at, Some(9));
         assert_eq!(t.retained.len(), 1);
         assert_eq!(
