@@ -881,6 +881,15 @@ mod tests {
         }
     }
 
+    /// Hands `journal` over and waits until it is written.
+    async fn written(store: &Store, client: &ClientId, journal: &mut Journal) {
+        let answer = store.submit(client, journal, true).await;
+        answer
+            .expect("a journal with records is handed over")
+            .await
+            .unwrap();
+    }
+
     /// A journal's `Done` numbers are written after its records, and a restart finds what
     /// they left: the QoS 2 step recorded before a `Done` in the same journal does not
     /// bring the message back, and what has no `Done` is still queued.
@@ -914,12 +923,7 @@ mod tests {
                 id: 0,
             },
         });
-        store
-            .submit(&client, &mut journal, true)
-            .await
-            .unwrap()
-            .await
-            .unwrap();
+        written(&store, &client, &mut journal).await;
         let publications = (1..=3)
             .map(|seq| Record::Publish {
                 seq,
@@ -927,7 +931,7 @@ mod tests {
             })
             .collect();
         store.write(publications, true).await;
-        // Message 1: PUBREC then PUBCOMP in one read; message 2: PUBACK'd at QoS 1 path.
+        // Message 1: PUBREC then PUBCOMP in one read; message 2: a PUBACK.
         journal.push(Record::Qos2 {
             client: client.clone(),
             seq: 1,
@@ -936,12 +940,7 @@ mod tests {
         journal.done(1);
         journal.done(2);
         assert!(!journal.is_empty());
-        store
-            .submit(&client, &mut journal, true)
-            .await
-            .unwrap()
-            .await
-            .unwrap();
+        written(&store, &client, &mut journal).await;
         assert!(journal.is_empty(), "submit takes everything");
         store.close().await;
         drop(store);
