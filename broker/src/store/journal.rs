@@ -9,7 +9,9 @@
 //! earlier batch; and whatever the session recorded about that message before (its QoS 2
 //! step) is in this batch's records or an earlier batch, so before the `Done`.
 
-use super::record::Record;
+use std::sync::Arc;
+
+use super::record::{ClientId, Record};
 
 #[derive(Debug, Default)]
 pub struct Journal {
@@ -36,12 +38,14 @@ impl Journal {
         self.records.is_empty() && self.done.is_empty()
     }
 
-    /// Everything recorded so far. The numbers leave room for as many again (a session's
-    /// batches tend to be alike); the records are reserved by the next batch that has
-    /// any ([`Journal::reserve`]).
-    pub fn take(&mut self) -> (Vec<Record>, Vec<u64>) {
+    /// Everything `client`'s session recorded so far: its records, and its `Done`
+    /// numbers with the client id (none if there are none). The numbers leave room for as
+    /// many again (a session's batches tend to be alike); the records are reserved by the
+    /// next batch that has any ([`Journal::reserve`]).
+    pub fn take(&mut self, client: &ClientId) -> (Vec<Record>, Option<(ClientId, Vec<u64>)>) {
         let room = self.done.len().min(4096);
         let done = std::mem::replace(&mut self.done, Vec::with_capacity(room));
+        let done = (!done.is_empty()).then(|| (Arc::clone(client), done));
         (std::mem::take(&mut self.records), done)
     }
 }

@@ -447,8 +447,7 @@ impl Store {
         journal: &mut Journal,
         wait: bool,
     ) -> Option<oneshot::Receiver<()>> {
-        let (records, done) = journal.take();
-        let done = (!done.is_empty()).then(|| (Arc::clone(client), done));
+        let (records, done) = journal.take(client);
         self.hand_over(records, done, wait).await
     }
 
@@ -495,8 +494,7 @@ impl Store {
     /// [`Store::submit`] from code that cannot wait (a connection's end), as
     /// [`Store::write_now`].
     pub fn submit_now(&self, client: &ClientId, journal: &mut Journal) {
-        let (records, done) = journal.take();
-        let done = (!done.is_empty()).then(|| (Arc::clone(client), done));
+        let (records, done) = journal.take(client);
         self.hand_over_now(records, done);
     }
 
