@@ -373,6 +373,10 @@ pub struct AdminSection {
     /// `connection_timeout_ms` (slow bodies, slow readers, idle keep-alive).
     pub header_timeout_ms: u64,
     pub connection_timeout_ms: u64,
+    /// Host names under which admin writes are accepted, besides IP addresses and
+    /// `localhost` (the `Host` and `Origin` headers; DNS-rebinding defence, see
+    /// `admin_writes`).
+    pub allowed_hosts: Vec<String>,
 }
 
 impl Default for AdminSection {
@@ -383,6 +387,7 @@ impl Default for AdminSection {
             max_connections: 64,
             header_timeout_ms: 5_000,
             connection_timeout_ms: 60_000,
+            allowed_hosts: Vec::new(),
         }
     }
 }

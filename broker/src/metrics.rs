@@ -144,6 +144,7 @@ pub struct Metrics {
     /// Admin requests refused for their credentials (`[admin] password_file`), by reason:
     /// missing, invalid, throttled.
     pub admin_auth_failures: IntCounterVec,
+    pub admin_writes_refused: IntCounterVec,
     /// The router's offline persistent sessions, which it updates itself
     /// (`RouterHooks::saved_sessions`); copied into the two metrics below at each scrape.
     pub router_sessions: Arc<SavedSessions>,
@@ -283,6 +284,16 @@ impl Metrics {
                     &["reason"],
                 ),
                 &[&["missing"], &["invalid"], &["throttled"]],
+            ),
+            admin_writes_refused: with_series(
+                counter_vec(
+                    "fbbus_admin_writes_refused_total",
+                    "Admin writes (PUT a profile, DELETE a device) refused with 403, by reason \
+                     (remote: not from the broker's host; host, origin: the Host or Origin \
+                     header names neither an IP address, localhost nor [admin] allowed_hosts)",
+                    &["reason"],
+                ),
+                &[&["remote"], &["host"], &["origin"]],
             ),
             typed_accepted: counter(
                 "fbbus_typed_messages_accepted_total",

@@ -1,0 +1,113 @@
+//! Issue 33, "Fair shares": what one client can spend of what others need, each attack
+//! run as a stranger would against the real `fbbus` on loopback, with the outcome the
+//! broker's rule gives.
+
+mod common;
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::Duration;
+
+use common::{Broker, Options};
+
+const PROFILE: &str = r#"device = "rebind"
+[interface.fbs.CONV]
+data_out = { SPEED = "REAL" }
+"#;
+
+/// One HTTP/1.1 request with `headers`; the status code.
+fn request(admin: SocketAddr, head: &str, body: &str) -> u16 {
+    let mut s = TcpStream::connect_timeout(&admin, Duration::from_secs(2)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(
+        s,
+        "{head}\r\nConnection: close\r\nContent-Length: {}\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    let mut text = String::new();
+    let _ = s.read_to_string(&mut text);
+    text.split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("no HTTP answer: {text:?}"))
+}
+
+/// DNS rebinding: a page on `evil.example` that rebinds its name to 127.0.0.1 makes the
+/// browser on the broker's host send `PUT /api/v1/profiles/rebind` from loopback with
+/// `Host: evil.example` and `Origin: http://evil.example`. Refused (403), counted, and
+/// no profile is written; the same request addressed to the broker's IP (as
+/// `fbbus declare` sends it), or to a name in `[admin] allowed_hosts`, is accepted.
+#[test]
+fn admin_writes_refuse_a_rebound_name() {
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nprofiles_dir = \"profiles\"\n".into(),
+            admin_extra: "allowed_hosts = [\"line1-broker\"]".into(),
+            ..Default::default()
+        },
+        |dir| std::fs::create_dir(dir.join("profiles")).unwrap(),
+    );
+    let written = || broker.path("profiles/rebind.toml").exists();
+    let put = |headers: &str| {
+        request(
+            broker.admin,
+            &format!("PUT /api/v1/profiles/rebind HTTP/1.1\r\n{headers}"),
+            PROFILE,
+        )
+    };
+    let delete = |headers: &str| {
+        request(
+            broker.admin,
+            &format!("DELETE /api/v1/devices/rebind HTTP/1.1\r\n{headers}"),
+            "",
+        )
+    };
+
+    assert_eq!(
+        put("Host: evil.example\r\nOrigin: http://evil.example"),
+        403
+    );
+    assert_eq!(put("Host: evil.example:9883"), 403);
+    assert_eq!(
+        put("Host: 127.0.0.1\r\nOrigin: http://evil.example:9883"),
+        403
+    );
+    assert_eq!(delete("Host: evil.example"), 403);
+    assert!(!written(), "a rebound page wrote a profile");
+    assert_eq!(
+        broker.metric("fbbus_admin_writes_refused_total{reason=\"host\"}"),
+        3.0
+    );
+    assert_eq!(
+        broker.metric("fbbus_admin_writes_refused_total{reason=\"origin\"}"),
+        1.0
+    );
+    assert_eq!(
+        broker
+            .log_text()
+            .matches("admin write refused (403)")
+            .count(),
+        2,
+        "logged once a minute per reason:\n{}",
+        broker.log_text()
+    );
+
+    let addr = broker.admin.to_string();
+    assert_eq!(put(&format!("Host: {addr}")), 200);
+    assert!(written());
+    assert_eq!(
+        put("Host: line1-broker:9883\r\nOrigin: http://line1-broker:9883"),
+        200
+    );
+    assert_eq!(put("Host: localhost"), 200);
+    // The console's own reads are not writes: answered whatever the name.
+    assert_eq!(
+        request(
+            broker.admin,
+            "GET /api/v1/profiles HTTP/1.1\r\nHost: 127.0.0.1",
+            ""
+        ),
+        200
+    );
+}
