@@ -354,7 +354,11 @@ impl Metrics {
                     "CONNECTs refused, by reason",
                     &["reason"],
                 ),
-                &[&["client_id_owned"], &["client_id_binding"]],
+                &[
+                    &["client_id_owned"],
+                    &["client_id_binding"],
+                    &["client_id_reserved"],
+                ],
             ),
             disconnects: counter_vec(
                 "fbbus_disconnects_total",

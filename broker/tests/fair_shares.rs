@@ -111,3 +111,56 @@ fn admin_writes_refuse_a_rebound_name() {
         200
     );
 }
+
+/// A device locked out for good (issue 33, 1): with the default `[auth] client_id =
+/// "any"`, user devA connects with client id `devB` and clean session 0 while devB has no
+/// session, then leaves; the real devB was then refused its own id forever (the kept
+/// session was devA's). A client id that is a user's name is that user's: devA (and an
+/// anonymous client) is refused it (0x02, `client_id_reserved`), devB gets in; other
+/// client ids stay free for any user.
+#[test]
+fn a_users_name_is_not_anothers_client_id() {
+    use common::raw::{Connect, RawClient};
+    let broker = Broker::start_with(
+        Options {
+            extra: "[auth]\npassword_file = \"passwd\"\n".into(),
+            listener_extra: "allow_anonymous = true\n".into(),
+            ..Default::default()
+        },
+        |dir| {
+            common::add_user(&dir.join("passwd"), "devA", "pwA");
+            common::add_user(&dir.join("passwd"), "devB", "pwB");
+        },
+    );
+    let connect = |client_id: &str, login: Option<(&str, &str)>| {
+        let mut raw = RawClient::connect(broker.port());
+        let code = raw.handshake(&Connect {
+            version: 4,
+            client_id,
+            keep_alive: 30,
+            clean: false,
+            login,
+            ..Default::default()
+        });
+        (code, raw)
+    };
+    let (code, _) = connect("devB", Some(("devA", "pwA")));
+    assert_eq!(code, 0x02, "devA opened a session under devB's name");
+    let (code, _) = connect("devB", None);
+    assert_eq!(
+        code, 0x02,
+        "an anonymous client opened a session under devB's name"
+    );
+    assert_eq!(
+        broker.metric("fbbus_connects_refused_total{reason=\"client_id_reserved\"}"),
+        2.0
+    );
+    let (code, devb) = connect("devB", Some(("devB", "pwB")));
+    assert_eq!(code, 0x00, "devB refused its own id");
+    drop(devb);
+    // Any other client id stays free under client_id = "any".
+    let (code, _) = connect("devA-tool", Some(("devA", "pwA")));
+    assert_eq!(code, 0x00);
+    let (code, _) = connect("hmi-1", Some(("devB", "pwB")));
+    assert_eq!(code, 0x00);
+}
