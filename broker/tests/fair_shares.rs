@@ -164,3 +164,73 @@ fn a_users_name_is_not_anothers_client_id() {
     let (code, _) = connect("hmi-1", Some(("devB", "pwB")));
     assert_eq!(code, 0x00);
 }
+
+/// Admin passwords guessed from many addresses (issue 33, 5: 100 of 100 guesses were
+/// checked from 20 loopback addresses, each under its address's free failures): the
+/// user's own count blocks them after `[auth.throttle] free_failures`, whatever the
+/// address, while the scraper whose credentials the broker verified before goes on.
+#[test]
+fn admin_guesses_from_many_addresses_meet_the_users_block() {
+    use base64::Engine;
+    let dir = tempfile::tempdir().unwrap();
+    common::add_user(&dir.path().join("admin-passwd"), "ops", "Right-Pw-1");
+    let mqtt: SocketAddr = format!("127.0.0.1:{}", common::free_port())
+        .parse()
+        .unwrap();
+    let admin: SocketAddr = format!("127.0.0.1:{}", common::free_port())
+        .parse()
+        .unwrap();
+    let config = dir.path().join("fbbus.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[broker]\nline = \"test\"\n[[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\
+             [admin]\nbind = \"{admin}\"\npassword_file = \"admin-passwd\"\n"
+        ),
+    )
+    .unwrap();
+    let basic = |user: &str, pw: &str| {
+        let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{pw}"));
+        format!("Basic {token}")
+    };
+    let right = basic("ops", "Right-Pw-1");
+    let broker = Broker::spawn_as(dir, config, mqtt, admin, &[], Some(right.clone()));
+    let from = |last: u8, authorization: &str| -> u16 {
+        let socket =
+            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+        let ip = std::net::IpAddr::from([127, 0, 0, last]);
+        socket.bind(&SocketAddr::new(ip, 0).into()).unwrap();
+        socket
+            .connect_timeout(&admin.into(), Duration::from_secs(2))
+            .unwrap();
+        let mut s = TcpStream::from(socket);
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        write!(
+            s,
+            "GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\nAuthorization: {authorization}\r\n\r\n"
+        )
+        .unwrap();
+        let mut text = String::new();
+        let _ = s.read_to_string(&mut text);
+        text.split_whitespace().nth(1).unwrap().parse().unwrap()
+    };
+    let (mut checked, mut throttled) = (0, 0);
+    for round in 0..5u8 {
+        for address in 0..20u8 {
+            match from(
+                10 + address,
+                &basic("ops", &format!("guess-{round}-{address}")),
+            ) {
+                401 => checked += 1,
+                429 => throttled += 1,
+                code => panic!("answered {code}"),
+            }
+        }
+    }
+    assert_eq!(checked + throttled, 100);
+    assert!(checked <= 6, "{checked} of 100 guesses were checked");
+    assert_eq!(from(1, &right), 200, "the verified scraper was blocked");
+    assert!(broker
+        .log_text()
+        .contains("too many failed logins for this user"));
+}
