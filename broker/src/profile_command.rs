@@ -75,11 +75,14 @@ fn derive(text: &str, device: Option<&str>) -> FbootImport {
     if dinasore == FbootImport::default() {
         let mut out = forte;
         if let Some(device) = device {
-            out.notes.push(format!(
-                "--device {device:?} is not used: it names the device of a DINASORE \
+            out.notes.push(
+                format!(
+                    "--device {device:?} is not used: it names the device of a DINASORE \
                  configuration, and this file has no DINASORE MQTT FB (a FORTE profile's \
                  device is its client id)."
-            ));
+                )
+                .into(),
+            );
         }
         return out;
     }
@@ -89,10 +92,13 @@ fn derive(text: &str, device: Option<&str>) -> FbootImport {
         false => forte,
     };
     if device.is_none() && !dinasore.profiles.is_empty() {
-        out.notes.push(format!(
-            "No --device: the DINASORE profile's device is {DINASORE_DEVICE:?}; give each \
+        out.notes.push(
+            format!(
+                "No --device: the DINASORE profile's device is {DINASORE_DEVICE:?}; give each \
              DINASORE its own id, its registry id (fb/<device>/...), with --device NAME."
-        ));
+            )
+            .into(),
+        );
     }
     out.notes.extend(dinasore.notes);
     out.profiles.extend(dinasore.profiles);

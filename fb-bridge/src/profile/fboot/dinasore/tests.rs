@@ -622,7 +622,7 @@ fn the_device_id_comes_from_the_caller() {
     let out = import_lines(&[mqtt("P", "MQTT_PUBLISHER", "line1/#", &["A"])]);
     assert!(out.profiles.is_empty());
     assert_eq!(
-        out.notes.last().map(String::as_str),
+        out.notes.last().map(|n| n.text.as_str()),
         Some("None of its MQTT FBs can be mapped, so device conv3 has no profile.")
     );
 }
