@@ -39,7 +39,7 @@ impl<'n> Draft<'n> {
         }
     }
 
-    fn has_topic(&self, topic: &str) -> Option<&str> {
+    pub(super) fn has_topic(&self, topic: &str) -> Option<&str> {
         self.mapped.get(topic).map(String::as_str)
     }
 

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::comm::{CommFb, Service};
 use super::draft::{
     dollar_input, has_port, input, mappable_topic, output, sanitized_device, topic_kind, unique,
-    untyped_note, Draft, Endpoint, Shape, TopicKind, ValuePort,
+    unmapped_input, untyped_note, Draft, Endpoint, Shape, TopicKind, ValuePort,
 };
 use super::names::PortNames;
 use super::note::Notes;
@@ -112,7 +112,9 @@ pub(super) fn build_profiles(
             match (&fb.skipped, fb.service) {
                 (Some(note), _) => notes.push(note.clone()),
                 (None, Service::Publish) => publish(fb, &mut draft, types, notes, &mut published),
-                (None, Service::Subscribe) => subscribe(fb, &mut draft, types, notes, &mut pending),
+                (None, Service::Subscribe) => {
+                    subscribe(fb, &mut draft, types, notes, &published, &mut pending)
+                }
             }
         }
         if draft.fbs.is_empty() {
@@ -462,6 +464,7 @@ fn subscribe(
     draft: &mut Draft<'_>,
     types: &TypeTable,
     notes: &mut Notes,
+    published: &BTreeMap<String, Published>,
     pending: &mut Vec<PendingFrom>,
 ) {
     let what = fb.what();
@@ -500,11 +503,21 @@ fn subscribe(
         notes.push(note);
         return;
     }
-    if !mappable_topic(&what, t, draft, notes) {
-        return;
-    }
     let endpoint = endpoint(fb, &what, types);
-    let (added, note) = input(draft, &endpoint, t, notes);
+    let (added, note) = if published.contains_key(t) && draft.has_topic(t).is_some() {
+        // Its own profile publishes the topic: read back through the broker, as a reader
+        // in another profile of the import is (`own_topic` says so and compares types).
+        let added = unmapped_input(draft, &endpoint, notes);
+        let note = notes.len();
+        notes.push(format!(
+            "{what} reads topic {t:?}, its own profile's output."
+        ));
+        (added, note)
+    } else if mappable_topic(&what, t, draft, notes) {
+        input(draft, &endpoint, t, notes)
+    } else {
+        return;
+    };
     pending.push(PendingFrom {
         note,
         topic: t.to_owned(),

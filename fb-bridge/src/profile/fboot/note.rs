@@ -78,6 +78,11 @@ impl Notes {
         });
     }
 
+    /// How many notes there are: the index the next one gets.
+    pub(super) fn len(&self) -> usize {
+        self.0.len()
+    }
+
     /// A note that blocks the profile of `device`; its index, for [`Notes::get_mut`].
     pub(super) fn blocking(&mut self, device: &str, text: impl Into<String>) -> usize {
         self.0.push(Note {
