@@ -83,7 +83,7 @@
 //!
 //! An input topic needs `from`, the typed output that feeds it, and which device feeds a
 //! topic is not in one device's boot file: it is left out, so the profile does not pass
-//! [`ProfileFile::validate`] until it is set, and a note says so. When a PUBLISH of the
+//! [`ProfileFile::validate`] until it is set, and a blocking note says so. When a PUBLISH of the
 //! same import publishes that topic, it is not mapped at all: FORTE reaches FORTE on
 //! that topic through the broker as it always did, and a topic that is one device's
 //! output cannot also be another's input.
@@ -96,28 +96,43 @@
 //!
 //! # Data types
 //!
-//! A `PUBLISH_n`'s SD ports are of type ANY: their type is the type of what is wired to
-//! them, and that type belongs to the FB type at the other end, whose interface the boot
-//! file does not contain. It is derived, in this order, from
+//! A `PUBLISH_n`'s SD ports and a `SUBSCRIBE_n`'s RD ports are of type ANY: their type is
+//! the type of what is wired to them, and that type belongs to the FB type at the other
+//! end, whose interface the boot file does not contain. It is derived (module `typing`)
+//! from what the file says about each pin the port is wired to:
 //!
-//! 1. the connection into `X.SD_i` (or out of `Y.RD_i`): the other end's port type when
-//!    the type table knows its FB type. [`import`] uses [`builtin_types`]: the IEC 61131-3
-//!    conversions (`F_INT_TO_REAL`: `IN` INT, `OUT` REAL), FORTE's `INT2INT`-style data
-//!    FBs, its event FBs with data (`E_CTU`, `E_SWITCH`, `E_CYCLE`, ...), the IEC 61131-3
-//!    FBs (`FB_TON`, `FB_CTU`, ...) and the process-image FBs (`IX`, `QW`, ...), each read
-//!    from FORTE's own type. [`import_with_types`] takes another table, for a caller who
-//!    has the application's own `.fbt` files;
-//! 2. a parameter written to `X.SD_i` (a constant): a typed literal (`INT#3`, `T#1s`,
-//!    `'text'`, `TRUE`) gives its type; an untyped one (`3`, `1.5`) does not (and FORTE
-//!    2.0.x refuses it: an ANY input takes only `<TYPE>#<value>`);
-//! 3. otherwise nothing: the port is left out of the profile, with a note.
+//! 1. the pin's port type when the type table knows its FB type. [`import`] uses
+//!    [`builtin_types`]: the IEC 61131-3 conversions (`F_INT_TO_REAL`: `IN` INT, `OUT`
+//!    REAL), FORTE's `INT2INT`-style data FBs, its event FBs with data (`E_CTU`,
+//!    `E_SWITCH`, `E_CYCLE`, ...), the IEC 61131-3 FBs (`FB_TON`, `FB_CTU`, ...) and the
+//!    process-image FBs (`IX`, `QW`, ...), each read from FORTE's own type.
+//!    [`import_with_types`] takes another table, for a caller who has the application's
+//!    own `.fbt` files;
+//! 2. else a typed literal written to that pin (`DT#...`, `INT#3`, `T#1s`, `'text'`,
+//!    `TRUE`); an untyped one (`3`, `1.5`) gives nothing (and FORTE 2.0.x refuses it: an
+//!    ANY input takes only `<TYPE>#<value>`).
 //!
-//! A port left out stays in its event's WITH list, so [`ProfileFile::validate`] refuses
-//! the profile ("WITH SD_2: no data output of that name") until its type is written in:
-//! a profile that loads must decode the device's messages right, and one with a WITH
-//! value missing would misread every message (there is no `ANY` to put instead; the
-//! `fbdk` codec needs each value's type). A SUBSCRIBE's RD port wired to several inputs
-//! takes their type when all that are known agree.
+//! A literal written to the port itself counts too: `X.SD_i` takes the type of the
+//! output wired into it, else its own literal; `Y.RD_i` takes its own literal (it is the
+//! source of what it feeds), else the type of the inputs it feeds when all that are
+//! known agree. Where the two sides disagree (a DINT into an INT), the type of the data's
+//! source is kept and an advisory note names both; so too between a PUBLISH and a
+//! SUBSCRIBE of the import on one topic, where the publisher's type wins.
+//!
+//! Otherwise the port is left out of the profile, with a note. It stays in its event's
+//! WITH list, so [`ProfileFile::validate`] refuses the profile ("WITH SD_2: no data
+//! output of that name") until its type is written in: a profile that loads must decode
+//! the device's messages right, and one with a WITH value missing would misread every
+//! message (there is no `ANY` to put instead; the `fbdk` codec needs each value's type).
+//!
+//! # Notes, and names
+//!
+//! Every [`Note`] says whether it blocks: a blocking note is one validation error of the
+//! profile it names (an untyped port, an input topic without `from`), so a caller can say
+//! how many edits stand between the printed profile and `fbbus declare`, and list those
+//! first. [`import_named`] (and [`import_dinasore_named`]) names the generated ports as
+//! the user asks ([`PortNames`]: `P_COUNT.SD_1` → `COUNT`), while the FB is built, so the
+//! interface, WITH lists, topic mappings and notes agree.
 //!
 //! # Not imported
 //!
