@@ -131,13 +131,7 @@ enum ProfileAction {
     /// Derive profiles from a 4diac boot file (.fboot: a FORTE boot file, or the
     /// resources/data_model.fboot of a DINASORE) and print them as TOML, with what could
     /// not be derived.
-    Import {
-        file: PathBuf,
-        /// The device id of a DINASORE's profile (nothing in its file names it); default
-        /// "dinasore". A FORTE profile's device is its MQTT client id.
-        #[arg(long)]
-        device: Option<String>,
-    },
+    Import(profile_command::ImportArgs),
 }
 
 #[derive(Args)]
@@ -204,9 +198,7 @@ fn main() -> std::process::ExitCode {
         } => admin_address(admin, config).and_then(|a| profile_command::declare(&file, a)),
         Command::Profile { action } => match action {
             ProfileAction::Check { file } => profile_command::check(&file),
-            ProfileAction::Import { file, device } => {
-                profile_command::import(&file, device.as_deref())
-            }
+            ProfileAction::Import(args) => profile_command::import(&args),
         },
         #[cfg(feature = "bridge")]
         Command::BusCert { action } => bus_cert::run(action),

@@ -177,6 +177,20 @@ impl Declaration {
 
     /// Checks every FB and port and returns the typed interface, or every mistake found.
     pub fn validate(self) -> Result<Interface, Vec<DeclarationError>> {
+        match self.validate_partly()? {
+            (interface, errors) if errors.is_empty() => Ok(interface),
+            (_, errors) => Err(errors),
+        }
+    }
+
+    /// Checks every FB and port: the typed interface of what is right (an FB whose name or
+    /// port count is wrong is left out, and so is a data port whose type is), with every
+    /// mistake found. For a caller that goes on checking what refers to the interface (a
+    /// profile's topics), so that one run reports every mistake. Err: the declaration is
+    /// refused as a whole (too many FBs).
+    pub fn validate_partly(
+        self,
+    ) -> Result<(Interface, Vec<DeclarationError>), Vec<DeclarationError>> {
         let mut errors = Vec::new();
         let mut err = |fb: &str, port: Option<&str>, error: String| {
             errors.push(DeclarationError {
@@ -284,11 +298,7 @@ impl Declaration {
                 },
             );
         }
-        if errors.is_empty() {
-            Ok(Interface { fbs })
-        } else {
-            Err(errors)
-        }
+        Ok((Interface { fbs }, errors))
     }
 }
 

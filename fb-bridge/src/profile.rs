@@ -20,7 +20,7 @@
 //! [`ProfileFile::validate`] resolves it into a [`Profile`] or lists every mistake, each
 //! located, as [`Declaration::validate`] does for a declaration.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
@@ -329,13 +329,38 @@ impl ProfileFile {
         if self.speaks.qos > 2 {
             errors.push(err("speaks.qos", "0, 1 or 2"));
         }
-        let interface = match self.interface.validate() {
-            Ok(interface) => interface,
+        // Every port as written: one whose FB or type is wrong has its own error, and
+        // what refers to it is not blamed again for its absence from `interface`.
+        let written: BTreeSet<(String, String)> = self
+            .interface
+            .fbs
+            .iter()
+            .flat_map(|(fb, f)| {
+                f.events_out
+                    .keys()
+                    .chain(f.events_in.keys())
+                    .chain(f.data_out.keys())
+                    .chain(f.data_in.keys())
+                    .map(move |port| (fb.clone(), port.clone()))
+            })
+            .collect();
+        // The rest is checked against the interface's right part, so one run reports
+        // every mistake (a port without a type and a topic without from alike).
+        let (interface, found) = match self.interface.validate_partly() {
+            Ok(checked) => checked,
             Err(found) => {
                 errors.extend(found.into_iter().map(|e| err("interface", e.to_string())));
                 return Err(errors);
             }
         };
+        let faulty: BTreeSet<String> = found.iter().filter_map(|e| e.fb.clone()).collect();
+        // A port written but left out of `interface` for its own error.
+        let dropped = |interface: &Interface, fb: &str, port: &str| {
+            written.contains(&(fb.to_owned(), port.to_owned()))
+                && interface.output(fb, port).is_none()
+                && interface.input(fb, port).is_none()
+        };
+        errors.extend(found.into_iter().map(|e| err("interface", e.to_string())));
 
         if self.topics.len() > MAX_TOPICS {
             errors.push(err(
@@ -398,7 +423,7 @@ impl ProfileFile {
                     format!("{fb}.{port} is an output: only an input topic has a from"),
                 )),
                 (Some(from), false, true) => match parse_source(from) {
-                    Some(_) if dinasore && enc == Encoding::Dinasore && !floats(&interface, fb, port) => {
+                    Some(_) if dinasore && enc == Encoding::Dinasore && !faulty.contains(fb) && !floats(&interface, fb, port) => {
                         errors.push(err(
                             at("port"),
                             format!(
@@ -411,6 +436,7 @@ impl ProfileFile {
                     Some(from) => inputs.push(InputTopic { own, from }),
                     None => errors.push(err(at("from"), "<device>/<FB>/<PORT>")),
                 },
+                (_, false, false) if dropped(&interface, fb, port) => {}
                 (_, false, false) => errors.push(err(
                     at("port"),
                     format!("{fb}.{port} is not a port of the profile's interface"),
@@ -426,6 +452,9 @@ impl ProfileFile {
                 continue;
             };
             let Some(out) = interface.output(fb, port) else {
+                if dropped(&interface, fb, port) {
+                    continue;
+                }
                 errors.push(err(
                     at,
                     format!("{fb}.{port} is not an output of the interface"),
@@ -446,6 +475,10 @@ impl ProfileFile {
                 }
             };
             let payload = payload.to_string();
+            if faulty.contains(fb) {
+                // Its WITH types may be missing: the FB's own errors come first.
+                continue;
+            }
             match crate::codec::json::decode_named(payload.as_bytes(), port, &out) {
                 Ok(_) => will.push((fb.to_owned(), port.to_owned(), payload)),
                 Err(e) => errors.push(err(at, e.to_string())),
@@ -467,6 +500,7 @@ impl ProfileFile {
                         ));
                     }
                 }
+                Some((fb, port)) if dropped(&interface, fb, port) => {}
                 _ => errors.push(err(at, "FB.PORT of an output of the interface")),
             }
         }

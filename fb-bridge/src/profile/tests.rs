@@ -112,8 +112,56 @@ fn every_mistake_is_reported_with_where_it_is() {
 fn an_interface_mistake_is_named() {
     let bad = conveyor(json!({"interface": {"fbs": {"CONV": {"data_out": {"X": "INTEGER"}}}}}));
     let errors = bad.validate().expect_err("invalid");
-    assert_eq!(errors.len(), 1);
     assert!(errors[0].error.contains("INTEGER"), "{errors:?}");
+    // The rest is checked too, in the same run: what names ports the interface does not
+    // have is named, but not the port X, whose own error is the first.
+    let at: Vec<&str> = errors.iter().map(|e| e.at.as_str()).collect();
+    assert_eq!(
+        at,
+        [
+            "interface",
+            "topics[0].port",
+            "topics[1].port",
+            "will.CONV.CONNECT",
+            "periods.CONV.POSITION"
+        ],
+        "{errors:#?}"
+    );
+    let bad = conveyor(json!({
+        "interface": {"fbs": {"CONV": {"data_out": {"X": "INTEGER"}}}},
+        "topics": [{"topic": "line1/x", "port": "CONV.X"}],
+        "will": {"CONV.X": 1},
+        "periods": {"CONV.X": 100}
+    }));
+    let errors = bad.validate().expect_err("invalid");
+    assert_eq!(errors.len(), 1, "{errors:#?}");
+}
+
+#[test]
+fn a_port_without_a_type_and_a_topic_without_from_are_reported_in_one_run() {
+    // What `fbbus profile import` leaves to fix: an untyped SD_2 (in the WITH list, not in
+    // data_out) and two input topics without `from`.
+    let bad = conveyor(json!({
+        "interface": {"fbs": {
+            "PUB": {"events_out": {"REQ": {"with": ["SD_1", "SD_2"]}}, "data_out": {"SD_1": "INT"}},
+            "SUB": {"events_in": {"IND": {"with": ["RD_1"]}}, "data_in": {"RD_1": "DINT"}}
+        }},
+        "topics": [
+            {"topic": "line1/pub", "port": "PUB.REQ"},
+            {"topic": "line1/sub", "port": "SUB.IND"},
+            {"topic": "line1/rd", "port": "SUB.RD_1"}
+        ],
+        "will": {},
+        "periods": {}
+    }));
+    let errors = bad.validate().expect_err("invalid");
+    let at: Vec<&str> = errors.iter().map(|e| e.at.as_str()).collect();
+    assert_eq!(
+        at,
+        ["interface", "topics[1].from", "topics[2].from"],
+        "{errors:#?}"
+    );
+    assert!(errors[0].error.contains("WITH SD_2"), "{errors:#?}");
 }
 
 #[test]

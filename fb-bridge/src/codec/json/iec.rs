@@ -2,11 +2,12 @@
 //! every spelling the standard allows and written in one canonical form.
 //!
 //! Pure string work, no JSON: `read` calls the parsers for JSON strings and `encode` the
-//! formatters. Every slice is taken at an ASCII position, so any UTF-8 input is safe.
+//! formatters; [`excerpt`], which both this module's errors and `read`'s use, lives here
+//! so that the two import one way only. Every slice is taken at an ASCII position or a
+//! character boundary, so any UTF-8 input is safe.
 use std::borrow::Cow;
 use std::fmt::Write;
 
-use super::read::excerpt;
 use crate::value::MS_PER_DAY;
 
 /// Why a string is not a valid literal: its form, or a value beyond the type's range.
@@ -20,6 +21,16 @@ use LiteralError::{Range, Syntax};
 
 fn syntax(why: impl Into<String>) -> LiteralError {
     Syntax(why.into())
+}
+
+/// At most 40 characters of `s`: error messages go back to devices and into logs, and a
+/// 64 KiB string does not belong in either.
+pub(super) fn excerpt(s: &str) -> String {
+    const MAX: usize = 40;
+    match s.char_indices().nth(MAX) {
+        Some((cut, _)) => format!("{}...", &s[..cut]),
+        None => s.to_owned(),
+    }
 }
 
 /// `s` without the first of `prefixes` it starts with, compared case-insensitively.

@@ -7,7 +7,7 @@
 
 use serde_json::{Map, Value as Json};
 
-use super::iec;
+use super::iec::{self, excerpt};
 use crate::codec::CodecError;
 use crate::types::{DataType, ElementaryType};
 use crate::value::{TypeError, Value};
@@ -286,16 +286,6 @@ fn literal_str<V>(
             value: excerpt(s),
         },
     })
-}
-
-/// At most 40 characters of `s`: error messages go back to devices and into logs, and a
-/// 64 KiB string does not belong in either.
-pub(super) fn excerpt(s: &str) -> String {
-    const MAX: usize = 40;
-    match s.char_indices().nth(MAX) {
-        Some((cut, _)) => format!("{}...", &s[..cut]),
-        None => s.to_owned(),
-    }
 }
 
 #[cfg(test)]

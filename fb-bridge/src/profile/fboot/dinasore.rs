@@ -108,16 +108,27 @@
 //! and `MQTT_SUBSCRIBER{,_2}` (`.fbt`, `.py`); and eclipse-4diac/4diac-ide's
 //! `DeploymentExecutor.java` (the requests and `encodeXMLChars`).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 
-use super::{
-    instance_name, mappable_topic, sanitized_device, unique, xml_items, Draft, FbootImport,
-    PortRef, Resource, Tag, XmlItem,
+use super::draft::{
+    dollar_input, input, mappable_topic, output, sanitized_device, topic_kind, unique,
+    unmapped_input, Draft, Endpoint, Shape, TopicKind, ValuePort,
 };
+use super::names::PortNames;
+use super::note::Notes;
+use super::resource::{PortRef, Resource};
+use super::typing::Derived;
+use super::FbootImport;
 use crate::codec::Encoding;
-use crate::interface::{is_identifier, Event, FbInterface, Interface};
+use crate::interface::{is_identifier, Interface};
 use crate::profile::{IdentityFile, ProfileFile, Speaks};
-use crate::topic::{self, filter, TypedTopic};
+use crate::topic::{self, TypedTopic};
+use crate::types::{DataType, ElementaryType};
+use read::{mqtt_type, python_int, read, Role};
+#[cfg(test)]
+use read::{python_float, python_lines};
+
+mod read;
 
 /// The device id when nothing is left of the caller's once made usable.
 const FALLBACK_DEVICE: &str = "dinasore";
@@ -128,6 +139,13 @@ const FALLBACK_DEVICE: &str = "dinasore";
 /// configuration with MQTT traffic (a FORTE boot file, say). Otherwise one profile, or
 /// none and the notes saying why.
 pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
+    import_dinasore_named(text, device, &mut PortNames::new())
+}
+
+/// [`import_dinasore`], with the generated event ports named as `names` says (a data
+/// port's name is its payload key, which no name changes); what is wrong with the names is
+/// in [`PortNames::finish`] afterwards.
+pub fn import_dinasore_named(text: &str, device: &str, names: &mut PortNames) -> FbootImport {
     let config = read(text);
     let mut fbs: Vec<(&String, &(usize, String))> = config.resource.fbs.iter().collect();
     fbs.sort_by_key(|(_, (order, _))| *order);
@@ -146,12 +164,12 @@ pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
     if mqtt.is_empty() {
         return FbootImport::default();
     }
-    let mut notes = Vec::new();
+    let mut notes = Notes::default();
     if let Some(why) = config.refusal {
         notes.push(why);
         return FbootImport {
             profiles: Vec::new(),
-            notes,
+            notes: notes.into_vec(),
         };
     }
     let device = if topic::is_device_id(device) {
@@ -174,13 +192,7 @@ pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
             published.entry(t).or_insert(fb.instance);
         }
     }
-    let mut draft = Draft {
-        device,
-        fbs: BTreeMap::new(),
-        typed_fbs: BTreeSet::new(),
-        topics: Vec::new(),
-        mapped: BTreeMap::new(),
-    };
+    let mut draft = Draft::new(device, names);
     for fb in &mqtt {
         derive(fb, resource, &published, &mut draft, &mut notes);
     }
@@ -191,7 +203,7 @@ pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
         ));
         return FbootImport {
             profiles: Vec::new(),
-            notes,
+            notes: notes.into_vec(),
         };
     }
     let profile = ProfileFile {
@@ -215,318 +227,12 @@ pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
     };
     FbootImport {
         profiles: vec![profile],
-        notes,
+        notes: notes.into_vec(),
     }
-}
-
-// ---------------------------------------------------------------------------------------
-// Reading the file as DINASORE reads it.
-
-/// The FBs, parameters and connections DINASORE builds from the file, and the first
-/// reason it runs none of them.
-struct Config {
-    resource: Resource,
-    refusal: Option<String>,
-}
-
-/// Python's `readlines()` of a file opened as text: lines split after `\n`, `\r\n` or
-/// `\r`, without their ends; a last line without an end is a line, an empty text none.
-fn python_lines(text: &str) -> Vec<&str> {
-    let mut lines = Vec::new();
-    let mut rest = text;
-    while !rest.is_empty() {
-        let Some(at) = rest.find(['\r', '\n']) else {
-            lines.push(rest);
-            break;
-        };
-        let (line, end) = rest.split_at(at);
-        lines.push(line);
-        rest = end
-            .strip_prefix("\r\n")
-            .or_else(|| end.get(1..))
-            .unwrap_or("");
-    }
-    lines
-}
-
-/// The first XML escape in a line (`&apos;`, `&#47;`), if any.
-fn escape(line: &str) -> Option<&str> {
-    line.match_indices('&').find_map(|(at, _)| {
-        let rest = line.get(at..)?;
-        let end = rest.find(';')?;
-        let name = rest.get(1..end)?;
-        let is_name = |c: char| c.is_ascii_alphanumeric() || c == '#';
-        (!name.is_empty() && name.chars().all(is_name))
-            .then(|| rest.get(..=end))
-            .flatten()
-    })
-}
-
-/// An attribute value as expat (ElementTree's parser) reads it, in a line DINASORE
-/// splits into two parts: a literal tab read as a space. Such a line has no `;` but the
-/// resource's, so no XML escape (`&apos;`, `&#47;`): an `&` there starts none, and expat
-/// refuses it, as it refuses a `<`.
-fn expat_value(raw: &str) -> Result<String, String> {
-    if raw.contains('&') {
-        return Err(
-            "it has an '&' that starts no XML escape (4diac IDE writes an '&' of a parameter \
-             as it is)"
-                .into(),
-        );
-    }
-    if raw.contains('<') {
-        return Err("it has a '<'".into());
-    }
-    Ok(raw.replace('\t', " "))
-}
-
-/// One request as ElementTree parses it: its root element and the root's children, or
-/// ElementTree's reason to refuse it.
-fn element_tree(request: &str) -> Result<(Tag, Vec<Tag>), String> {
-    let xml = request.trim_matches(|c| matches!(c, ' ' | '\t' | '\n' | '\r'));
-    if !xml.starts_with('<') || !xml.ends_with('>') {
-        return Err("there is text around the request".into());
-    }
-    let mut open: Vec<String> = Vec::new();
-    let mut root = None;
-    let mut children = Vec::new();
-    for item in xml_items(xml, expat_value)? {
-        match item {
-            XmlItem::Start { tag, empty } => {
-                let name = tag.name.clone();
-                match (open.len(), &root) {
-                    (0, Some(_)) => return Err("it has more than one root element".into()),
-                    (0, None) => root = Some(tag),
-                    (1, _) => children.push(tag),
-                    _ => {}
-                }
-                if !empty {
-                    open.push(name);
-                }
-            }
-            XmlItem::End(name) => match open.pop() {
-                Some(opened) if opened == name => {}
-                Some(opened) => return Err(format!("<{opened}> is closed by </{name}>")),
-                None => return Err(format!("</{name}> closes nothing")),
-            },
-        }
-    }
-    if let Some(unclosed) = open.last() {
-        return Err(format!("<{unclosed}> is not closed"));
-    }
-    root.map(|root| (root, children))
-        .ok_or_else(|| "it has no element".into())
-}
-
-/// `FB.PORT` as DINASORE splits it: at every dot, the first two parts.
-fn dinasore_port(text: &str) -> Option<PortRef> {
-    let mut parts = text.split('.');
-    let (fb, port) = (parts.next()?, parts.next()?);
-    Some((fb.to_owned(), port.to_owned()))
-}
-
-/// Builds DINASORE's configuration from the file in its two passes: every line's FBs
-/// first, then every line's connections and parameters.
-fn read(text: &str) -> Config {
-    // One configuration, whatever the resource is called.
-    let mut resource = Resource::default();
-    let mut refusal = None;
-    let mut requests = Vec::new();
-    for (i, line) in python_lines(text).into_iter().enumerate() {
-        let number = i + 1;
-        let parts: Vec<&str> = line.split(';').collect();
-        let [_, request] = parts.as_slice() else {
-            refusal.get_or_insert_with(|| {
-                let why = match escape(line) {
-                    Some(escape) => format!(
-                        "has the XML escape {escape} in a parameter (4diac IDE writes ' \" \
-                         < > of a parameter so: a STRING written with quotes, 'line1/a', \
-                         is &apos;line1/a&apos;), and DINASORE splits every line at each ';'"
-                    ),
-                    None => format!(
-                        "has {} ';'-separated parts, not the 2 DINASORE splits every line \
-                         into (a blank line, or a ';' in a parameter)",
-                        parts.len()
-                    ),
-                };
-                format!(
-                    "Line {number} {why}: it finds the file in an invalid state and runs \
-                     nothing of it (\"Awaiting deployment\"), so no profile is derived; write \
-                     the parameters without those characters in 4diac IDE."
-                )
-            });
-            continue;
-        };
-        match element_tree(request) {
-            Ok((root, children)) => requests.push((number, root, children)),
-            Err(why) => {
-                refusal.get_or_insert_with(|| {
-                    format!(
-                        "Line {number} is not XML that DINASORE's parser (Python's ElementTree) \
-                         reads: {why}. It does not catch that error, so it runs nothing of the \
-                         file, and no profile is derived."
-                    )
-                });
-            }
-        }
-    }
-    // Pass 1: the FBs.
-    for (order, (_, root, children)) in requests.iter().enumerate() {
-        if root.attr("Action") != Some("CREATE") {
-            continue;
-        }
-        for child in children.iter().filter(|c| c.name == "FB") {
-            if let (Some(name), Some(fb_type)) = (child.attr("Name"), child.attr("Type")) {
-                if fb_type != "EMB_RES" {
-                    resource
-                        .fbs
-                        .insert(name.to_owned(), (order, fb_type.to_owned()));
-                }
-            }
-        }
-    }
-    // Pass 2: connections and parameters, each a reason to stop if DINASORE raises on it.
-    let mut raised = None;
-    for (number, root, children) in &requests {
-        let action = root.attr("Action");
-        if !matches!(action, Some("CREATE" | "WRITE")) {
-            continue;
-        }
-        for child in children.iter().filter(|c| c.name == "Connection") {
-            if let Err(why) = apply(&mut resource, action == Some("WRITE"), child) {
-                raised.get_or_insert_with(|| {
-                    format!(
-                        "Line {number}: {why}; DINASORE raises there while it builds its FBs \
-                         from the file, so it runs nothing of it, and no profile is derived."
-                    )
-                });
-            }
-        }
-    }
-    Config {
-        resource,
-        refusal: refusal.or(raised),
-    }
-}
-
-/// Applies a connection (`write`: a parameter) as DINASORE does; Err: why it raises.
-fn apply(resource: &mut Resource, write: bool, connection: &Tag) -> Result<(), String> {
-    let (Some(source), Some(destination)) =
-        (connection.attr("Source"), connection.attr("Destination"))
-    else {
-        return Err("the connection lacks its Source or Destination".into());
-    };
-    let exists = |resource: &Resource, fb: &str| fb == "START" || resource.fbs.contains_key(fb);
-    let to = dinasore_port(destination)
-        .ok_or_else(|| format!("the Destination {destination:?} is not FB.PORT"))?;
-    if !write {
-        let from =
-            dinasore_port(source).ok_or_else(|| format!("the Source {source:?} is not FB.PORT"))?;
-        if !exists(resource, &from.0) {
-            return Err(format!(
-                "the connection comes from {}, an FB it does not have",
-                from.0
-            ));
-        }
-        resource.connect(from, to);
-        return Ok(());
-    }
-    if !exists(resource, &to.0) {
-        return Err(format!(
-            "the WRITE goes to {}, an FB it does not have",
-            to.0
-        ));
-    }
-    if source == "$e" {
-        // An event triggered from 4diac IDE, not a parameter.
-        return Ok(());
-    }
-    if let Some((_, two)) = resource.fb_type(&to.0).and_then(mqtt_type) {
-        let port = to.1.as_str();
-        if port == "PORT" && python_int(source).is_none() {
-            return Err(format!(
-                "{}.PORT is {source:?}, which its int() cannot read (the port is a UINT)",
-                to.0
-            ));
-        }
-        let value_port = match two {
-            false => port == "VALUE",
-            true => port == "VALUE_1" || port == "VALUE_2",
-        };
-        // A publisher's VALUE is an input, a subscriber's an output: both REAL.
-        if value_port && python_float(source).is_none() {
-            return Err(format!(
-                "{}.{port} is {source:?}, which its float() cannot read (the value is a REAL)",
-                to.0
-            ));
-        }
-    }
-    resource.params.insert(to, source.to_owned());
-    Ok(())
-}
-
-/// Python's `int()` of a text, saturated: None where it raises.
-fn python_int(text: &str) -> Option<i128> {
-    let t = text.trim();
-    let (negative, digits) = match t.strip_prefix('-') {
-        Some(d) => (true, d),
-        None => (false, t.strip_prefix('+').unwrap_or(t)),
-    };
-    if !underscored_digits(digits) {
-        return None;
-    }
-    let value = digits
-        .bytes()
-        .filter(u8::is_ascii_digit)
-        .fold(0i128, |n, d| {
-            n.saturating_mul(10).saturating_add(i128::from(d - b'0'))
-        });
-    Some(if negative { -value } else { value })
-}
-
-/// Python's `float()` of a text: None where it raises.
-fn python_float(text: &str) -> Option<f64> {
-    let t = text.trim();
-    if t.contains('_') {
-        // Underscores only between digits.
-        let ok = t
-            .split(|c: char| !c.is_ascii_digit() && c != '_')
-            .all(|run| run.is_empty() || underscored_digits(run));
-        if !ok {
-            return None;
-        }
-        return t.replace('_', "").parse().ok();
-    }
-    t.parse().ok()
-}
-
-/// ASCII digits, with single underscores between them.
-fn underscored_digits(text: &str) -> bool {
-    !text.is_empty()
-        && text
-            .split('_')
-            .all(|group| !group.is_empty() && group.bytes().all(|b| b.is_ascii_digit()))
 }
 
 // ---------------------------------------------------------------------------------------
 // The MQTT FBs.
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Role {
-    Publisher,
-    Subscriber,
-}
-
-/// DINASORE finds an FB type by its file name, exactly.
-fn mqtt_type(fb_type: &str) -> Option<(Role, bool)> {
-    match fb_type {
-        "MQTT_PUBLISHER" => Some((Role::Publisher, false)),
-        "MQTT_PUBLISHER_2" => Some((Role::Publisher, true)),
-        "MQTT_SUBSCRIBER" => Some((Role::Subscriber, false)),
-        "MQTT_SUBSCRIBER_2" => Some((Role::Subscriber, true)),
-        _ => None,
-    }
-}
 
 /// (VALUE_NAME parameter, the REAL port of its value) of each value the FB carries.
 fn value_ports(two: bool) -> &'static [(&'static str, &'static str)] {
@@ -572,7 +278,7 @@ fn param<'a>(resource: &'a Resource, fb: &str, port: &str) -> Param<'a> {
 }
 
 /// The note on brokers: DINASORE connects each MQTT FB to its own HOST and PORT.
-fn broker_note(resource: &Resource, mqtt: &[MqttFb<'_>], notes: &mut Vec<String>) {
+fn broker_note(resource: &Resource, mqtt: &[MqttFb<'_>], notes: &mut Notes) {
     let mut brokers: Vec<(String, Vec<&str>)> = Vec::new();
     for fb in mqtt {
         let (Param::Written(host), Param::Written(port)) = (
@@ -615,7 +321,7 @@ fn string_param<'a>(
     resource: &'a Resource,
     fb: &MqttFb<'_>,
     port: &str,
-    notes: &mut Vec<String>,
+    notes: &mut Notes,
 ) -> Option<&'a str> {
     let what = fb.what();
     match param(resource, fb.instance, port) {
@@ -639,7 +345,7 @@ fn string_param<'a>(
 
 /// Whether the FB's connection can succeed: HOST and PORT given and usable (a note
 /// otherwise, or when they come from another FB).
-fn connects(resource: &Resource, fb: &MqttFb<'_>, notes: &mut Vec<String>) -> bool {
+fn connects(resource: &Resource, fb: &MqttFb<'_>, notes: &mut Notes) -> bool {
     let what = fb.what();
     let fails = "so paho's connect() raises at its INIT and the FB stops; skipped";
     for port in ["HOST", "PORT"] {
@@ -682,8 +388,8 @@ fn derive(
     fb: &MqttFb<'_>,
     resource: &Resource,
     published: &BTreeMap<&str, &str>,
-    draft: &mut Draft,
-    notes: &mut Vec<String>,
+    draft: &mut Draft<'_>,
+    notes: &mut Notes,
 ) {
     let what = fb.what();
     if fb.instance.contains('.') {
@@ -721,34 +427,32 @@ fn derive(
     }
 }
 
-/// The FB's ports: data ports named by `names`, REAL, and for two distinct names an
-/// event `event` (or a free variant of it) with both; the port its topic maps onto.
-fn ports(
-    fb: &MqttFb<'_>,
-    name: &str,
+/// The key of a DINASORE payload is the port's name: a port named otherwise would not
+/// read the device's messages.
+const KEY_NAMED: &str = "a DINASORE payload's key is its port's name, the FB's VALUE_NAME: \
+                         rename the VALUE_NAME in 4diac IDE, in every FB that uses it";
+
+/// The FB as the profile's builders take it: data ports named by `names`, REAL, and for
+/// two distinct names an event `event` (or a free variant of it) carrying both; one name
+/// (or the same twice) is the data port itself.
+fn endpoint<'a>(
+    fb: &'a MqttFb<'a>,
+    what: &'a str,
     names: &[&str],
     event: &str,
-    draft: &Draft,
-    notes: &mut Vec<String>,
-) -> (BTreeMap<String, Event>, BTreeMap<String, String>, String) {
-    let what = fb.what();
-    let data: BTreeMap<String, String> = names
-        .iter()
-        .map(|n| ((*n).to_owned(), "REAL".to_owned()))
-        .collect();
-    match names {
+    device: &str,
+    notes: &mut Notes,
+) -> Endpoint<'a> {
+    let shape = match names {
         [first, second] if first != second => {
             let event_name = unique(event.to_owned(), |e| names.contains(&e), 64);
             if event_name != event {
                 notes.push(format!(
                     "{what}: one of its VALUE_NAMEs is {event}, the name of its event, so the \
-                     event is {event_name} in profile {}.",
-                    draft.device
+                     event is {event_name} in profile {device}."
                 ));
             }
-            let with = names.iter().map(|n| (*n).to_owned()).collect();
-            let events = BTreeMap::from([(event_name.clone(), Event { with })]);
-            (events, data, format!("{name}.{event_name}"))
+            Shape::Event(event_name)
         }
         _ => {
             let key = names.first().copied().unwrap_or_default();
@@ -760,12 +464,31 @@ fn ports(
                 .replace("KEY", key);
                 notes.push(format!(
                     "{what}: VALUE_NAME_1 and VALUE_NAME_2 are both {key:?}: {carried}, so its \
-                     FB in profile {} has the one data port {key}.",
-                    draft.device
+                     FB in profile {device} has the one data port {key}."
                 ));
             }
-            (BTreeMap::new(), data, format!("{name}.{key}"))
+            Shape::Data
         }
+    };
+    let mut values: Vec<ValuePort> = Vec::new();
+    for name in names {
+        if values.iter().all(|v| v.name != *name) {
+            values.push(ValuePort {
+                name: (*name).to_owned(),
+                ty: Ok(Derived {
+                    ty: DataType::Elementary(ElementaryType::Real),
+                    mismatch: None,
+                }),
+                fixed: Some(KEY_NAMED),
+            });
+        }
+    }
+    Endpoint {
+        what,
+        instance: fb.instance,
+        fb_type: fb.fb_type,
+        shape,
+        values,
     }
 }
 
@@ -775,33 +498,36 @@ fn publisher(
     resource: &Resource,
     t: &str,
     names: &[&str],
-    draft: &mut Draft,
-    notes: &mut Vec<String>,
+    draft: &mut Draft<'_>,
+    notes: &mut Notes,
 ) {
     let what = fb.what();
-    if !filter::valid_topic(t) {
-        notes.push(format!(
-            "{what}: its TOPIC {t:?} is not a topic one can publish on (empty or a \
-             wildcard), so paho raises at its first RUN and the FB stops; skipped: fix TOPIC \
-             in 4diac IDE."
-        ));
-        return;
-    }
-    if filter::is_dollar(t) {
-        notes.push(format!(
-            "{what}: its TOPIC {t:?} starts with $, which brokers keep for themselves; \
-             skipped: use a topic of its own."
-        ));
-        return;
-    }
-    if topic::is_typed_namespace(t) {
-        notes.push(format!(
-            "{what}: its TOPIC {t:?} is in a typed namespace, where a publication is typed \
-             by the interface of the device the topic names and DINASORE's string values \
-             (\"3.0\") are refused; skipped: publish on a topic of its own, which the profile \
-             maps."
-        ));
-        return;
+    match topic_kind(t) {
+        TopicKind::NotAFilter | TopicKind::Wildcard => {
+            notes.push(format!(
+                "{what}: its TOPIC {t:?} is not a topic one can publish on (empty or a \
+                 wildcard), so paho raises at its first RUN and the FB stops; skipped: fix \
+                 TOPIC in 4diac IDE."
+            ));
+            return;
+        }
+        TopicKind::Dollar => {
+            notes.push(format!(
+                "{what}: its TOPIC {t:?} starts with $, which brokers keep for themselves; \
+                 skipped: use a topic of its own."
+            ));
+            return;
+        }
+        TopicKind::Typed => {
+            notes.push(format!(
+                "{what}: its TOPIC {t:?} is in a typed namespace, where a publication is typed \
+                 by the interface of the device the topic names and DINASORE's string values \
+                 (\"3.0\") are refused; skipped: publish on a topic of its own, which the \
+                 profile maps."
+            ));
+            return;
+        }
+        TopicKind::Own => {}
     }
     if !mappable_topic(&what, t, draft, notes) {
         return;
@@ -815,19 +541,8 @@ fn publisher(
             ));
         }
     }
-    let name = instance_name(&what, fb.instance, draft, notes);
-    let (events_out, data_out, port) = ports(fb, &name, names, "RUN", draft, notes);
-    draft.fbs.insert(
-        name,
-        FbInterface {
-            fb_type: Some(fb.fb_type.to_owned()),
-            events_out,
-            events_in: BTreeMap::new(),
-            data_out,
-            data_in: BTreeMap::new(),
-        },
-    );
-    draft.map_topic(t, port, None);
+    let endpoint = endpoint(fb, &what, names, "RUN", &draft.device, notes);
+    output(draft, &endpoint, t, notes);
 }
 
 /// An MQTT_SUBSCRIBER(_2): an input of the profile.
@@ -836,66 +551,55 @@ fn subscriber(
     t: &str,
     names: &[&str],
     published: &BTreeMap<&str, &str>,
-    draft: &mut Draft,
-    notes: &mut Vec<String>,
+    draft: &mut Draft<'_>,
+    notes: &mut Notes,
 ) {
     let what = fb.what();
-    if !filter::valid_filter(t) {
-        notes.push(format!(
-            "{what}: its TOPIC {t:?} is not a topic filter, so paho raises at its INIT and the \
-             FB stops; skipped: fix TOPIC in 4diac IDE."
-        ));
-        return;
-    }
-    if !filter::valid_topic(t) {
-        notes.push(format!(
+    let refused = match topic_kind(t) {
+        TopicKind::NotAFilter => Some(format!(
+            "{what}: its TOPIC {t:?} is not a topic filter, so paho raises at its INIT and \
+             the FB stops; skipped: fix TOPIC in 4diac IDE."
+        )),
+        TopicKind::Wildcard => Some(format!(
             "{what}: its TOPIC {t:?} is a wildcard filter: it is subscribed, but the FB \
              compares each message's topic with TOPIC as a string, so it reads nothing; \
              skipped: one topic per FB."
-        ));
-        return;
-    }
-    if filter::is_dollar(t) {
-        notes.push(format!(
-            "{what}: it reads {t:?}, a $ topic, not typed data; skipped."
-        ));
-        return;
-    }
-    if topic::is_typed_namespace(t) {
-        match TypedTopic::parse(t) {
-            Some(typed) if typed.encoding == Encoding::Dinasore => notes.push(format!(
+        )),
+        TopicKind::Dollar => Some(dollar_input(&what, t)),
+        TopicKind::Typed => Some(match TypedTopic::parse(t) {
+            Some(typed) if typed.encoding == Encoding::Dinasore => format!(
                 "{what}: it reads the typed topic {t:?} directly, typed by the interface of \
                  device {:?}: nothing to map (its VALUE_NAMEs must be {} or, for an event, \
                  names of its WITH data).",
                 typed.device, typed.port
-            )),
-            Some(typed) => notes.push(format!(
-                "{what}: it reads {t:?}, whose {} payloads are not the JSON objects it reads, \
-                 so the FB fails on the first one; skipped: read {:?} instead.",
+            ),
+            Some(typed) => format!(
+                "{what}: it reads {t:?}, whose {} payloads are not the JSON objects it \
+                 reads, so the FB fails on the first one; skipped: read {:?} instead.",
                 typed.encoding.namespace(),
                 typed.in_encoding(Encoding::Dinasore)
-            )),
-            None => notes.push(format!(
+            ),
+            None => format!(
                 "{what}: its TOPIC {t:?} is in a typed namespace but is not \
                  <namespace>/<device>/<FB>/<PORT>, so nothing is published there; skipped."
-            )),
-        }
+            ),
+        }),
+        TopicKind::Own => None,
+    };
+    if let Some(note) = refused {
+        notes.push(note);
         return;
     }
     let Some(publisher) = published.get(t) else {
         if !mappable_topic(&what, t, draft, notes) {
             return;
         }
-        let port = add_subscriber(fb, names, draft, notes);
-        notes.push(format!(
-            "{what} reads topic {t:?}: set `from` of that topic in profile {} to the typed \
-             output that feeds it (<device>/<FB>/<PORT>).",
-            draft.device
-        ));
-        draft.map_topic(t, port, None);
+        let endpoint = endpoint(fb, &what, names, "READ_O", &draft.device, notes);
+        input(draft, &endpoint, t, notes);
         return;
     };
-    add_subscriber(fb, names, draft, notes);
+    let endpoint = endpoint(fb, &what, names, "READ_O", &draft.device, notes);
+    unmapped_input(draft, &endpoint, notes);
     // The device's own output: mapping it as an input too would make one topic both, which
     // a profile refuses, and keep its own publisher off it.
     notes.push(format!(
@@ -903,29 +607,6 @@ fn subscriber(
          reaches itself through the broker as before, so the topic is not mapped as an input \
          (its port stays in the interface)."
     ));
-}
-
-/// Puts a subscriber's FB into the interface; the port its topic maps onto.
-fn add_subscriber(
-    fb: &MqttFb<'_>,
-    names: &[&str],
-    draft: &mut Draft,
-    notes: &mut Vec<String>,
-) -> String {
-    let what = fb.what();
-    let name = instance_name(&what, fb.instance, draft, notes);
-    let (events_in, data_in, port) = ports(fb, &name, names, "READ_O", draft, notes);
-    draft.fbs.insert(
-        name,
-        FbInterface {
-            fb_type: Some(fb.fb_type.to_owned()),
-            events_out: BTreeMap::new(),
-            events_in,
-            data_out: BTreeMap::new(),
-            data_in,
-        },
-    );
-    port
 }
 
 #[cfg(test)]

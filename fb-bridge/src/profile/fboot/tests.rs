@@ -827,3 +827,227 @@ fn garbage_never_panics() {
         run(&text);
     }
 }
+
+/// The cases of issue 30 item 5, in a boot file as 4diac IDE writes one: a DINT count and
+/// a DT stamp published; a DT stamp (a literal on its RD_1), an INT speed and a two-value
+/// mode (one value wired to an FB type the file does not describe) read from another
+/// device; and its own count read back into an INT input.
+const CELL: &str = include_str!("../../../tests/data/cell.fboot");
+
+#[test]
+fn every_note_says_whether_it_blocks_and_the_blocking_ones_are_the_validation_errors() {
+    let out = import(CELL);
+    let [cell] = out.profiles.as_slice() else {
+        panic!("one profile: {:#?}", out);
+    };
+    let blocking: Vec<&str> = out
+        .notes
+        .iter()
+        .filter(|n| n.is_blocking())
+        .map(|n| n.text.as_str())
+        .collect();
+    // One input type and three `from`s.
+    assert_eq!(blocking.len(), 4, "{:#?}", out.notes);
+    assert!(
+        blocking[0].contains("S_STAMP in resource EMB_RES reads topic \"cell0/stamp\": set `from`")
+    );
+    assert!(
+        blocking[1].contains("S_SPEED in resource EMB_RES reads topic \"cell0/speed\": set `from`")
+    );
+    assert!(
+        blocking[2].contains("the type of S_MODE.RD_2 is not derivable")
+            && blocking[2].contains("set data_in.RD_2 of FB S_MODE in profile cell1"),
+        "{blocking:#?}"
+    );
+    assert!(
+        blocking[3].contains("S_MODE in resource EMB_RES reads topic \"cell0/mode\": set `from`")
+    );
+    assert!(out
+        .notes
+        .iter()
+        .all(|n| !n.is_blocking() || n.blocks.as_deref() == Some("cell1")));
+    assert_eq!(out.blocking(), 4);
+    let firsts: Vec<bool> = out
+        .notes_blocking_first()
+        .iter()
+        .map(|n| n.is_blocking())
+        .collect();
+    assert_eq!(firsts[..4], [true; 4]);
+    assert!(firsts[4..].iter().all(|b| !b));
+
+    // As many errors as blocking notes, all in one validation.
+    let errors = cell.clone().validate().expect_err("incomplete");
+    assert_eq!(errors.len(), 4, "{errors:#?}");
+
+    // Typed from the DT literal on either side; the DINT count kept where it is read as
+    // INT, with a note naming both.
+    let fbs = &cell.interface.fbs;
+    assert_eq!(fbs["P_STAMP"].data_out["SD_1"], "DATE_AND_TIME");
+    assert_eq!(fbs["S_STAMP"].data_in["RD_1"], "DATE_AND_TIME");
+    assert_eq!(fbs["P_COUNT"].data_out["SD_1"], "DINT");
+    assert_eq!(fbs["S_SPEED"].data_in["RD_1"], "INT");
+    assert_eq!(fbs["S_COUNT"].data_in["RD_1"], "DINT");
+    let width: Vec<&Note> = out
+        .notes
+        .iter()
+        .filter(|n| n.contains("check the width"))
+        .collect();
+    assert_eq!(width.len(), 1, "{:#?}", out.notes);
+    assert!(
+        width[0].contains("S_COUNT.RD_1 as INT") && width[0].contains("SD_1 as DINT"),
+        "{width:#?}"
+    );
+    assert!(!width[0].is_blocking());
+
+    // Following the blocking notes makes it valid.
+    let mut cell = cell.clone();
+    if let Some(fb) = cell.interface.fbs.get_mut("S_MODE") {
+        fb.data_in.insert("RD_2".into(), "USINT".into());
+    }
+    for (topic, from) in [
+        ("cell0/stamp", "cell0/CLOCK/STAMP"),
+        ("cell0/speed", "cell0/DRIVE/SPEED"),
+        ("cell0/mode", "cell0/MODE/SET"),
+    ] {
+        let t = cell.topics.iter_mut().find(|t| t.topic == topic).unwrap();
+        t.from = Some(from.into());
+    }
+    cell.validate()
+        .expect("valid once the blocking notes are followed");
+}
+
+#[test]
+fn a_literal_on_a_wired_pin_types_the_port() {
+    // RD_1 feeds an input of an FB type the file does not describe, but that input is
+    // given a DATE literal; SD_1 is fed by an output given a TIME_OF_DAY one.
+    let out = import_lines(&[
+        create("SUB", "SUBSCRIBE_1"),
+        write("fbdk[].mqtt[tcp://b:1883, dev, line/in]", "SUB.ID"),
+        create("CLOCK", "MY_CLOCK"),
+        connect("SUB.RD_1", "CLOCK.DAY"),
+        write("D#2024-01-01", "CLOCK.DAY"),
+        create("PUB", "PUBLISH_1"),
+        write("fbdk[].mqtt[tcp://b:1883, dev, line/out]", "PUB.ID"),
+        connect("CLOCK.NOW", "PUB.SD_1"),
+        write("TOD#12:00:00", "CLOCK.NOW"),
+    ]);
+    let fbs = &out.profiles[0].interface.fbs;
+    assert_eq!(fbs["SUB"].data_in["RD_1"], "DATE", "{:#?}", out.notes);
+    assert_eq!(
+        fbs["PUB"].data_out["SD_1"], "TIME_OF_DAY",
+        "{:#?}",
+        out.notes
+    );
+
+    // A literal of another width on the port itself: the source's type, and a note.
+    let out = import_lines(&[
+        create("COUNTER", "FB_CTU_DINT"),
+        create("PUB", "PUBLISH_1"),
+        write("fbdk[].mqtt[tcp://b:1883, dev, line/out]", "PUB.ID"),
+        connect("COUNTER.CV", "PUB.SD_1"),
+        write("INT#0", "PUB.SD_1"),
+        create("SUB", "SUBSCRIBE_1"),
+        write("fbdk[].mqtt[tcp://b:1883, dev, line/in]", "SUB.ID"),
+        write("DINT#0", "SUB.RD_1"),
+        create("TO_REAL", "F_INT_TO_REAL"),
+        connect("SUB.RD_1", "TO_REAL.IN"),
+    ]);
+    let fbs = &out.profiles[0].interface.fbs;
+    assert_eq!(fbs["PUB"].data_out["SD_1"], "DINT");
+    assert_eq!(fbs["SUB"].data_in["RD_1"], "DINT");
+    let widths: Vec<&Note> = out
+        .notes
+        .iter()
+        .filter(|n| n.contains("check the width"))
+        .collect();
+    assert_eq!(widths.len(), 2, "{:#?}", out.notes);
+    assert!(widths[0].contains("PUB.SD_1 is fed a DINT by COUNTER.CV but is given the INT value"));
+    assert!(
+        widths[1].contains("SUB.RD_1 is given the DINT value \"DINT#0\" but feeds TO_REAL.IN INT")
+    );
+}
+
+#[test]
+fn the_user_names_the_generated_ports() {
+    let mut names = PortNames::new();
+    names.add_arg("P_COUNT.SD_1=COUNT").unwrap();
+    names.add_arg("P_COUNT.REQ=COUNTED").unwrap();
+    names.add("S_MODE.RD_2", "MODE").unwrap();
+    names.add("S_MODE.IND", "MODE_SET").unwrap();
+    let out = import_named(CELL, &builtin_types(), &mut names);
+    names.finish().expect("every name used");
+    let cell = &out.profiles[0];
+    let count = &cell.interface.fbs["P_COUNT"];
+    assert_eq!(count.events_out["COUNTED"].with, ["COUNT"]);
+    assert_eq!(count.data_out["COUNT"], "DINT");
+    assert!(!count.data_out.contains_key("SD_1"));
+    let ports: Vec<&str> = cell.topics.iter().map(|t| t.port.as_str()).collect();
+    assert!(ports.contains(&"P_COUNT.COUNTED") && ports.contains(&"S_MODE.MODE_SET"));
+    let mode = &cell.interface.fbs["S_MODE"];
+    assert_eq!(mode.events_in["MODE_SET"].with, ["RD_1", "MODE"]);
+    // The note says where the new name goes.
+    assert!(
+        out.notes
+            .iter()
+            .any(|n| n.contains("set data_in.MODE of FB S_MODE in profile cell1")),
+        "{:#?}",
+        out.notes
+    );
+    // The reader of its own count takes the publisher's typed output by its new name.
+    assert!(
+        out.notes
+            .iter()
+            .any(|n| n.contains("cell1/P_COUNT/COUNTED publishes")),
+        "{:#?}",
+        out.notes
+    );
+    // Once the blocking notes are followed, the named profile validates.
+    let mut cell = cell.clone();
+    if let Some(fb) = cell.interface.fbs.get_mut("S_MODE") {
+        fb.data_in.insert("MODE".into(), "USINT".into());
+    }
+    for t in cell
+        .topics
+        .iter_mut()
+        .filter(|t| t.topic.starts_with("cell0/"))
+    {
+        t.from = Some("cell0/X/Y".into());
+    }
+    cell.validate().expect("valid");
+}
+
+#[test]
+fn a_wrong_port_name_is_an_error_that_says_what_to_do() {
+    let mut names = PortNames::new();
+    assert!(matches!(
+        names.add_arg("P_COUNT.SD_1=1COUNT"),
+        Err(NameError::NotIdentifier { .. })
+    ));
+    assert!(matches!(
+        names.add_arg("P_COUNT=COUNT"),
+        Err(NameError::Syntax(_))
+    ));
+    assert!(matches!(
+        names.add_arg("P_COUNT.SD_1"),
+        Err(NameError::Syntax(_))
+    ));
+    names.add_arg("P_COUNT.SD_1=COUNT").unwrap();
+    let twice = names.add_arg("P_COUNT.SD_1=TOTAL").unwrap_err();
+    assert!(twice.to_string().contains("keep one"), "{twice}");
+    names.add_arg("P_COUNT.SD_9=NINE").unwrap();
+    names.add_arg("S_MODE.RD_1=RD_2").unwrap();
+    import_named(CELL, &builtin_types(), &mut names);
+    let errors = names.finish().expect_err("two wrong names");
+    let text: Vec<String> = errors.iter().map(ToString::to_string).collect();
+    assert_eq!(errors.len(), 2, "{text:#?}");
+    assert!(
+        matches!(&errors[0], NameError::Collides { fb, name, .. } if fb == "S_MODE" && name == "RD_2"),
+        "{text:#?}"
+    );
+    assert!(text[0].contains("choose another"), "{text:#?}");
+    assert!(
+        matches!(&errors[1], NameError::NoSuchPort { fb, port } if fb == "P_COUNT" && port == "SD_9"),
+        "{text:#?}"
+    );
+    assert!(text[1].contains("as the profile printed without names shows it"));
+}

@@ -1,6 +1,6 @@
 use super::*;
-use crate::profile::fboot::import;
 use crate::profile::fboot::tests::Noise;
+use crate::profile::fboot::{import, NameError, PortNames};
 use crate::profile::Identity;
 use serde_json::json;
 
@@ -622,7 +622,7 @@ fn the_device_id_comes_from_the_caller() {
     let out = import_lines(&[mqtt("P", "MQTT_PUBLISHER", "line1/#", &["A"])]);
     assert!(out.profiles.is_empty());
     assert_eq!(
-        out.notes.last().map(String::as_str),
+        out.notes.last().map(|n| n.text.as_str()),
         Some("None of its MQTT FBs can be mapped, so device conv3 has no profile.")
     );
 }
@@ -725,4 +725,57 @@ fn garbage_never_panics() {
         let bytes: Vec<u8> = (0..noise.below(200)).map(|_| noise.next() as u8).collect();
         run(&String::from_utf8_lossy(&bytes));
     }
+}
+
+#[test]
+fn the_subscribers_missing_from_blocks_and_nothing_else_does() {
+    let out = import_dinasore(CONV3, "conv3");
+    let blocking: Vec<&str> = out
+        .notes
+        .iter()
+        .filter(|n| n.is_blocking())
+        .map(|n| n.text.as_str())
+        .collect();
+    assert_eq!(blocking.len(), 2, "{:#?}", out.notes);
+    assert!(blocking[0].starts_with("MQTT_SUBSCRIBER SUB_POS reads topic"));
+    assert!(blocking[1].starts_with("MQTT_SUBSCRIBER_2 SUB_CMD reads topic"));
+    // The broker note comes first in the file's order, the blocking ones first when listed.
+    assert!(!out.notes[0].is_blocking());
+    assert!(out.notes_blocking_first()[0].starts_with("MQTT_SUBSCRIBER SUB_POS"));
+    let errors = out.profiles[0].clone().validate().expect_err("no from");
+    assert_eq!(errors.len(), out.blocking(), "{errors:#?}");
+}
+
+#[test]
+fn event_ports_take_names_and_value_ports_keep_their_payload_keys() {
+    let mut names = PortNames::new();
+    names.add_arg("SUB_CMD.READ_O=COMMAND").unwrap();
+    names.add_arg("PUB_STATE.RUN=STATE").unwrap();
+    let out = import_dinasore_named(CONV3, "conv3", &mut names);
+    names.finish().expect("event ports renamed");
+    let fbs = &out.profiles[0].interface.fbs;
+    assert_eq!(fbs["SUB_CMD"].events_in["COMMAND"].with, ["TARGET", "RAMP"]);
+    assert_eq!(
+        fbs["PUB_STATE"].events_out["STATE"].with,
+        ["SPEED_RAW", "SPEED_AVG"]
+    );
+    let ports: Vec<&str> = out.profiles[0]
+        .topics
+        .iter()
+        .map(|t| t.port.as_str())
+        .collect();
+    assert!(ports.contains(&"SUB_CMD.COMMAND") && ports.contains(&"PUB_STATE.STATE"));
+
+    // A value's port is its payload key: renaming it would lose every message.
+    let mut names = PortNames::new();
+    names.add_arg("SUB_POS.POSITION=POS").unwrap();
+    import_dinasore_named(CONV3, "conv3", &mut names);
+    let errors = names.finish().expect_err("a payload key");
+    assert!(
+        matches!(&errors[..], [NameError::Fixed { fb, port, .. }] if fb == "SUB_POS" && port == "POSITION"),
+        "{errors:#?}"
+    );
+    assert!(errors[0]
+        .to_string()
+        .contains("rename the VALUE_NAME in 4diac IDE"));
 }
