@@ -500,6 +500,10 @@ pub const REFUSED_LINE_LABELS: usize = 64;
 
 /// (device, port) pairs of `fbbus_typed_messages_rejected_total` with series of their own.
 pub const TYPED_PORT_LABELS: usize = 1024;
+/// Of those, the most one device's ports take: one device declaring or inventing port
+/// names cannot take the series every other device's refusals need (issue 33). Its
+/// further ports are counted under its own `port="other"`.
+pub const TYPED_PORT_LABELS_PER_DEVICE: usize = 16;
 
 impl Metrics {
     /// Counts a message or record from the bus refused because it does not come from
@@ -520,20 +524,28 @@ impl Metrics {
 
     /// One typed publication refused, by device, port and reason. Device and port names are
     /// the clients' (a device may declare fresh port names without end): at most
-    /// [`TYPED_PORT_LABELS`] (device, port) pairs get series of their own, the rest are
-    /// counted under device and port `other` (issue 21: 25,000 invented port names took
-    /// `/metrics` from 7.5 KB to 3.6 MB).
+    /// [`TYPED_PORT_LABELS`] (device, port) pairs get series of their own, at most
+    /// [`TYPED_PORT_LABELS_PER_DEVICE`] of them one device's: a device's further ports are
+    /// counted under its `port="other"`, and beyond the whole bound under device and port
+    /// `other` (issue 21: 25,000 invented port names took `/metrics` from 7.5 KB to
+    /// 3.6 MB; issue 33: one device must not take every series).
     pub fn typed_refused(&self, device: &str, port: &str, reason: &str) {
         let mut ports = self
             .typed_ports
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
-        let key = (device.to_owned(), port.to_owned());
-        if !ports.contains(&key) && ports.len() < TYPED_PORT_LABELS {
-            ports.insert(key.clone());
+        let mut key = (device.to_owned(), port.to_owned());
+        if !ports.contains(&key) {
+            let own = ports.iter().filter(|(d, _)| d == device).count();
+            if own >= TYPED_PORT_LABELS_PER_DEVICE {
+                key.1 = "other".to_owned();
+            }
+            if !ports.contains(&key) && ports.len() < TYPED_PORT_LABELS {
+                ports.insert(key.clone());
+            }
         }
         let (device, port) = match ports.contains(&key) {
-            true => (device, port),
+            true => (device, key.1.as_str()),
             false => ("other", "other"),
         };
         self.typed_rejected
@@ -617,10 +629,11 @@ mod tests {
     fn typed_refusal_labels_are_bounded() {
         let m = Metrics::new();
         for i in 0..TYPED_PORT_LABELS + 500 {
-            m.typed_refused("devA", &format!("FB.P{i}"), "payload_format_invalid");
+            let device = format!("dev{}", i / 4);
+            m.typed_refused(&device, &format!("FB.P{i}"), "payload_format_invalid");
         }
         // A known pair keeps its series.
-        m.typed_refused("devA", "FB.P0", "payload_format_invalid");
+        m.typed_refused("dev0", "FB.P0", "payload_format_invalid");
         let text = m.render();
         let series = text
             .lines()
@@ -637,6 +650,39 @@ mod tests {
                 "fbbus_typed_messages_rejected_total{device=\"other\",port=\"other\",reason=\"payload_format_invalid\"}"
             ),
             500.0
+        );
+    }
+
+    /// One device inventing ports takes its share, then counts under its own `other`;
+    /// another device still gets series of its own.
+    #[test]
+    fn one_device_takes_only_its_share_of_refusal_series() {
+        let m = Metrics::new();
+        for i in 0..5_000 {
+            m.typed_refused("flood", &format!("FB.P{i}"), "payload_format_invalid");
+        }
+        m.typed_refused("plc-1", "CONV.SPEED", "payload_format_invalid");
+        let text = m.render();
+        let series = |device: &str| {
+            text.lines()
+                .filter(|l| l.starts_with("fbbus_typed_messages_rejected_total{"))
+                .filter(|l| l.contains(&format!("device=\"{device}\"")))
+                .count()
+        };
+        assert_eq!(series("flood"), TYPED_PORT_LABELS_PER_DEVICE + 1);
+        assert_eq!(
+            value(
+                &text,
+                "fbbus_typed_messages_rejected_total{device=\"flood\",port=\"other\",reason=\"payload_format_invalid\"}"
+            ),
+            (5_000 - TYPED_PORT_LABELS_PER_DEVICE) as f64
+        );
+        assert_eq!(
+            value(
+                &text,
+                "fbbus_typed_messages_rejected_total{device=\"plc-1\",port=\"CONV.SPEED\",reason=\"payload_format_invalid\"}"
+            ),
+            1.0
         );
     }
 
