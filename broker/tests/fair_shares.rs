@@ -234,3 +234,30 @@ fn admin_guesses_from_many_addresses_meet_the_users_block() {
         .log_text()
         .contains("too many failed logins for this user"));
 }
+
+/// Budgets reset on reconnect (issue 33, 5): a device that reconnects before each
+/// declaration got a fresh `declarations_per_minute` every time (91 declarations a second
+/// against 60 a minute). The budget is its device's now: 3 a minute are accepted over 10
+/// connections, the rest refused 0x97; another device has its own.
+#[test]
+fn a_reconnecting_device_keeps_its_declaration_budget() {
+    use common::fb::Dev;
+    const DECLARATION: &str = r#"{"fbs":{"CONV":{"data_out":{"POSITION":"INT"}}}}"#;
+    let broker = Broker::start_with(
+        Options {
+            extra: "[fb]\nregistry_file = \"\"\ndeclarations_per_minute = 3\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut codes = Vec::new();
+    for _ in 0..10 {
+        let mut dev = Dev::connect(broker.port(), 5, "looper");
+        codes.push(dev.declare(DECLARATION));
+        dev.disconnect();
+    }
+    assert_eq!(codes.iter().filter(|c| **c == 0).count(), 3, "{codes:?}");
+    assert_eq!(codes.iter().filter(|c| **c == 0x97).count(), 7, "{codes:?}");
+    let mut other = Dev::connect(broker.port(), 5, "calm");
+    assert_eq!(other.declare(DECLARATION), 0);
+}

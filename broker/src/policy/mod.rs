@@ -20,6 +20,7 @@
 //! socket and awaits nothing, so its tests (below) run without a broker.
 
 pub mod access;
+pub mod budget;
 pub mod origin;
 pub mod typed;
 

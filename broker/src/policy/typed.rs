@@ -33,6 +33,7 @@ use fb_bridge::{Declaration, DeclarationError, EventMessage, Interface, Message,
 use serde::Deserialize;
 use serde_json::json;
 
+use super::budget::{Budgets, Kind};
 use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
 use crate::profiles::{ProfileSet, Profiles, Speakers};
@@ -132,36 +133,6 @@ impl Default for Limits {
     }
 }
 
-/// A token bucket: `rate` tokens a second, at most `burst` held. One per connection and
-/// kind, so its state is two words and dies with the connection.
-#[derive(Debug)]
-struct Bucket {
-    tokens: f64,
-    at: Instant,
-}
-
-impl Bucket {
-    fn full(burst: f64) -> Bucket {
-        Bucket {
-            tokens: burst,
-            at: Instant::now(),
-        }
-    }
-
-    /// Takes a token, or says in how many seconds one will be there.
-    fn take(&mut self, rate: f64, burst: f64) -> Result<(), f64> {
-        let now = Instant::now();
-        self.tokens = (self.tokens + now.duration_since(self.at).as_secs_f64() * rate).min(burst);
-        self.at = now;
-        if self.tokens >= 1.0 {
-            self.tokens -= 1.0;
-            Ok(())
-        } else {
-            Err((1.0 - self.tokens) / rate)
-        }
-    }
-}
-
 /// A declaration refused: the errors for the device, and the `[fb]` limit it passed, if
 /// that is why.
 struct Refused {
@@ -203,6 +174,8 @@ pub struct FbTopics {
     limits: Limits,
     /// The device profiles (`[fb] profiles_dir`).
     pub profiles: Arc<Profiles>,
+    /// Declaration and diagnostics budgets, per identity.
+    budgets: Budgets,
     /// The connections speaking for each topics-only device.
     speakers: Speakers,
     publisher: Arc<BrokerPublisher>,
@@ -237,6 +210,7 @@ impl FbTopics {
             max_packet: usize::MAX,
             limits: Limits::default(),
             profiles: Arc::new(Profiles::none()),
+            budgets: Budgets::default(),
             speakers: Speakers::default(),
             publisher,
             metrics,
@@ -359,15 +333,13 @@ pub struct FbSession {
     seq: BTreeMap<String, BTreeMap<String, u64>>,
     /// (topic, reason label) pairs already logged.
     logged: BTreeSet<(String, &'static str)>,
-    /// Diagnostics this connection may still publish (`[fb] diag_per_second`): a device
-    /// looping on a bad message gets its explanation, not a flood; and how many were
-    /// dropped since the last one published.
-    diag_budget: Bucket,
+    /// Diagnostics dropped over the identity's budget (`[fb] diag_per_second`, shared by
+    /// its connections: `budget`) since the last one published: a device looping on a bad
+    /// message gets its explanation, not a flood.
     diag_dropped: u64,
     diag_rate: (f64, f64),
-    /// Declarations it may still send (`[fb] declarations_per_minute`), and when a refusal
-    /// at that limit was last logged.
-    declare_budget: Bucket,
+    /// When a refusal at `[fb] declarations_per_minute` (a budget of the identity's, shared
+    /// by its connections: `budget`) was last logged.
     declare_logged: Option<Instant>,
     limits: Limits,
     /// Diagnostics for the device, published by the connection once the packets read
@@ -393,10 +365,8 @@ impl FbSession {
             activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
-            diag_budget: Bucket::full(f64::from(fb.limits.diag_burst)),
             diag_dropped: 0,
             diag_rate: (fb.limits.diag_per_second, f64::from(fb.limits.diag_burst)),
-            declare_budget: Bucket::full(f64::from(fb.limits.declarations_per_minute)),
             declare_logged: None,
             limits: fb.limits,
             outbox: Vec::new(),
@@ -495,6 +465,13 @@ impl FbSession {
             (_, _, Some(ip)) => format!("address:{ip}"),
             (_, _, None) => "broker".to_owned(),
         }
+    }
+
+    /// Whose declaration and diagnostics budgets this connection spends (`budget`): its
+    /// device's, as registered by its identity, so a device that reconnects finds its
+    /// budget as it left it, and another device of the same identity has its own.
+    fn budget_key(&self) -> String {
+        format!("{}/{}", self.registrant(), self.device)
     }
 
     /// A new device beyond a registry limit: the device is told on its diag topic, and the
@@ -1168,6 +1145,7 @@ impl FbSession {
                     "interface declared"
                 );
                 self.diag_answer(
+                    fb,
                     json!({"kind": "declaration", "ok": true, "session": self.session, "line": fb.registry.line()}),
                 );
                 Check::Consumed
@@ -1209,7 +1187,7 @@ impl FbSession {
                     );
                     // Every declaration within the rate is answered (the device waits for
                     // it), within the diagnostics' size cap.
-                    self.diag_answer(body);
+                    self.diag_answer(fb, body);
                 }
                 // Counted and answered here; `rejected` must not describe it a second time.
                 Check::Refused(Rejection {
@@ -1229,7 +1207,11 @@ impl FbSession {
     fn admit_declaration(&mut self, fb: &FbTopics, payload: &[u8]) -> Result<Interface, Refused> {
         let limits = self.limits;
         let per_minute = f64::from(limits.declarations_per_minute);
-        if let Err(wait) = self.declare_budget.take(per_minute / 60.0, per_minute) {
+        let identity = self.budget_key();
+        let taken = fb
+            .budgets
+            .take(Kind::Declarations, &identity, per_minute / 60.0, per_minute);
+        if let Err(wait) = taken {
             return Err(Refused::limit(
                 "declaration_rate",
                 format!(
@@ -1387,7 +1369,12 @@ impl FbSession {
     /// was refused as).
     fn diag_to(&mut self, fb: &FbTopics, device: &str, body: serde_json::Value) {
         let (rate, burst) = self.diag_rate;
-        if self.diag_budget.take(rate, burst).is_err() {
+        let identity = self.budget_key();
+        if fb
+            .budgets
+            .take(Kind::Diagnostics, &identity, rate, burst)
+            .is_err()
+        {
             self.diag_dropped += 1;
             fb.metrics.diag_dropped.inc();
             return;
@@ -1397,9 +1384,10 @@ impl FbSession {
 
     /// Queues a diagnostic that is always published: the answer to a declaration within
     /// the declaration rate (the device waits for it). It uses up the budget as any other.
-    fn diag_answer(&mut self, body: serde_json::Value) {
+    fn diag_answer(&mut self, fb: &FbTopics, body: serde_json::Value) {
         let (rate, burst) = self.diag_rate;
-        let _ = self.diag_budget.take(rate, burst);
+        let identity = self.budget_key();
+        let _ = fb.budgets.take(Kind::Diagnostics, &identity, rate, burst);
         let device = self.device.clone();
         self.queue_diag(&device, body);
     }
