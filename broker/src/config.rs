@@ -226,6 +226,8 @@ pub struct BrokerSection {
     pub max_sessions_per_identity: usize,
     /// Time a new TCP connection has to send CONNECT.
     pub connect_timeout_ms: u64,
+    /// Connections one source address may have open before their CONNECT (`pending`).
+    pub max_pending_per_address: usize,
     /// Longest keep-alive an MQTT 5 client may use; one asking for more, or for none, is
     /// told this value as Server Keep Alive. 0: no maximum.
     pub max_keep_alive_s: u16,
@@ -267,6 +269,7 @@ impl Default for BrokerSection {
             max_retained_bytes: 64 * 1024 * 1024,
             max_sessions_per_identity: 1000,
             connect_timeout_ms: 5_000,
+            max_pending_per_address: 64,
             max_keep_alive_s: 65_535,
             router_segment_bytes: 4 * 1024 * 1024,
             router_segment_count: 4,
@@ -663,6 +666,13 @@ impl Config {
             return Err(invalid(
                 file,
                 "broker.connect_timeout_ms",
+                "must be at least 1",
+            ));
+        }
+        if b.max_pending_per_address == 0 {
+            return Err(invalid(
+                file,
+                "broker.max_pending_per_address",
                 "must be at least 1",
             ));
         }

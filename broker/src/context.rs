@@ -46,6 +46,8 @@ pub struct Context {
     /// `broker.max_keep_alive_s` (see `session::connect::keep_alive`).
     pub max_keep_alive: u16,
     pub connect_timeout: Duration,
+    /// Connections before CONNECT, per source address (`[broker] max_pending_per_address`).
+    pub pending: Arc<crate::pending::Pending>,
     /// `broker.slow_consumer_timeout_ms`: the deadline of every write to a client.
     pub write_timeout: Duration,
     /// `broker.slow_consumer_max_bytes`: outgoing bytes queued for one connection at most.

@@ -48,6 +48,7 @@ mod listener;
 mod logging;
 mod memory;
 mod metrics;
+mod pending;
 mod policy;
 pub mod profiles;
 mod registry;

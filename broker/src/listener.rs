@@ -42,6 +42,7 @@ impl Listener {
     pub async fn run(self, ctx: Arc<Context>, slots: Arc<Semaphore>) {
         let mut shutdown = ctx.shutdown.clone();
         let (mut last_warning, mut refused_unlogged) = (None, 0u64);
+        let (mut last_pending_warning, mut pending_unlogged) = (None, 0u64);
         loop {
             let (tcp, peer) = tokio::select! {
                 _ = shutdown.changed() => return,
@@ -54,6 +55,28 @@ impl Listener {
                         continue;
                     }
                 },
+            };
+            // Before a slot: a stranger holding sockets that never finish CONNECT must not
+            // hold the slots a reconnecting device needs (`pending`).
+            let Some(pending) = ctx.pending.enter(peer.ip()) else {
+                ctx.metrics.refused("pending_per_address");
+                pending_unlogged += 1;
+                if last_pending_warning
+                    .is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60))
+                {
+                    last_pending_warning = Some(Instant::now());
+                    tracing::warn!(
+                        listener = self.policy.name,
+                        %peer,
+                        refused = pending_unlogged,
+                        "too many connections from this address that have not sent CONNECT \
+                         ([broker] max_pending_per_address); new ones are closed at once \
+                         (fbbus_connects_refused_total{{reason=\"pending_per_address\"}}, \
+                         logged once a minute)"
+                    );
+                    pending_unlogged = 0;
+                }
+                continue;
             };
             let Ok(slot) = Arc::clone(&slots).try_acquire_owned() else {
                 ctx.metrics.refused("max_connections");
@@ -102,7 +125,7 @@ impl Listener {
                         }
                     }
                 };
-                session::serve(stream, peer, policy, ctx, slot).await;
+                session::serve(stream, peer, policy, ctx, slot, pending).await;
             });
         }
     }

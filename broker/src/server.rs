@@ -212,6 +212,7 @@ impl Broker {
             max_sessions_per_identity: config.broker.max_sessions_per_identity,
             max_keep_alive: config.broker.max_keep_alive_s,
             connect_timeout: config.connect_timeout(),
+            pending: crate::pending::Pending::new(config.broker.max_pending_per_address),
             write_timeout: Duration::from_millis(config.broker.slow_consumer_timeout_ms),
             max_queued_bytes: config.broker.slow_consumer_max_bytes,
             dead_link: config.dead_link_timeout(),

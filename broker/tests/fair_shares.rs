@@ -261,3 +261,67 @@ fn a_reconnecting_device_keeps_its_declaration_budget() {
     let mut other = Dev::connect(broker.port(), 5, "calm");
     assert_eq!(other.declare(DECLARATION), 0);
 }
+
+/// Reconnection starved before CONNECT (issue 33, 2): a stranger on one address keeps
+/// 200 sockets that sent half a CONNECT (with `max_connections = 100`, every slot); a
+/// device that then reconnects from another address got in 2 times in 18. Now one
+/// address has at most `max_pending_per_address` connections before CONNECT: the rest are
+/// closed at accept and counted, and 18 of 18 devices get in while the flood lasts.
+#[test]
+fn half_connects_from_one_address_cannot_starve_reconnection() {
+    use common::raw::{Connect, RawClient};
+    let broker = Broker::start_with(
+        Options {
+            extra: "max_connections = 100\nmax_pending_per_address = 16\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mqtt = SocketAddr::from(([127, 0, 0, 1], broker.port()));
+    let stranger = std::net::IpAddr::from([127, 0, 0, 77]);
+    let mut held = Vec::new();
+    for _ in 0..200 {
+        let socket =
+            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+        socket.bind(&SocketAddr::new(stranger, 0).into()).unwrap();
+        socket
+            .connect_timeout(&mqtt.into(), Duration::from_secs(2))
+            .unwrap();
+        let mut s = TcpStream::from(socket);
+        // The fixed header and half of a CONNECT's variable header, then nothing.
+        let _ = s.write_all(&[0x10, 0x10, 0x00, 0x04, b'M', b'Q']);
+        held.push(s);
+    }
+    // Let the broker accept them all.
+    std::thread::sleep(Duration::from_millis(500));
+    let refused = broker.metric("fbbus_connects_refused_total{reason=\"pending_per_address\"}");
+    assert!(refused >= 180.0, "{refused} refused at accept");
+    let mut got_in = 0;
+    for i in 0..18 {
+        let id = format!("device-{i}");
+        let mut raw = RawClient::connect(broker.port());
+        let code = raw.handshake(&Connect {
+            version: 4,
+            client_id: &id,
+            keep_alive: 30,
+            clean: true,
+            ..Default::default()
+        });
+        if code == 0 {
+            got_in += 1;
+        }
+    }
+    assert_eq!(
+        got_in, 18,
+        "devices got in while the flood held its sockets"
+    );
+    assert_eq!(
+        broker
+            .log_text()
+            .matches("have not sent CONNECT ([broker] max_pending_per_address)")
+            .count(),
+        1,
+        "logged once a minute"
+    );
+    drop(held);
+}

@@ -82,15 +82,21 @@ use close::End;
 /// the login is done: it holds the `Session` and the waiting loop, not the room reading
 /// CONNECT, authenticating and linking needed. That room is this task's, freed right after,
 /// and reused by the next connection's login instead of leaving a hole next to each
-/// session's memory. The close, also large and short, runs boxed.
+/// session's memory. The close, also large and short, runs boxed. `pending` is the
+/// connection's place among its address's connections before CONNECT (`pending`), given
+/// back once CONNECT is read.
 pub async fn serve(
     stream: Box<dyn Stream>,
     peer: SocketAddr,
     listener: Arc<ListenerPolicy>,
     ctx: Arc<Context>,
     slot: OwnedSemaphorePermit,
+    pending: crate::pending::PendingGuard,
 ) {
-    let session = match CatchPanic::new(accept(stream, peer, listener, &ctx)).await {
+    let accepted = CatchPanic::new(accept(stream, peer, listener, &ctx)).await;
+    // CONNECT read (or refused): the address's place before CONNECT is free again.
+    drop(pending);
+    let session = match accepted {
         Ok(Some(session)) => session,
         Ok(None) => return,
         Err(message) => {
