@@ -302,6 +302,10 @@ pub async fn serve(
     let metrics = Arc::clone(&state.metrics);
     let app = routes(state);
     let slots = Arc::new(Semaphore::new(limits.max_connections));
+    // One address holds at most a quarter of the slots, so a stranger holding connections
+    // with unfinished headers cannot fail an orchestrator's liveness probe from another
+    // address (issue 33: /healthz answered 0 of 18 probes with 64 such connections).
+    let per_address = crate::pending::Pending::new((limits.max_connections / 4).max(1));
     let mut last_warning: Option<Instant> = None;
     tokio::pin!(shutdown);
     loop {
@@ -318,14 +322,20 @@ pub async fn serve(
                 continue;
             }
         };
-        let Ok(slot) = Arc::clone(&slots).try_acquire_owned() else {
+        let held = per_address.enter(peer.ip());
+        let slot = held.and_then(|held| {
+            let slot = Arc::clone(&slots).try_acquire_owned().ok()?;
+            Some((slot, held))
+        });
+        let Some(slot) = slot else {
             metrics.admin_refused.inc();
             if last_warning.is_none_or(|t| t.elapsed() >= Duration::from_secs(60)) {
                 last_warning = Some(Instant::now());
                 tracing::warn!(
                     %peer,
                     max_connections = limits.max_connections,
-                    "admin endpoint: connection limit reached; new connections are closed \
+                    "admin endpoint: connection limit reached (max_connections, or a quarter \
+                     of them from one address); new connections are closed \
                      (fbbus_admin_connections_refused_total)"
                 );
             }

@@ -12,6 +12,9 @@
 //! the bound only meets floods; devices behind one NAT address that all reconnect at once
 //! (after a power cut) are let in that many at a time and retry for the rest.
 //!
+//! The admin endpoint counts its connections per address with the same table (`admin`:
+//! a quarter of `[admin] max_connections` each), for the same reason: its probes.
+//!
 //! IPv6 addresses count one by one (like the login throttle): on a plant network a /64 is
 //! often one LAN segment full of devices. The table holds only addresses with a pending
 //! connection, so it is bounded by `max_connections`.

@@ -325,3 +325,35 @@ fn half_connects_from_one_address_cannot_starve_reconnection() {
     );
     drop(held);
 }
+
+/// The admin plane starved (issue 33, 2): 64 admin connections held with unfinished
+/// headers, and `/healthz` answered 0 of 18 probes in 20 s (a liveness probe would
+/// restart the broker). One address now holds at most a quarter of the admin slots, so
+/// an orchestrator's probes from another address are answered.
+#[test]
+fn unfinished_admin_requests_from_one_address_cannot_fail_the_probes() {
+    let broker = Broker::start();
+    let stranger = std::net::IpAddr::from([127, 0, 0, 88]);
+    let mut held = Vec::new();
+    for _ in 0..100 {
+        let socket =
+            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+        socket.bind(&SocketAddr::new(stranger, 0).into()).unwrap();
+        socket
+            .connect_timeout(&broker.admin.into(), Duration::from_secs(2))
+            .unwrap();
+        let mut s = TcpStream::from(socket);
+        let _ = s.write_all(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ");
+        held.push(s);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let answered = (0..18)
+        .filter(|_| common::http_get(broker.admin, "/healthz").is_some_and(|(code, _)| code == 200))
+        .count();
+    assert_eq!(
+        answered, 18,
+        "probes answered while a stranger held admin slots"
+    );
+    assert!(broker.metric("fbbus_admin_connections_refused_total") >= 80.0);
+    drop(held);
+}
