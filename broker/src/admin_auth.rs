@@ -42,10 +42,10 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
-use security::{CredentialCache, LoginThrottle, PasswordFile, ThrottleConfig, Verification};
+use security::{CredentialCache, LoginThrottle, PasswordFile, Verification};
 use tokio::sync::Semaphore;
 
-use crate::config::ThrottleSection;
+use crate::authenticator::ThrottleSection;
 use crate::metrics::Metrics;
 use crate::watched_file::WatchedFile;
 
@@ -133,12 +133,7 @@ impl AdminAuth {
         AdminAuth {
             passwords,
             cache: CredentialCache::new(CACHE_CAPACITY),
-            throttle: LoginThrottle::new(ThrottleConfig {
-                free_failures: throttle.free_failures,
-                base_delay: Duration::from_millis(throttle.base_delay_ms),
-                max_delay: Duration::from_millis(throttle.max_delay_ms),
-                ..ThrottleConfig::default()
-            }),
+            throttle: LoginThrottle::new(throttle.throttle_config()),
             verifications: Semaphore::new(MAX_VERIFICATIONS),
             metrics,
             last_warning: Mutex::new([None; 3]),

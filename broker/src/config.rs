@@ -10,11 +10,20 @@
 //! an admin endpoint reachable from the network must require credentials of its own
 //! (`[admin] password_file`, never the devices' `[auth] password_file`).
 
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::Deserialize;
+
+// Each section's type lives with the module it configures, which owns its defaults; this
+// reader only assembles them (and is imported by none of them).
+pub use crate::admin::AdminSection;
+pub use crate::authenticator::{AuthSection, ThrottleSection};
+pub use crate::console::ConsoleSection;
+pub use crate::listener::ListenerSection;
+pub use crate::logging::{LogFormat, LogSection};
+pub use crate::store::PersistenceSection;
+pub use crate::tls::TlsSection;
 
 /// The configuration `fbbus serve` uses when no `--config` is given.
 pub const DEFAULT_CONFIG: &str = r#"
@@ -43,8 +52,8 @@ pub const MAX_CONNECTIONS: usize = 1_000_000;
 const _: () = assert!(MAX_CONNECTIONS < tokio::sync::Semaphore::MAX_PERMITS);
 
 /// `broker.slow_consumer_max_bytes` is at least this more than `max_packet_bytes`: the
-/// size of the batches `session::deliver` writes.
-pub const MIN_QUEUED_BYTES: usize = 1024 * 1024;
+/// size of the batches `session::deliver` writes, which the session layer sets.
+pub const MIN_QUEUED_BYTES: usize = crate::session::WRITE_BATCH;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -81,7 +90,7 @@ pub struct Config {
     pub fb: FbSection,
     /// What survives a restart (`store`).
     #[serde(default)]
-    pub persistence: crate::store::PersistenceSection,
+    pub persistence: PersistenceSection,
     /// Present: link this line to the other lines' brokers over zenoh (`bridge`).
     pub bridge: Option<fb_bridge::bus::BusConfig>,
 }
@@ -176,24 +185,28 @@ impl FbSection {
 }
 
 impl Default for FbSection {
+    /// The defaults of the modules `[fb]` configures, from the one place each sets them.
     fn default() -> Self {
+        let silence = crate::silence::Bound::DEFAULT;
+        let declarations = crate::policy::typed::Limits::default();
+        let registry = crate::registry::Limits::default();
         FbSection {
             registry_file: PathBuf::from("fbbus-registry.json"),
             profiles_dir: PathBuf::new(),
             undeclared: Default::default(),
             fbdk_time_unit: Default::default(),
             fbdk_max_payload: crate::policy::typed::FORTE_RECEIVE_BUFFER,
-            silence_factor: 3.0,
-            silence_min_s: 5.0,
-            max_devices: 10_000,
-            max_devices_per_identity: 100,
-            forget_offline_after_s: 0,
-            max_declaration_bytes: 16 * 1024,
-            max_fbs: 64,
-            max_ports: 512,
-            declarations_per_minute: 30,
-            diag_per_second: 10.0,
-            diag_burst: 20,
+            silence_factor: silence.factor,
+            silence_min_s: silence.floor.as_secs_f64(),
+            max_devices: registry.max_devices,
+            max_devices_per_identity: registry.max_per_identity,
+            forget_offline_after_s: registry.forget_offline_after.map_or(0, |d| d.as_secs()),
+            max_declaration_bytes: declarations.max_declaration_bytes,
+            max_fbs: declarations.max_fbs,
+            max_ports: declarations.max_ports,
+            declarations_per_minute: declarations.declarations_per_minute,
+            diag_per_second: declarations.diag_per_second,
+            diag_burst: declarations.diag_burst,
         }
     }
 }
@@ -255,6 +268,21 @@ pub struct BrokerSection {
     pub dead_link_timeout_s: u64,
 }
 
+impl BrokerSection {
+    /// The router's share of `[broker]`.
+    pub(crate) fn router(&self) -> crate::router::Settings {
+        crate::router::Settings {
+            max_connections: self.max_connections,
+            max_outgoing_packets: self.router_max_outgoing_packets,
+            segment_bytes: self.router_segment_bytes,
+            segment_count: self.router_segment_count,
+            max_retained_messages: self.max_retained_messages,
+            max_retained_bytes: self.max_retained_bytes,
+            slow_subscriber_hold: Duration::from_millis(self.slow_subscriber_hold_ms),
+        }
+    }
+}
+
 impl Default for BrokerSection {
     fn default() -> Self {
         BrokerSection {
@@ -276,171 +304,6 @@ impl Default for BrokerSection {
             slow_consumer_max_bytes: 64 * 1024 * 1024,
             dead_link_timeout_s: 20,
         }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AuthSection {
-    /// `user:PHC` lines (argon2id), or a Mosquitto password file.
-    pub password_file: Option<PathBuf>,
-    /// Access rules; without one every authenticated client may do everything.
-    pub acl_file: Option<PathBuf>,
-    /// Which client ids a client that logs in with a username may use: "any", "%u" (the
-    /// username) or "%u-*" (the username, or the username, `-` and anything).
-    pub client_id: crate::identity::ClientIdRule,
-    /// Rewrite a Mosquitto `$7$`/`$6$` entry as argon2id after its next successful login.
-    pub rehash_legacy: bool,
-    /// Password verifications run at once (argon2 is CPU-bound: more than the cores only queues).
-    pub verify_concurrency: usize,
-    /// Verified credentials remembered (as keyed MACs, never passwords) to skip argon2 on reconnect.
-    pub cache_capacity: usize,
-    /// How often the password and ACL files are checked for changes (SIGHUP reloads at once).
-    pub reload_poll_ms: u64,
-    pub throttle: ThrottleSection,
-}
-
-impl Default for AuthSection {
-    fn default() -> Self {
-        AuthSection {
-            password_file: None,
-            acl_file: None,
-            client_id: Default::default(),
-            rehash_legacy: true,
-            verify_concurrency: std::thread::available_parallelism()
-                .map(|n| n.get())
-                .unwrap_or(2),
-            cache_capacity: 100_000,
-            reload_poll_ms: 1_000,
-            throttle: ThrottleSection::default(),
-        }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ThrottleSection {
-    /// Failed logins from one address before backoff starts.
-    pub free_failures: u32,
-    pub base_delay_ms: u64,
-    pub max_delay_ms: u64,
-}
-
-impl Default for ThrottleSection {
-    fn default() -> Self {
-        ThrottleSection {
-            free_failures: 5,
-            base_delay_ms: 1_000,
-            max_delay_ms: 60_000,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ListenerSection {
-    pub name: String,
-    pub bind: SocketAddr,
-    /// Clients without a username may connect. Only allowed on a loopback address.
-    /// Defaults to true when there is no password file.
-    pub allow_anonymous: Option<bool>,
-    pub tls: Option<TlsSection>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TlsSection {
-    /// PEM certificate chain, server certificate first.
-    pub cert: PathBuf,
-    /// PEM private key (PKCS#8, PKCS#1 or SEC1).
-    pub key: PathBuf,
-    /// PEM CA bundle: when set, clients must present a certificate signed by it.
-    pub client_ca: Option<PathBuf>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AdminSection {
-    /// HTTP admin endpoint: /metrics, /healthz, /readyz, the registry API.
-    pub bind: SocketAddr,
-    /// `user:PHC` lines (argon2id, `fbbus passwd`) the admin endpoint checks HTTP Basic
-    /// credentials against, on every route. Required on a non-loopback `bind`; a file of
-    /// its own, so that a device's MQTT password never opens the admin plane.
-    pub password_file: Option<PathBuf>,
-    /// Admin connections open at once at most; beyond, a new one is closed at once.
-    pub max_connections: usize,
-    /// A request's header must arrive within this; an admin connection lives at most
-    /// `connection_timeout_ms` (slow bodies, slow readers, idle keep-alive).
-    pub header_timeout_ms: u64,
-    pub connection_timeout_ms: u64,
-}
-
-impl Default for AdminSection {
-    fn default() -> Self {
-        AdminSection {
-            bind: SocketAddr::from(([127, 0, 0, 1], 9883)),
-            password_file: None,
-            max_connections: 64,
-            header_timeout_ms: 5_000,
-            connection_timeout_ms: 60_000,
-        }
-    }
-}
-
-/// The line console (`console`): the page on the admin endpoint, and what it keeps.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ConsoleSection {
-    /// Serve the console (`/`, `/console/*`, the feed) and keep the last port values and
-    /// refusals it shows. false: none of it, and no `fbbus:console` router link.
-    pub enabled: bool,
-    /// Last values of declared output ports kept at most, over every device; beyond,
-    /// a new port's value is not kept (counted in `fbbus_console_dropped_total`).
-    pub max_port_values: usize,
-    /// Refusals (from `fbbus/diag/<device>`) kept at most, over every device (and at
-    /// most `console::activity::REFUSALS_PER_DEVICE` per device).
-    pub max_refusals: usize,
-}
-
-impl Default for ConsoleSection {
-    fn default() -> Self {
-        ConsoleSection {
-            enabled: true,
-            max_port_values: 100_000,
-            max_refusals: 20_000,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct LogSection {
-    /// A tracing filter: `info`, `debug`, `warn,broker=debug`. RUST_LOG overrides it.
-    /// The default keeps rumqttd's router (per-subscription chatter) at warn.
-    pub level: String,
-    pub format: LogFormat,
-}
-
-impl Default for LogSection {
-    fn default() -> Self {
-        LogSection {
-            level: "info,rumqttd=warn".into(),
-            format: LogFormat::Text,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
-#[serde(rename_all = "lowercase")]
-pub enum LogFormat {
-    Text,
-    Json,
-}
-
-impl ListenerSection {
-    /// Whether clients without credentials are let in on this listener.
-    pub fn anonymous(&self, auth: &AuthSection) -> bool {
-        self.allow_anonymous.unwrap_or(auth.password_file.is_none())
     }
 }
 

@@ -19,11 +19,11 @@
 //!   [MQTT-4.7.2-1] and clients may not subscribe to `$` filters, so no client sees them;
 //!   a client publication under `$fbbus/` is refused (`policy::typed`), so none can feed it.
 
+use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use crate::supervisor::Tasks;
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::Notification;
 use tokio::sync::{watch, Notify};
@@ -134,14 +134,16 @@ pub struct Probe {
 }
 
 impl Probe {
-    /// Starts the probe's task on `link`. The link is subscribed to [`PROBE_TOPIC`] here.
-    pub fn start(link: (LinkTx, LinkRx), tasks: &Tasks) -> Probe {
+    /// The probe on `link`, and its task, which the caller spawns (health is told of
+    /// the tasks' deaths, so it cannot be the one to run them). The link is subscribed
+    /// to [`PROBE_TOPIC`] here.
+    pub fn start(link: (LinkTx, LinkRx)) -> (Probe, impl Future<Output = ()> + Send + 'static) {
         let (mut tx, mut rx) = link;
         let wanted = Arc::new(Notify::new());
         let (done_tx, done) = watch::channel(None);
         let subscribed = tx.try_subscribe(PROBE_TOPIC).is_ok();
         let task_wanted = Arc::clone(&wanted);
-        tasks.spawn(async move {
+        let task = async move {
             let mut seq: u64 = 0;
             loop {
                 task_wanted.notified().await;
@@ -151,8 +153,8 @@ impl Probe {
                     return;
                 }
             }
-        });
-        Probe { wanted, done }
+        };
+        (Probe { wanted, done }, task)
     }
 
     /// Whether a probe publication made the round trip, recently or now.

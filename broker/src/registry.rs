@@ -116,8 +116,20 @@ pub struct Limits {
     pub forget_offline_after: Option<Duration>,
 }
 
+impl Default for Limits {
+    /// `[fb]`'s defaults: 10,000 devices, 100 per identity, never forgotten by age.
+    fn default() -> Limits {
+        Limits {
+            max_devices: 10_000,
+            max_per_identity: 100,
+            forget_offline_after: None,
+        }
+    }
+}
+
 impl Limits {
     /// No limit (the unit tests).
+    #[cfg(test)]
     pub const NONE: Limits = Limits {
         max_devices: usize::MAX,
         max_per_identity: usize::MAX,
@@ -1720,7 +1732,7 @@ mod tests {
         let open = || {
             let (publisher, _) = BrokerPublisher::detached();
             let health = crate::health::Health::new();
-            let bound = crate::config::FbSection::default().silence_bound();
+            let bound = crate::silence::Bound::DEFAULT;
             let tasks = crate::supervisor::Tasks::new(&health);
             let metrics = Arc::new(Metrics::new());
             Registry::open(
@@ -1832,7 +1844,7 @@ mod tests {
             None,
             publisher,
             Arc::clone(&metrics),
-            crate::config::FbSection::default().silence_bound(),
+            crate::silence::Bound::DEFAULT,
             Limits::NONE,
             &crate::supervisor::Tasks::new(&health),
         )
@@ -1955,7 +1967,7 @@ mod tests {
             file,
             publisher,
             Arc::clone(&metrics),
-            crate::config::FbSection::default().silence_bound(),
+            crate::silence::Bound::DEFAULT,
             limits,
             &crate::supervisor::Tasks::new(&health),
         )

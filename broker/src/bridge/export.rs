@@ -16,8 +16,8 @@ use tokio::sync::mpsc;
 
 use super::{EXPORT_FILTER, IMPORT_CLIENT_ID};
 use crate::broker_publisher;
-use crate::context::Context;
 use crate::policy::origin;
+use crate::session::Context;
 
 /// Subscribes to what other lines want, and puts what this line's clients publish there.
 pub(super) async fn export_loop(

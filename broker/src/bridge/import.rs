@@ -16,10 +16,10 @@ use tokio::sync::mpsc;
 
 use super::{Interest, IMPORT_CLIENT_ID};
 use crate::broker_publisher::{self, Message as BrokerMessage};
-use crate::context::Context;
 use crate::policy::origin;
 use crate::policy::typed::FbSession;
 use crate::policy::{Admission, Door, Publication, Stage};
+use crate::session::Context;
 
 /// Keeps one zenoh import per filter local clients subscribed to, counted.
 pub(super) async fn imports(

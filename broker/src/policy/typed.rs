@@ -35,10 +35,10 @@ use serde_json::json;
 
 use crate::broker_publisher::{BrokerPublisher, Message as BrokerMessage};
 use crate::metrics::Metrics;
+use crate::observer::SubscriptionObserver;
 use crate::profiles::{ProfileSet, Profiles, Speakers};
 use crate::registry::Registry;
 use crate::registry::Status;
-use crate::session::SubscriptionObserver;
 use crate::silence::Activity;
 
 /// What to do with typed-namespace topics no device declared.
@@ -68,13 +68,6 @@ pub enum Refusal {
 }
 
 impl Refusal {
-    pub const ALL: [Refusal; 4] = [
-        Refusal::NotAuthorized,
-        Refusal::TopicNameInvalid,
-        Refusal::PayloadFormatInvalid,
-        Refusal::QuotaExceeded,
-    ];
-
     pub fn label(self) -> &'static str {
         match self {
             Refusal::NotAuthorized => "not_authorized",
@@ -128,7 +121,14 @@ pub struct Limits {
 impl Default for Limits {
     /// `[fb]`'s defaults, from the one place they are set.
     fn default() -> Self {
-        crate::config::FbSection::default().declaration_limits()
+        Limits {
+            max_declaration_bytes: 16 * 1024,
+            max_fbs: 64,
+            max_ports: 512,
+            declarations_per_minute: 30,
+            diag_per_second: 10.0,
+            diag_burst: 20,
+        }
     }
 }
 

@@ -36,7 +36,6 @@ mod journal;
 mod log;
 mod queue;
 pub mod record;
-pub mod restore;
 mod state;
 
 use std::collections::{HashMap, HashSet};
