@@ -118,6 +118,7 @@ pub struct Metrics {
     /// `registry_devices{status="online"}`.
     pub registry_silent_devices: IntGauge,
     pub registry_stale_ends: IntCounter,
+    pub registry_silence_offline: IntCounter,
     /// Devices forgotten, by reason (`expired`, `admin`).
     pub registry_forgotten: IntCounterVec,
     /// The zenoh bridge between lines (`bridge`): all zero without a `[bridge]` section.
@@ -327,6 +328,11 @@ impl Metrics {
             registry_stale_ends: counter(
                 "fbbus_registry_stale_ends_total",
                 "Connection ends ignored by the registry because the device is on a newer session",
+            ),
+            registry_silence_offline: counter(
+                "fbbus_registry_silence_offline_total",
+                "Devices marked offline because their periodic outputs were silent longer than \
+                 their profile's liveness.offline_after_silent_s (their connections stay open)",
             ),
             connects: counter("fbbus_connects_total", "CONNECTs accepted"),
             // The identity refusals (issue 20) exist at 0, so an alert on their first

@@ -51,8 +51,8 @@ pub struct ProfileSet {
     /// feeds, the index in its `inputs`). Keyed by device so that the packet path looks
     /// it up without building a key.
     feeds: HashMap<String, Vec<(Source, Arc<Profile>, usize)>>,
-    /// Every input topic.
-    inputs: std::collections::HashSet<String>,
+    /// Every input topic, with the profile it is an input of.
+    inputs: HashMap<String, Arc<Profile>>,
 }
 
 impl ProfileSet {
@@ -78,7 +78,8 @@ impl ProfileSet {
                 }
             }
             for (i, input) in profile.inputs.iter().enumerate() {
-                set.inputs.insert(input.own.topic.clone());
+                set.inputs
+                    .insert(input.own.topic.clone(), Arc::clone(&profile));
                 set.feeds
                     .entry(input.from.device.clone())
                     .or_default()
@@ -194,7 +195,12 @@ impl ProfileSet {
 
     /// Whether `topic` is some profile's input topic (the broker publishes it).
     pub fn is_input_topic(&self, topic: &str) -> bool {
-        self.inputs.contains(topic)
+        self.inputs.contains_key(topic)
+    }
+
+    /// The profile `topic` is an input topic of.
+    pub fn input(&self, topic: &str) -> Option<&Arc<Profile>> {
+        self.inputs.get(topic)
     }
 
     /// The typed topics (`fb/<device>/<FB>/<PORT>`) that feed an input topic: a line must

@@ -841,6 +841,10 @@ impl Registry {
         let Some(record) = devices.get(id) else {
             return false;
         };
+        if record.session == session && record.status == Status::Offline {
+            // Ended already, for its silence (`end_for_silence`): its will went then.
+            return false;
+        }
         if record.session != session || record.status != Status::Online {
             self.metrics.registry_stale_ends.inc();
             tracing::debug!(
@@ -1193,6 +1197,7 @@ impl Registry {
     fn judge_silence(&self, now: Instant) {
         let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let mut turned = Vec::new();
+        let mut ended = Vec::new();
         for (id, activity) in &devices.activity {
             let Some(record) = devices.get(id) else {
                 continue;
@@ -1204,11 +1209,17 @@ impl Registry {
                 Verdict::Silent { since } => Some(since),
                 Verdict::Speaking | Verdict::NoPeriod => None,
             };
-            if since.is_some() != record.silent {
+            if let Some(since) = since.filter(|s| activity.end_if_silent_for(now, *s)) {
+                ended.push((id.clone(), now.saturating_duration_since(since)));
+            } else if since.is_some() != record.silent {
                 turned.push((id.clone(), since));
             }
         }
+        for (id, quiet) in ended {
+            self.end_for_silence(&mut devices, &id, quiet);
+        }
         if turned.is_empty() {
+            self.announce_count(&devices);
             return;
         }
         let wall = SystemTime::now();
@@ -1236,6 +1247,62 @@ impl Registry {
             }
         }
         self.announce_count(&devices);
+    }
+
+    /// `id` has been silent for `quiet`, longer than its profile allows
+    /// (`liveness.offline_after_silent_s`): offline, with that reason. Its connections
+    /// stay open, and one of them publishes its will (`Activity::take_will_due`).
+    fn end_for_silence(&self, devices: &mut Devices, id: &str, quiet: Duration) {
+        let reason = format!(
+            "silent: no periodic output for {} s (liveness.offline_after_silent_s)",
+            quiet.as_secs()
+        );
+        let changed = devices.update(
+            id,
+            |r| r.status == Status::Online,
+            |record| {
+                record.status = Status::Offline;
+                record.since = now();
+                record.last_will_reason = Some(reason.clone());
+                record.silent = false;
+                record.silent_since = None;
+            },
+        );
+        if let Some(record) = changed {
+            self.metrics.registry_silence_offline.inc();
+            tracing::warn!(
+                device = record.id,
+                reason,
+                "device offline for its silence; its will is published"
+            );
+            self.announce(record);
+            self.dirty.notify_one();
+        }
+    }
+
+    /// A device the registry ended for its silence published again on its connection
+    /// `session`: online again.
+    pub fn spoke_again(&self, id: &str, session: u64) {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        let changed = devices.update(
+            id,
+            |r| r.status == Status::Offline,
+            |record| {
+                record.status = Status::Online;
+                record.session = record.session.max(session);
+                record.since = now();
+                record.last_will_reason = None;
+            },
+        );
+        if let Some(record) = changed {
+            tracing::info!(
+                device = record.id,
+                "device speaks again after its silence: online"
+            );
+            self.announce(record);
+            self.announce_count(&devices);
+            self.dirty.notify_one();
+        }
     }
 
     async fn persist_loop(self: Arc<Self>) {

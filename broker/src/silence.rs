@@ -39,10 +39,12 @@
 //! declared outputs are timed, so the state is bounded by the declaration limits.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use fb_bridge::Interface;
+use tokio::sync::Notify;
 
 /// Intervals a port must show before it can have an observed period.
 pub const MIN_INTERVALS: u32 = 5;
@@ -150,6 +152,11 @@ pub enum Verdict {
 #[derive(Debug)]
 pub struct Activity {
     inner: Mutex<Ports>,
+    /// The registry ended the device for its silence and its broker-side will is still to
+    /// be published, by one of its connections ([`Activity::take_will_due`]).
+    will_due: AtomicBool,
+    /// Wakes the device's connections when the registry ended it ([`Activity::ended`]).
+    ended: Notify,
 }
 
 #[derive(Debug)]
@@ -158,6 +165,12 @@ struct Ports {
     clocks: BTreeMap<String, BTreeMap<String, PortClock>>,
     /// When the current connection started.
     connected: Instant,
+    /// How long the device may be silent before it is offline (a profile's
+    /// `liveness.offline_after_silent_s`); None: never for silence.
+    offline_after: Option<Duration>,
+    /// The registry marked the device offline for its silence; its next accepted
+    /// publication brings it back.
+    ended: bool,
 }
 
 impl Activity {
@@ -174,7 +187,11 @@ impl Activity {
             inner: Mutex::new(Ports {
                 clocks,
                 connected: now,
+                offline_after: None,
+                ended: false,
             }),
+            will_due: AtomicBool::new(false),
+            ended: Notify::new(),
         }
     }
 
@@ -185,16 +202,64 @@ impl Activity {
     /// The device connected again at `now`: its ports keep their periods, and the bound
     /// counts from now.
     pub fn reconnected(&self, now: Instant) {
-        self.lock().connected = now;
+        let mut ports = self.lock();
+        ports.connected = now;
+        ports.ended = false;
+        self.will_due.store(false, Ordering::Relaxed);
     }
 
     /// An accepted typed publication on `fb.port` at `now`; ignored for a port the
-    /// device did not declare as an output.
-    pub fn published(&self, fb: &str, port: &str, now: Instant, bound: &Bound) {
+    /// device did not declare as an output. Returns true when the registry had ended the
+    /// device for its silence: it speaks again, and its connection tells the registry.
+    pub fn published(&self, fb: &str, port: &str, now: Instant, bound: &Bound) -> bool {
         let mut ports = self.lock();
         if let Some(clock) = ports.clocks.get_mut(fb).and_then(|f| f.get_mut(port)) {
             clock.published(now, bound);
         }
+        if ports.ended {
+            ports.ended = false;
+            ports.connected = now;
+            self.will_due.store(false, Ordering::Relaxed);
+            return true;
+        }
+        false
+    }
+
+    /// A profile's `liveness.offline_after_silent_s`: silent that long, the device is
+    /// offline ([`Activity::end_if_silent_for`]).
+    pub fn set_offline_after(&self, after: Option<Duration>) {
+        self.lock().offline_after = after;
+    }
+
+    /// The registry found the device silent since `since`: if that is longer than its
+    /// `offline_after`, the device ends now (once, until it speaks or connects again),
+    /// its will falls due and its connections are woken. Returns whether it ended.
+    pub fn end_if_silent_for(&self, now: Instant, since: Instant) -> bool {
+        let mut ports = self.lock();
+        let due = ports
+            .offline_after
+            .is_some_and(|after| now.saturating_duration_since(since) >= after);
+        if !due || ports.ended {
+            return false;
+        }
+        ports.ended = true;
+        drop(ports);
+        self.will_due.store(true, Ordering::Release);
+        self.ended.notify_waiters();
+        true
+    }
+
+    /// Resolves when the registry ends the device for its silence (a connection waits on
+    /// it beside its socket; it may miss a wake while busy, so it also asks
+    /// [`Activity::take_will_due`] after every wake).
+    pub fn ended(&self) -> tokio::sync::futures::Notified<'_> {
+        self.ended.notified()
+    }
+
+    /// True once per silence ending: the connection that gets it publishes the device's
+    /// broker-side will.
+    pub fn take_will_due(&self) -> bool {
+        self.will_due.load(Ordering::Relaxed) && self.will_due.swap(false, Ordering::Acquire)
     }
 
     /// The observed periods of the ports that have one.
@@ -318,6 +383,30 @@ mod tests {
             a.judge(back + ms(1001), &BOUND),
             Verdict::Silent { since: back }
         );
+    }
+
+    #[test]
+    fn a_device_allowed_so_much_silence_ends_once_and_comes_back_when_it_speaks() {
+        let t0 = Instant::now();
+        let a = Activity::new(&interface(), t0);
+        let last = every(&a, "SPEED", t0, ms(200), 10);
+        let Verdict::Silent { since } = a.judge(last + ms(1500), &BOUND) else {
+            panic!("silent");
+        };
+        // Without an allowance, silence never ends a device.
+        assert!(!a.end_if_silent_for(last + ms(60_000), since));
+        a.set_offline_after(Some(ms(3000)));
+        assert!(!a.end_if_silent_for(last + ms(2999), since));
+        assert!(!a.take_will_due());
+        assert!(a.end_if_silent_for(last + ms(3000), since));
+        assert!(!a.end_if_silent_for(last + ms(4000), since), "once");
+        assert!(a.take_will_due());
+        assert!(!a.take_will_due(), "one connection publishes the will");
+        // Its next publication brings it back, and a later silence ends it again.
+        let back = last + ms(10_000);
+        assert!(a.published("CONV", "SPEED", back, &BOUND));
+        assert!(!a.published("CONV", "SPEED", back + ms(200), &BOUND));
+        assert!(a.end_if_silent_for(back + ms(3200), back + ms(200)));
     }
 
     #[test]

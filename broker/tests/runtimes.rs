@@ -1021,21 +1021,20 @@ async fn forte_and_dinasore_wired_through_fbbus() {
     assert!(online(&record(&broker, "dina").unwrap()));
     assert!(forte.lines_within(Duration::from_millis(200)).is_empty());
 
-    // Both stop cleanly (FORTE's MQTTHandler and DINASORE's FBs send DISCONNECT): offline,
-    // and each profile's will is published all the same (a profile's will fires when the
-    // device goes offline for any reason).
+    // FORTE stops cleanly (its MQTTHandler sends DISCONNECT): offline, and, as an MQTT
+    // will, its profile's will is not published (issue 30: a profile asks for the
+    // reference line's rule with `liveness.will_on_clean_disconnect`). DINASORE's stop
+    // calls each FB's `disconnect()`, which its loop-less publisher may or may not get
+    // onto the wire before the process exits: either way it is offline.
     forte.send("quit");
-    dina.send("quit");
     wait_record(&broker, "forte3", "offline", offline).await;
+    dina.send("quit");
     wait_record(&broker, "dina", "offline", offline).await;
-    let got = one_each(
-        &mut watch,
-        &["fb/forte3/CONV/CONNECT", "fb/dina/CONV/RUNNING"],
-        &broker,
-    )
-    .await;
-    assert_eq!(text(&got[0]), "false");
-    assert_eq!(text(&got[1]), "false");
+    assert_eq!(
+        next_on(&mut watch, "fb/forte3/CONV/CONNECT", QUIET * 3).await,
+        None,
+        "a clean DISCONNECT fired forte3's profile will"
+    );
 }
 
 // ------------------------------------------------------------------ refusals, where they are told
@@ -1094,4 +1093,175 @@ async fn a_topics_only_device_first_refusal_is_described_under_its_id() {
         &["device=\"dina\"", "reason=\"payload_format_invalid\""],
         1.0,
     );
+}
+
+// -------------------------------------------------- who speaks for a topics-only device
+
+/// DINA with a stated period on SPEED, a short silence allowance, and (when `reference`)
+/// the reference line's will rule: every departure is a disconnection.
+fn dina_liveness(offline_after_s: u64, reference: bool) -> String {
+    format!(
+        "{DINA}\n[periods]\n\"CONV.SPEED\" = 100\n\n[liveness]\n\
+         offline_after_silent_s = {offline_after_s}\nwill_on_clean_disconnect = {reference}\n"
+    )
+}
+
+/// A refused publication on a topics-only device's own topic speaks for nobody: an
+/// anonymous MQTT 5 client publishing `{"SPEED":"abc"}` on DINASORE `dina`'s own topic is
+/// refused 0x99, described under `dina`, and changes nothing: no record, its keep-alive
+/// still enforced, and no will when it leaves (cleanly or not). (Issue 30: the registry
+/// showed `dina` online with the intruder's session and fired its will at its DISCONNECT.)
+#[tokio::test(flavor = "multi_thread")]
+async fn a_refused_publication_speaks_for_nobody() {
+    let broker = line(&[DINA]);
+    let mut watch = observer(&broker, "watch", &["fb/dina/#", "fbbus/diag/#"]).await;
+    let mut intruder = Dev::connect(broker.port(), 5, "intruder");
+    assert_eq!(
+        intruder.publish("line1/dina/speed", br#"{"SPEED":"abc"}"#),
+        0x99
+    );
+    let rejected = diag(&mut watch, "dina", "rejected", &broker).await;
+    assert_eq!(rejected["reason"], "payload_format_invalid", "{rejected}");
+    assert_eq!(
+        record(&broker, "dina"),
+        None,
+        "a refused value registered dina"
+    );
+    assert!(
+        !broker.log_text().contains("keep-alive not enforced"),
+        "{}",
+        broker.log_text()
+    );
+    intruder.disconnect();
+    // Another one, cut without DISCONNECT: no will either (it never was the device).
+    let mut second = Dev::connect(broker.port(), 4, "intruder-2");
+    second.publish("line1/dina/speed", br#"{"SPEED":"fast"}"#);
+    drop(second);
+    assert_eq!(
+        next_on(&mut watch, "fb/dina/CONV/RUNNING", QUIET * 3).await,
+        None
+    );
+    assert_eq!(record(&broker, "dina"), None);
+
+    // The same client with an accepted value is the device (the rule's other half).
+    let mut tool = Dev::connect(broker.port(), 5, "tool");
+    assert_eq!(tool.publish("line1/dina/speed", br#"{"SPEED":"2.5"}"#), 0);
+    wait_record(&broker, "dina", "online from an accepted value", online).await;
+}
+
+/// The broker-side will follows MQTT's rule: a client that had an accepted value on
+/// DINASORE `dina`'s own topic (so it spoke for it) and leaves with a clean DISCONNECT (a
+/// short-lived tool) takes the device offline without its will; cut off, its will fires
+/// (`dinasore_typed_refused_registered_and_its_will`: DINASORE itself never sends
+/// DISCONNECT). With the reference line's `liveness.will_on_clean_disconnect = true`, a
+/// clean departure fires it too.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_profile_will_follows_mqtt_unless_the_profile_says_otherwise() {
+    for reference in [false, true] {
+        let profile = dina_liveness(0, reference);
+        let broker = line(&[&profile]);
+        let mut watch = observer(&broker, "watch", &["fb/dina/CONV/RUNNING"]).await;
+        let mut tool = Dev::connect(broker.port(), 4, "tool");
+        assert_eq!(tool.publish("line1/dina/speed", br#"{"SPEED":"1.5"}"#), 0);
+        wait_record(&broker, "dina", "online", online).await;
+        tool.disconnect();
+        let r = wait_record(&broker, "dina", "offline after a clean DISCONNECT", offline).await;
+        assert_eq!(r["last_will_reason"], "clean disconnect", "{r}");
+        let will = next_on(&mut watch, "fb/dina/CONV/RUNNING", QUIET * 3).await;
+        match reference {
+            false => assert_eq!(will, None, "the will fired on a clean DISCONNECT"),
+            true => assert_eq!(
+                will.as_deref(),
+                Some(&b"false"[..]),
+                "reference line: no will"
+            ),
+        }
+    }
+}
+
+/// Silence can end a device: a DINASORE whose runtime is frozen (SIGSTOP: its publisher
+/// never pings, so keep-alive cannot notice) is offline once its periodic output has been
+/// quiet for `liveness.offline_after_silent_s`, with its will, its reason and the metric;
+/// its connection stays open, and when the runtime goes on, its next value brings it back.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_frozen_dinasore_is_offline_after_its_silence_allowance() {
+    if !require_paho() {
+        return;
+    }
+    let profile = dina_liveness(2, false);
+    let broker = line(&[&profile]);
+    let mut watch = observer(&broker, "watch", &["fb/dina/CONV/RUNNING"]).await;
+    let mut dina = Emu::dinasore(&broker, "dina", &["--pub", "line1/dina/speed:SPEED"]);
+    dina.expect("connected");
+    for i in 0..5 {
+        dina.send(&format!("pub line1/dina/speed {i}.5"));
+        dina.expect_next(&format!(r#"sent line1/dina/speed {{"SPEED": "{i}.5"}}"#));
+        tokio::time::sleep(PERIOD).await;
+    }
+    wait_record(&broker, "dina", "online", online).await;
+    let frozen = Instant::now();
+    dina.py.signal("STOP");
+    let r = wait_record(&broker, "dina", "offline for its silence", offline).await;
+    let took = frozen.elapsed();
+    dina.py.signal("CONT");
+    assert!(
+        r["last_will_reason"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("silent")),
+        "{r}"
+    );
+    // 2 s allowance, judged every second, polled every 25 ms.
+    assert!(
+        took >= Duration::from_secs(2) && took < Duration::from_secs(5),
+        "{took:?}"
+    );
+    let will = next_on(&mut watch, "fb/dina/CONV/RUNNING", WAIT).await;
+    assert_eq!(will.as_deref(), Some(&b"false"[..]));
+    assert_metric(&broker, "fbbus_registry_silence_offline_total", 1.0);
+    // Going on: its next value (on the connection that stayed open) brings it back.
+    dina.send("pub line1/dina/speed 9.5");
+    dina.expect_next(r#"sent line1/dina/speed {"SPEED": "9.5"}"#);
+    let r = wait_record(&broker, "dina", "online again", online).await;
+    assert!(r["last_will_reason"].is_null(), "{r}");
+    assert_eq!(
+        next_on(&mut watch, "fb/dina/CONV/RUNNING", QUIET).await,
+        None
+    );
+}
+
+/// A DINASORE runtime that only subscribes (MQTT_SUBSCRIBER FBs only) is online while its
+/// subscriber connection listens on its input topic and offline, with its will, when that
+/// connection is lost; that connection is still held to its keep-alive (its paho loop
+/// pings). A subscription to another topic makes nobody a device.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_subscribe_only_dinasore_is_online_while_it_listens() {
+    if !require_paho() {
+        return;
+    }
+    let broker = line(&[DINA]);
+    let mut watch = observer(&broker, "watch", &["fb/dina/CONV/RUNNING"]).await;
+    let mut other = V4::connect(broker.port(), "reader", None).await.unwrap();
+    other.subscribe("line1/dina/speed").await;
+    tokio::time::sleep(QUIET).await;
+    assert_eq!(
+        record(&broker, "dina"),
+        None,
+        "a reader of an output is no device"
+    );
+
+    let mut dina = Emu::dinasore(&broker, "dina", &["--sub", "line1/dina/moved:POSITION"]);
+    dina.expect("connected");
+    dina.expect("subscribed line1/dina/moved");
+    let r = wait_record(&broker, "dina", "online from its subscription", online).await;
+    assert_eq!(r["interface"]["fbs"]["CONV"]["data_in"]["POSITION"], "INT");
+    assert!(
+        !broker.log_text().contains("keep-alive not enforced"),
+        "{}",
+        broker.log_text()
+    );
+    dina.send("kill");
+    let r = wait_record(&broker, "dina", "offline after kill", offline).await;
+    assert!(r["last_will_reason"].is_string(), "{r}");
+    let will = next_on(&mut watch, "fb/dina/CONV/RUNNING", WAIT).await;
+    assert_eq!(will.as_deref(), Some(&b"false"[..]));
 }

@@ -58,7 +58,41 @@ pub struct ProfileFile {
     /// periods, from its first connection (no period to observe first).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub periods: BTreeMap<String, u64>,
+    /// When the device counts as gone besides its connections ending badly.
+    #[serde(default, skip_serializing_if = "LivenessFile::is_default")]
+    pub liveness: LivenessFile,
 }
+
+/// When the device counts as gone (`[liveness]`), for the broker-side `[will]` and the
+/// registry.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LivenessFile {
+    /// Publish the `[will]` values also when the device's last connection ends with a
+    /// clean DISCONNECT (or the broker shuts down). False by default: an MQTT will fires
+    /// only when a connection ends without one, and a tool that says goodbye is no
+    /// failure. The reference line's CONNECT/NUM_DEV logic counts every departure, so its
+    /// profiles set this.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub will_on_clean_disconnect: bool,
+    /// Seconds the device's periodic outputs (stated in `[periods]` or observed) may all
+    /// be quiet before the registry marks it offline, with its will, while its connection
+    /// stays open: a frozen runtime that never pings is noticed. 0 turns it off. Default:
+    /// 90 for `runtime = "dinasore"` (what MQTT's keep-alive would have allowed its
+    /// publisher's 60 s, which its profile waives), off otherwise (a runtime that pings is
+    /// ended by its keep-alive).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offline_after_silent_s: Option<u64>,
+}
+
+impl LivenessFile {
+    fn is_default(&self) -> bool {
+        *self == LivenessFile::default()
+    }
+}
+
+/// [`LivenessFile::offline_after_silent_s`] of a DINASORE profile that does not set it.
+pub const DINASORE_OFFLINE_AFTER_SILENT_S: u64 = 90;
 
 /// How the device's connection is recognised. With none given, its client id is the
 /// device id.
@@ -169,6 +203,10 @@ pub struct Profile {
     pub will: Vec<(String, String, String)>,
     /// (FB, output port, period) for each stated period.
     pub periods: Vec<(String, String, std::time::Duration)>,
+    /// [`LivenessFile::will_on_clean_disconnect`].
+    pub will_on_clean_disconnect: bool,
+    /// [`LivenessFile::offline_after_silent_s`], resolved: None when off.
+    pub offline_after_silent: Option<std::time::Duration>,
 }
 
 /// How a connection is recognised as the device.
@@ -433,6 +471,22 @@ impl ProfileFile {
             }
         }
 
+        let offline_after_silent = match self.liveness.offline_after_silent_s {
+            Some(s) if s > 86_400 => {
+                errors.push(err(
+                    "liveness.offline_after_silent_s",
+                    "seconds from 0 (off) to one day (86400)",
+                ));
+                None
+            }
+            Some(0) => None,
+            Some(s) => Some(std::time::Duration::from_secs(s)),
+            None if dinasore => Some(std::time::Duration::from_secs(
+                DINASORE_OFFLINE_AFTER_SILENT_S,
+            )),
+            None => None,
+        };
+
         if !errors.is_empty() {
             return Err(errors);
         }
@@ -449,6 +503,8 @@ impl ProfileFile {
             inputs,
             will,
             periods,
+            will_on_clean_disconnect: self.liveness.will_on_clean_disconnect,
+            offline_after_silent,
         })
     }
 }

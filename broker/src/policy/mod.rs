@@ -134,6 +134,7 @@ impl PublishPolicy {
         };
         let check = match cleared {
             Some(check) => check,
+            None if door == Door::Will => publisher.check_will(&self.typed, topic, payload),
             None => publisher.check(&self.typed, topic, payload),
         };
         let routes = match check {

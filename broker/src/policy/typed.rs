@@ -346,8 +346,11 @@ pub struct FbSession {
     /// The device's profile, when its connection was recognised by one at CONNECT: the
     /// device id and interface are the profile's.
     profile: Option<Arc<Profile>>,
-    /// It speaks for a topics-only device, recognised by its publications.
+    /// It speaks for a topics-only device, recognised by its publications or
+    /// subscriptions.
     by_topics: bool,
+    /// Of those, by an accepted publication on one of the device's outputs.
+    published_own: bool,
     /// Where accepted publications on the interface's outputs are timed (`silence`); None
     /// for a connection that does not speak for a local device (the bus door's).
     activity: Option<Arc<Activity>>,
@@ -386,6 +389,7 @@ impl FbSession {
             interface: None,
             profile: None,
             by_topics: false,
+            published_own: false,
             activity: None,
             seq: BTreeMap::new(),
             logged: BTreeSet::new(),
@@ -413,6 +417,15 @@ impl FbSession {
     /// The device this connection speaks for: its client id, or its profile's device.
     pub fn device(&self) -> &str {
         &self.device
+    }
+
+    /// Where the device's publications are timed, when the device may end for its
+    /// silence (`liveness.offline_after_silent_s`): its connections wait on it.
+    pub fn ending_activity(&self) -> Option<&Arc<Activity>> {
+        match &self.profile {
+            Some(p) if p.offline_after_silent.is_some() => self.activity.as_ref(),
+            _ => None,
+        }
     }
 
     /// The profile that recognised this connection, if any.
@@ -462,6 +475,7 @@ impl FbSession {
             for (fb, port, period) in &profile.periods {
                 activity.state_period(fb, port, *period);
             }
+            activity.set_offline_after(profile.offline_after_silent);
         }
         self.activity = activity;
     }
@@ -563,6 +577,16 @@ impl FbSession {
         if let Check::Refused(rejection) = &check {
             self.rejected(fb, topic, rejection);
         }
+        check
+    }
+
+    /// [`FbSession::check`] for a will (the client's or its profile's): a will says the
+    /// device is gone, so it is no sign of life and leaves the output timing (`silence`)
+    /// as it was.
+    pub fn check_will(&mut self, fb: &FbTopics, topic: &str, payload: &Bytes) -> Check {
+        let activity = self.activity.take();
+        let check = self.check(fb, topic, payload);
+        self.activity = activity;
         check
     }
 
@@ -691,48 +715,6 @@ impl FbSession {
                 ),
             );
         }
-        if self.profile.is_none() {
-            // A topics-only device's first publication on this connection (the access rules
-            // let it publish here, and it is no other device): the connection now speaks
-            // for it, refusals included, so the registry shows it online until the
-            // connection (or a newer one of it) ends, and its broker-side will fires then.
-            // Its other connections may speak for it already: then it is online, and
-            // its interface and output timing are theirs.
-            let first = fb.speakers.join(&profile.device, self.session);
-            let held = fb
-                .registry
-                .get(&profile.device)
-                .filter(|r| !first && r.status == Status::Online);
-            let declared = match held {
-                Some(record) => Ok(record.interface),
-                None => fb.registry.declare(
-                    &profile.device,
-                    self.session,
-                    profile.interface.clone(),
-                    &self.registrant(),
-                ),
-            };
-            let interface = match declared {
-                Ok(interface) => interface,
-                Err(full) => {
-                    fb.speakers.leave(&profile.device, self.session);
-                    fb.metrics
-                        .declarations
-                        .with_label_values(&["refused"])
-                        .inc();
-                    return self.registry_full(fb, &profile.device, &full, false);
-                }
-            };
-            self.by_topics = true;
-            self.set_profile(Arc::clone(profile), interface);
-            self.set_activity(fb.registry.activity(&profile.device));
-            tracing::info!(
-                device = profile.device,
-                client_id = self.client_id,
-                session = self.session,
-                "a client publishes on a topics-only device's own topic: it is that device"
-            );
-        }
         let Some(port) = profile.interface.output(&own.fb, &own.port) else {
             return Check::Pass;
         };
@@ -757,12 +739,29 @@ impl FbSession {
         let message = match decoded {
             Ok(m) => m,
             Err(e) => {
-                return refuse(
-                    Refusal::PayloadFormatInvalid,
-                    format!("{} ({}.{}): {e}", own.topic, own.fb, own.port),
-                )
+                let detail = format!("{} ({}.{}): {e}", own.topic, own.fb, own.port);
+                if self.profile.is_none() {
+                    // Not yet the device: a refused value speaks for nobody. It is still
+                    // described under the device's id, where its operator looks.
+                    return self.refused_as(
+                        fb,
+                        profile,
+                        own,
+                        Refusal::PayloadFormatInvalid,
+                        detail,
+                    );
+                }
+                return refuse(Refusal::PayloadFormatInvalid, detail);
             }
         };
+        if self.profile.is_none() {
+            // A topics-only device's first accepted publication on this connection: the
+            // connection speaks for it from now on (`speak_for`).
+            if let Err(refused) = self.speak_for(fb, profile, "publishes on") {
+                return refused;
+            }
+            self.published_own = true;
+        }
         let typed = TypedTopic {
             encoding: Encoding::Json,
             device: &profile.device,
@@ -771,6 +770,127 @@ impl FbSession {
         };
         let first = (own.topic.clone(), payload.clone());
         self.accepted(fb, profiles, &typed, &port, message, payload, Some(first))
+    }
+
+    /// From now on this connection speaks for the topics-only device of `profile` (it
+    /// `how` one of the device's own topics: its first accepted publication on an output,
+    /// or its subscription to an input): the registry shows the device online until the
+    /// connection (or a newer one of it) ends, and its broker-side will fires then. Its
+    /// other connections may speak for it already: then it is online, and its interface
+    /// and output timing are theirs. Err: the registry is full (told and counted).
+    fn speak_for(&mut self, fb: &FbTopics, profile: &Arc<Profile>, how: &str) -> Result<(), Check> {
+        let first = fb.speakers.join(&profile.device, self.session);
+        let held = fb
+            .registry
+            .get(&profile.device)
+            .filter(|r| !first && r.status == Status::Online);
+        let declared = match held {
+            Some(record) => Ok(record.interface),
+            None => fb.registry.declare(
+                &profile.device,
+                self.session,
+                profile.interface.clone(),
+                &self.registrant(),
+            ),
+        };
+        let interface = match declared {
+            Ok(interface) => interface,
+            Err(full) => {
+                fb.speakers.leave(&profile.device, self.session);
+                fb.metrics
+                    .declarations
+                    .with_label_values(&["refused"])
+                    .inc();
+                return Err(self.registry_full(fb, &profile.device, &full, false));
+            }
+        };
+        self.by_topics = true;
+        self.set_profile(Arc::clone(profile), interface);
+        self.set_activity(fb.registry.activity(&profile.device));
+        tracing::info!(
+            device = profile.device,
+            client_id = self.client_id,
+            session = self.session,
+            "a client {how} a topics-only device's own topic: it is that device"
+        );
+        Ok(())
+    }
+
+    /// A refused publication on topics-only `profile`'s own output `own` from a
+    /// connection that does not speak for the device: counted, logged and described under
+    /// the device's id, and nothing else changes.
+    fn refused_as(
+        &mut self,
+        fb: &FbTopics,
+        profile: &Profile,
+        own: &fb_bridge::profile::OwnTopic,
+        refusal: Refusal,
+        detail: String,
+    ) -> Check {
+        let port = format!("{}.{}", own.fb, own.port);
+        fb.metrics
+            .typed_refused(&profile.device, &port, refusal.label());
+        if self.logged.len() < 1024 && self.logged.insert((own.topic.clone(), refusal.label())) {
+            tracing::warn!(
+                device = profile.device,
+                client_id = self.client_id,
+                topic = own.topic,
+                reason = refusal.label(),
+                detail,
+                "typed publication refused; the client does not speak for the device \
+                 (logged once per topic and reason)"
+            );
+        }
+        self.diag_to(
+            fb,
+            &profile.device,
+            json!({
+                "kind": "rejected",
+                "topic": own.topic,
+                "reason": refusal.label(),
+                "code": refusal.code(),
+                "detail": detail,
+            }),
+        );
+        Check::Refused(Rejection {
+            refusal,
+            detail: String::new(),
+        })
+    }
+
+    /// A subscription `filter` was granted to this connection: if it is the input topic of
+    /// a topics-only device and the connection is no device yet (nor another device's
+    /// user), the connection speaks for that device from now on, as a publishing one
+    /// does. A runtime that only subscribes (a DINASORE with MQTT_SUBSCRIBER FBs only) is
+    /// online while it listens.
+    pub fn granted_subscription(&mut self, fb: &FbTopics, filter: &str) {
+        if self.profile.is_some() {
+            return;
+        }
+        let profiles = fb.profiles.get();
+        let Some(profile) = profiles.input(filter) else {
+            return;
+        };
+        if profile.identity != Identity::TopicsOnly
+            || self.username.as_deref().is_some_and(|u| u != profile.device)
+        {
+            return;
+        }
+        let profile = Arc::clone(profile);
+        // Err: the registry is full, told on the device's diag topic; the subscription
+        // itself stands.
+        let _ = self.speak_for(fb, &profile, "subscribes to");
+    }
+
+    /// Whether the device's profile lets this connection go without its MQTT keep-alive
+    /// (`speaks.enforce_keep_alive = false`): a connection recognised at CONNECT, or one
+    /// that had an own-topic publication accepted. A connection that speaks for a
+    /// topics-only device by subscribing only is held to its keep-alive: the runtime's
+    /// subscribers ping, and a frozen one must end.
+    pub fn keep_alive_waived(&self) -> bool {
+        self.profile
+            .as_ref()
+            .is_some_and(|p| !p.enforce_keep_alive && (!self.by_topics || self.published_own))
     }
 
     /// An accepted typed message on `typed` (port shape `port`): stamped, timed, and
@@ -791,12 +911,16 @@ impl FbSession {
         let stamped = self.stamp(typed, &mut message);
         fb.metrics.typed_accepted.inc();
         if let Some(activity) = &self.activity {
-            activity.published(
+            let back = activity.published(
                 typed.fb,
                 typed.port,
                 std::time::Instant::now(),
                 fb.registry.silence_bound(),
             );
+            if back {
+                // Ended for its silence (`liveness.offline_after_silent_s`), it speaks again.
+                fb.registry.spoke_again(&self.device, self.session);
+            }
         }
         // (Collecting nothing allocates nothing: the common case.)
         let feeds: Vec<(&Arc<Profile>, usize)> = match profiles.maps_topics() {

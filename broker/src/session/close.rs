@@ -206,33 +206,16 @@ impl Session {
             .fb
             .connection_ended(&self.fb, end.reason().description());
         // A profile's broker-side will, for a runtime that cannot set one: when the device
-        // is offline (not when a newer connection of it took over), and not besides a
-        // will the device did set.
-        if offline && !own_will {
-            let values = self
-                .fb
-                .profile()
-                .map(|p| (p.device.clone(), p.will.clone()));
-            for (device, (fb, port, payload)) in values
-                .into_iter()
-                .flat_map(|(device, will)| will.into_iter().map(move |w| (device.clone(), w)))
-            {
-                fire_will(
-                    ctx,
-                    &mut self.fb,
-                    client_id,
-                    session,
-                    username,
-                    Will {
-                        topic: format!("fb/{device}/{fb}/{port}").into(),
-                        payload: payload.into(),
-                        qos: 1,
-                        retain: false,
-                        properties: None,
-                        delay: Duration::ZERO,
-                    },
-                );
-            }
+        // is offline (not when a newer connection of it took over), not besides a will
+        // the device did set, and, as an MQTT will, not after a clean DISCONNECT unless
+        // the profile asks for it (`liveness.will_on_clean_disconnect`).
+        let fires = self
+            .fb
+            .profile()
+            .is_some_and(|p| end.fires_will() || p.will_on_clean_disconnect);
+        if offline && !own_will && fires {
+            let (ctx, client_id) = (&self.ctx, &*self.client_id);
+            fire_profile_will(ctx, &mut self.fb, client_id, session, username);
         }
         // The gauge first: a scrape that sees the disconnect counted sees the gauge down.
         self.ctx.metrics.connections.dec();
@@ -246,6 +229,34 @@ impl Session {
         if !stalled && end.client_at_fault() {
             linger(&mut self.io.stream).await;
         }
+    }
+}
+
+/// Publishes the broker-side will of the device connection `fb` speaks for (its
+/// profile's `[will]` values on its typed ports, QoS 1), each as the publication it is,
+/// under that connection's identity: when the device went offline with the connection's
+/// end (`close`), or when the registry ended it for its silence while the connection
+/// lives on (`Session::silence_ended`).
+pub(super) fn fire_profile_will(
+    ctx: &Context,
+    fb: &mut FbSession,
+    client_id: &str,
+    session: u64,
+    username: Option<&str>,
+) {
+    let Some(profile) = fb.profile().cloned() else {
+        return;
+    };
+    for (fb_name, port, payload) in &profile.will {
+        let will = Will {
+            topic: format!("fb/{}/{fb_name}/{port}", profile.device).into(),
+            payload: payload.clone().into(),
+            qos: 1,
+            retain: false,
+            properties: None,
+            delay: Duration::ZERO,
+        };
+        fire_will(ctx, fb, client_id, session, username, will);
     }
 }
 

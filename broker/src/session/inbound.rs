@@ -422,6 +422,8 @@ impl Session {
             if !self.subscriptions.contains_key(&filter.path) {
                 self.ctx.observers.subscribed(&filter.path);
             }
+            // A topics-only device's input topic: this connection may be that device.
+            self.fb.granted_subscription(&self.ctx.fb, &filter.path);
         }
         self.store_subscribed(&granted, properties.as_ref().and_then(|p| p.id));
         let id = properties.as_ref().and_then(|p| p.id);

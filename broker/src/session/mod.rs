@@ -162,6 +162,17 @@ enum Wake {
     },
     /// The store wrote what acknowledgements were waiting for ([`durable`]).
     Written,
+    /// The registry ended the device this connection speaks for, for its silence.
+    SilenceEnded,
+}
+
+/// Resolves when the registry ends the device of `activity` for its silence; never
+/// without one (a connection whose device does not end for silence: most of them).
+async fn silence_ended(activity: Option<&Arc<crate::silence::Activity>>) {
+    match activity {
+        Some(activity) => activity.ended().await,
+        None => std::future::pending().await,
+    }
 }
 
 /// An authenticated client's connection, registered with the router.
@@ -322,6 +333,9 @@ impl Session {
                     return end;
                 }
             }
+            // The registry ended this connection's device for its silence while the
+            // connection was busy (its wake may have been missed): its will, once.
+            self.silence_ended();
             // The client may have been heard elsewhere (`write`): one deadline for both.
             // None once a profile lifted the keep-alive (`relax_keep_alive`).
             let due = match self.keep_alive {
@@ -344,6 +358,7 @@ impl Session {
                     _ = Box::pin(tokio::time::sleep(Duration::from_millis(1))) => Wake::Backlogged,
                     linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
                     _ = durable::Durable::next_written(&mut self.durable) => Wake::Written,
+                    _ = silence_ended(self.fb.ending_activity()) => Wake::SilenceEnded,
                 }
             } else {
                 tokio::select! {
@@ -352,6 +367,7 @@ impl Session {
                     read = self.io.fill() => Wake::Read(read),
                     linked = self.link_rx.wait() => Wake::Router { linked: linked.is_ok() },
                     _ = durable::Durable::next_written(&mut self.durable) => Wake::Written,
+                    _ = silence_ended(self.fb.ending_activity()) => Wake::SilenceEnded,
                 }
             };
             let handled = match wake {
@@ -375,6 +391,7 @@ impl Session {
                     self.release_written();
                     self.write_out().await
                 }
+                Wake::SilenceEnded => Ok(()),
             };
             if let Err(end) = handled {
                 return end;
@@ -383,15 +400,42 @@ impl Session {
     }
 
     /// The connection speaks for a profiled device whose runtime never pings
-    /// (`speaks.enforce_keep_alive = false`): its keep-alive is not enforced from now on.
+    /// (`speaks.enforce_keep_alive = false`) and has had an own-topic publication
+    /// accepted (`FbSession::keep_alive_waived`): its keep-alive is not enforced from now
+    /// on.
     /// The kernel's dead-link probes still end it if its peer vanishes.
     fn relax_keep_alive(&mut self) {
-        let lifted = self.fb.profile().is_some_and(|p| !p.enforce_keep_alive);
-        if lifted && self.keep_alive.take().is_some() {
+        if self.fb.keep_alive_waived() && self.keep_alive.take().is_some() {
             tracing::info!(
                 client_id = &*self.client_id,
                 device = self.fb.device(),
                 "keep-alive not enforced: the device's profile says its runtime never pings"
+            );
+        }
+    }
+
+    /// If the registry ended this connection's device for its silence
+    /// (`liveness.offline_after_silent_s`) and no other connection of it took the will
+    /// yet, publishes the device's broker-side will. The connection stays open: a runtime
+    /// that was only paused speaks again, and its next accepted publication brings the
+    /// device back online.
+    fn silence_ended(&mut self) {
+        if self
+            .fb
+            .ending_activity()
+            .is_some_and(|activity| activity.take_will_due())
+        {
+            tracing::info!(
+                client_id = &*self.client_id,
+                device = self.fb.device(),
+                "device offline for its silence: its profile's will is published"
+            );
+            close::fire_profile_will(
+                &self.ctx,
+                &mut self.fb,
+                &self.client_id,
+                self.session,
+                self.username.as_deref(),
             );
         }
     }

@@ -286,6 +286,16 @@ impl Python {
         }
     }
 
+    /// Sends the program a signal (`STOP`, `CONT`, ...) with kill(1): a frozen runtime.
+    pub fn signal(&self, signal: &str) {
+        let pid = self.child.id().to_string();
+        let ok = Command::new("kill")
+            .args([&format!("-{signal}"), &pid])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "kill -{signal} {pid} failed");
+    }
+
     /// Writes one line to the program.
     pub fn send(&mut self, line: &str) {
         writeln!(self.stdin, "{line}").unwrap();

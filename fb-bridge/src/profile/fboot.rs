@@ -1280,6 +1280,7 @@ fn build_profiles(
             topics: draft.topics,
             will: BTreeMap::new(),
             periods: BTreeMap::new(),
+            liveness: Default::default(),
         });
     }
     for PendingFrom { note, topic } in pending {

@@ -187,3 +187,45 @@ fn a_dinasore_input_only_takes_what_float_reads() {
         assert!(errors[0].error.contains("float(value)"), "{errors:?}");
     }
 }
+
+#[test]
+fn liveness_follows_mqtt_by_default_and_a_dinasore_ends_after_90_s_of_silence() {
+    let forte = conveyor(json!({})).validate().expect("valid");
+    assert!(!forte.will_on_clean_disconnect);
+    assert_eq!(
+        forte.offline_after_silent, None,
+        "a runtime that pings: off"
+    );
+    let dinasore = conveyor(json!({"runtime": "dinasore", "topics": []}))
+        .validate()
+        .expect("valid");
+    assert_eq!(
+        dinasore.offline_after_silent,
+        Some(std::time::Duration::from_secs(
+            DINASORE_OFFLINE_AFTER_SILENT_S
+        ))
+    );
+    let set =
+        |liveness| conveyor(json!({"runtime": "dinasore", "topics": [], "liveness": liveness}));
+    let off = set(json!({"offline_after_silent_s": 0}))
+        .validate()
+        .expect("valid");
+    assert_eq!(off.offline_after_silent, None);
+    let reference = set(json!({"will_on_clean_disconnect": true, "offline_after_silent_s": 5}))
+        .validate()
+        .expect("valid");
+    assert!(reference.will_on_clean_disconnect);
+    assert_eq!(
+        reference.offline_after_silent,
+        Some(std::time::Duration::from_secs(5))
+    );
+    let errors = set(json!({"offline_after_silent_s": 86_401}))
+        .validate()
+        .expect_err("over a day");
+    assert!(
+        errors
+            .iter()
+            .any(|e| e.to_string().contains("liveness.offline_after_silent_s")),
+        "{errors:?}"
+    );
+}

@@ -303,7 +303,11 @@ pub fn profile(id: &str, runtime: Runtime) -> Option<String> {
         "\n# Its runtime sets no will: the broker publishes this on fb/<id>/CONV/CONNECT when\n\
          # the device goes offline.\n\
          [will]\n\
-         \"CONV.CONNECT\" = false\n",
+         \"CONV.CONNECT\" = false\n\n\
+         # The line counts its modules from CONNECT (NUM_DEV): every departure, a clean\n\
+         # DISCONNECT too, must say CONNECT = FALSE (an MQTT will would not).\n\
+         [liveness]\n\
+         will_on_clean_disconnect = true\n",
     );
     Some(t)
 }

@@ -211,6 +211,7 @@ pub fn import_dinasore(text: &str, device: &str) -> FbootImport {
         topics: draft.topics,
         will: BTreeMap::new(),
         periods: BTreeMap::new(),
+        liveness: Default::default(),
     };
     FbootImport {
         profiles: vec![profile],
