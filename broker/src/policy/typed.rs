@@ -872,7 +872,10 @@ impl FbSession {
             return;
         };
         if profile.identity != Identity::TopicsOnly
-            || self.username.as_deref().is_some_and(|u| u != profile.device)
+            || self
+                .username
+                .as_deref()
+                .is_some_and(|u| u != profile.device)
         {
             return;
         }
