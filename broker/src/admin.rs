@@ -16,10 +16,12 @@
 //!   (the broker refuses to start without it, as it refuses a non-loopback MQTT listener
 //!   without `[auth] password_file`); on loopback without it the endpoint is open, as
 //!   anyone on the broker's host can read its files anyway.
-//! - Writes from the host only: the commands (putting a profile, forgetting a device)
-//!   are refused (403) to any peer that is not on the broker's own host, by one
-//!   extractor, [`LoopbackOnly`], credentials or not: an admin bound to a plant network
-//!   for Prometheus must not let that network retype or remove the line's devices.
+//! - Writes from the host only, addressed as the host: the commands (putting a profile,
+//!   forgetting a device) take one extractor, `admin_writes::LocalWrite`, credentials or
+//!   not: refused (403) to any peer not on the broker's own host (an admin bound to a
+//!   plant network for Prometheus must not let that network retype or remove the line's
+//!   devices), and to requests whose `Host` or `Origin` names another site (a web page
+//!   that rebinds its own name to 127.0.0.1).
 //!
 //! It exposes no secret: no password, hash or key is in any answer.
 
@@ -28,8 +30,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use axum::extract::{ConnectInfo, DefaultBodyLimit, FromRequestParts, Path, Query, State};
-use axum::http::request::Parts;
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, put};
@@ -42,6 +43,7 @@ use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 
 use crate::admin_auth::{self, AdminAuth};
+use crate::admin_writes::{HasWriteRules, LocalWrite, WriteRules};
 use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::profiles::{Profiles, PutError};
@@ -62,6 +64,10 @@ pub struct AdminSection {
     /// `connection_timeout_ms` (slow bodies, slow readers, idle keep-alive).
     pub header_timeout_ms: u64,
     pub connection_timeout_ms: u64,
+    /// Host names under which admin writes are accepted, besides IP addresses and
+    /// `localhost` (the `Host` and `Origin` headers; DNS-rebinding defence, see
+    /// `admin_writes`).
+    pub allowed_hosts: Vec<String>,
 }
 
 impl Default for AdminSection {
@@ -72,6 +78,7 @@ impl Default for AdminSection {
             max_connections: 64,
             header_timeout_ms: 5_000,
             connection_timeout_ms: 60_000,
+            allowed_hosts: Vec::new(),
         }
     }
 }
@@ -86,6 +93,14 @@ pub struct AdminState {
     pub auth: Option<Arc<AdminAuth>>,
     /// The line console's routes (`console`), unless `[console] enabled = false`.
     pub console: Option<Arc<crate::console::Console>>,
+    /// Who may write (`admin_writes`).
+    pub writes: Arc<WriteRules>,
+}
+
+impl HasWriteRules for AdminState {
+    fn write_rules(&self) -> &WriteRules {
+        &self.writes
+    }
 }
 
 /// Every admin route. With `state.auth`, the credential check is the outermost layer, so
@@ -202,7 +217,7 @@ async fn device(State(state): State<AdminState>, Path(id): Path<String>) -> impl
 /// Forgets an offline device with its retained record and values: 404 if unknown, 409
 /// if it is online (or another line's). From the broker's host only.
 async fn forget_device(
-    _: LoopbackOnly,
+    _: LocalWrite,
     State(state): State<AdminState>,
     Path(id): Path<String>,
 ) -> Response {
@@ -220,33 +235,6 @@ async fn forget_device(
 /// An error answer: `{"error": ...}` with `code`.
 fn error(code: StatusCode, message: String) -> Response {
     (code, axum::Json(serde_json::json!({"error": message}))).into_response()
-}
-
-/// The request comes from the broker's own host: extracting it refuses (403) any other
-/// peer. Every route that changes something takes it, so the rule is in one place. It
-/// comes on top of the credentials (`admin_auth`, checked before any route), not instead:
-/// a remote admin with the right password still may not write.
-pub struct LoopbackOnly;
-
-#[axum::async_trait]
-impl<S: Send + Sync> FromRequestParts<S> for LoopbackOnly {
-    type Rejection = Response;
-
-    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, Self::Rejection> {
-        let peer = parts
-            .extensions
-            .get::<ConnectInfo<SocketAddr>>()
-            .map(|ConnectInfo(peer)| peer.ip().to_canonical());
-        match peer {
-            Some(ip) if ip.is_loopback() => Ok(LoopbackOnly),
-            _ => Err(error(
-                StatusCode::FORBIDDEN,
-                "admin writes are accepted from the broker's own host only (fbbus declare, \
-                 fbbus devices forget); remote admin writes are refused"
-                    .into(),
-            )),
-        }
-    }
 }
 
 /// What each profile recognises and maps, by device.
@@ -290,7 +278,7 @@ async fn profiles(State(state): State<AdminState>) -> impl IntoResponse {
 /// Puts a profile (TOML body) into the profiles directory: from the broker's host only
 /// (or written into its profiles directory).
 async fn put_profile(
-    _: LoopbackOnly,
+    _: LocalWrite,
     State(state): State<AdminState>,
     Path(device): Path<String>,
     body: String,
@@ -519,46 +507,4 @@ fn set_nice(nice: libc::c_int) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = nice;
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    async fn from(peer: Option<&str>) -> Result<LoopbackOnly, StatusCode> {
-        let (mut parts, ()) = axum::http::Request::new(()).into_parts();
-        if let Some(peer) = peer {
-            let peer: SocketAddr = peer.parse().unwrap();
-            parts.extensions.insert(ConnectInfo(peer));
-        }
-        LoopbackOnly::from_request_parts(&mut parts, &())
-            .await
-            .map_err(|r| r.status())
-    }
-
-    /// Admin writes are answered to the broker's own host only, IPv4-mapped loopback
-    /// included; a request whose peer is unknown is refused too.
-    #[tokio::test]
-    async fn admin_writes_are_loopback_only() {
-        for peer in [
-            "127.0.0.1:5000",
-            "127.0.0.2:5000",
-            "[::1]:5000",
-            "[::ffff:127.0.0.1]:5000",
-        ] {
-            assert!(from(Some(peer)).await.is_ok(), "{peer}");
-        }
-        for peer in [
-            Some("10.0.0.7:5000"),
-            Some("[::ffff:10.0.0.7]:5000"),
-            Some("[fe80::1]:5000"),
-            None,
-        ] {
-            assert_eq!(
-                from(peer).await.err(),
-                Some(StatusCode::FORBIDDEN),
-                "{peer:?}"
-            );
-        }
-    }
 }

@@ -24,7 +24,12 @@
 //! - a [`LoginThrottle`] per peer address (tuned by `[auth.throttle]`, like the MQTT
 //!   logins, but counting apart from them) answers 429 with `Retry-After`, without
 //!   verifying anything, to an address that failed too often; while it is throttled even
-//!   the right password is refused, as on the MQTT side;
+//!   the right password is refused, as on the MQTT side; failures also count per user of
+//!   the file (guesses at one account from many addresses, or from an IPv6 /64, meet
+//!   the same block) and for the whole endpoint, with [`OVERALL_FACTOR`] times the free
+//!   failures (guesses at names that are no user). Neither of those two blocks a
+//!   credential the cache already verified, so a scraper with the right password goes on
+//!   while someone else guesses;
 //! - every refusal is counted in `fbbus_admin_auth_failures_total{reason}` (missing,
 //!   invalid, throttled) and logged at most once a minute per reason, with the peer's
 //!   address and never a user name or password (a password typed into the user field
@@ -42,7 +47,7 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use base64::Engine as _;
-use security::{CredentialCache, LoginThrottle, PasswordFile, Verification};
+use security::{CredentialCache, LoginThrottle, PasswordFile, ThrottleConfig, Verification};
 use tokio::sync::Semaphore;
 
 use crate::authenticator::ThrottleSection;
@@ -63,6 +68,9 @@ const CACHE_CAPACITY: usize = 256;
 /// password, in base64, with room to spare.
 pub const MAX_AUTHORIZATION_BYTES: usize = 1024;
 
+/// The whole endpoint's throttle allows this many times the free failures of an address.
+pub const OVERALL_FACTOR: u32 = 10;
+
 /// A refusal is logged at most this often per reason; every one is counted.
 const WARNING_INTERVAL: Duration = Duration::from_secs(60);
 
@@ -76,6 +84,10 @@ pub struct AdminAuth {
     passwords: Arc<WatchedFile<PasswordFile>>,
     cache: CredentialCache,
     throttle: LoginThrottle,
+    /// Failures per user of the file (unknown names are not tracked: they count overall).
+    per_user: LoginThrottle<String>,
+    /// Every failure, whoever and whatever it targets.
+    overall: LoginThrottle<()>,
     verifications: Semaphore,
     metrics: Arc<Metrics>,
     /// When each [`Refusal`] was last logged.
@@ -91,7 +103,25 @@ enum Refusal {
     /// one answer).
     Invalid,
     /// Too many recent failures from this address; retry after this long.
-    Throttled(Duration),
+    Throttled(Duration, Scope),
+}
+
+/// Whose failures a throttled request met.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Scope {
+    Address,
+    User,
+    Endpoint,
+}
+
+impl Scope {
+    fn describe(self) -> &'static str {
+        match self {
+            Scope::Address => "from this address",
+            Scope::User => "for this user",
+            Scope::Endpoint => "on this endpoint",
+        }
+    }
 }
 
 impl Refusal {
@@ -99,7 +129,7 @@ impl Refusal {
         match self {
             Refusal::Missing => "missing",
             Refusal::Invalid => "invalid",
-            Refusal::Throttled(_) => "throttled",
+            Refusal::Throttled(..) => "throttled",
         }
     }
 
@@ -107,7 +137,7 @@ impl Refusal {
         match self {
             Refusal::Missing => 0,
             Refusal::Invalid => 1,
-            Refusal::Throttled(_) => 2,
+            Refusal::Throttled(..) => 2,
         }
     }
 }
@@ -130,10 +160,16 @@ impl AdminAuth {
         throttle: &ThrottleSection,
         metrics: Arc<Metrics>,
     ) -> AdminAuth {
+        let config = throttle.throttle_config();
         AdminAuth {
             passwords,
             cache: CredentialCache::new(CACHE_CAPACITY),
-            throttle: LoginThrottle::new(throttle.throttle_config()),
+            per_user: LoginThrottle::new(config.clone()),
+            overall: LoginThrottle::new(ThrottleConfig {
+                free_failures: config.free_failures.saturating_mul(OVERALL_FACTOR),
+                ..config.clone()
+            }),
+            throttle: LoginThrottle::new(config),
             verifications: Semaphore::new(MAX_VERIFICATIONS),
             metrics,
             last_warning: Mutex::new([None; 3]),
@@ -149,41 +185,53 @@ impl AdminAuth {
     ) -> Result<(), Refusal> {
         if let Some(peer) = peer {
             if let Err(retry_after) = self.throttle.check(peer, Instant::now()) {
-                return Err(Refusal::Throttled(retry_after));
+                return Err(Refusal::Throttled(retry_after, Scope::Address));
             }
         }
         let mut values = headers.get_all(header::AUTHORIZATION).iter();
         let (Some(value), None) = (values.next(), values.next()) else {
             // Two Authorization headers: which one would count? Neither.
             return if headers.contains_key(header::AUTHORIZATION) {
-                Err(self.failed(peer))
+                Err(self.failed(peer, None))
             } else {
                 Err(Refusal::Missing)
             };
         };
         let Some(Credentials { user, password }) = Credentials::parse(value) else {
-            return Err(self.failed(peer));
+            return Err(self.failed(peer, None));
         };
 
         let file = self.passwords.get();
+        let known = file.get(&user).is_some();
         if let Some(stored) = file.get(&user) {
             if self.cache.hit(&user, password.as_bytes(), stored) {
-                self.succeeded(peer);
+                self.succeeded(peer, &user);
                 return Ok(());
             }
+        }
+        // Not verified before: a guess, as far as the user's and the endpoint's counts go.
+        let now = Instant::now();
+        if known {
+            if let Err(retry_after) = self.per_user.check(user.clone(), now) {
+                return Err(Refusal::Throttled(retry_after, Scope::User));
+            }
+        }
+        if let Err(retry_after) = self.overall.check((), now) {
+            return Err(Refusal::Throttled(retry_after, Scope::Endpoint));
         }
         let accepted = {
             // Never closed, so acquiring only waits.
             let _permit = self.verifications.acquire().await;
             let this = Arc::clone(self);
+            let name = user.clone();
             tokio::task::spawn_blocking(move || {
                 let accepted = matches!(
-                    file.verify(&user, password.as_bytes()),
+                    file.verify(&name, password.as_bytes()),
                     Verification::Accepted { .. }
                 );
                 if accepted {
-                    if let Some(stored) = file.get(&user) {
-                        this.cache.insert(&user, password.as_bytes(), stored);
+                    if let Some(stored) = file.get(&name) {
+                        this.cache.insert(&name, password.as_bytes(), stored);
                     }
                 }
                 accepted
@@ -192,23 +240,33 @@ impl AdminAuth {
             .unwrap_or(false)
         };
         if accepted {
-            self.succeeded(peer);
+            self.succeeded(peer, &user);
             Ok(())
         } else {
-            Err(self.failed(peer))
+            Err(self.failed(peer, known.then_some(user)))
         }
     }
 
-    fn succeeded(&self, peer: Option<IpAddr>) {
+    /// A verified login clears its address's and its user's failures (not the
+    /// endpoint's: a scraper's successes must not reset someone else's guessing).
+    fn succeeded(&self, peer: Option<IpAddr>, user: &str) {
         if let Some(peer) = peer {
             self.throttle.record_success(peer);
         }
+        self.per_user.record_success(user.to_owned());
     }
 
-    fn failed(&self, peer: Option<IpAddr>) -> Refusal {
+    /// A failed login counts for its address, for `user` (a user of the file it named),
+    /// and for the endpoint.
+    fn failed(&self, peer: Option<IpAddr>, user: Option<String>) -> Refusal {
+        let now = Instant::now();
         if let Some(peer) = peer {
-            self.throttle.record_failure(peer, Instant::now());
+            self.throttle.record_failure(peer, now);
         }
+        if let Some(user) = user {
+            self.per_user.record_failure(user, now);
+        }
+        self.overall.record_failure((), now);
         Refusal::Invalid
     }
 
@@ -247,13 +305,13 @@ impl AdminAuth {
                     "admin endpoint: request with wrong credentials refused (401); further \
                      refusals this minute are only counted (fbbus_admin_auth_failures_total)"
                 ),
-                Refusal::Throttled(retry_after) => tracing::warn!(
+                Refusal::Throttled(retry_after, scope) => tracing::warn!(
                     %peer,
                     reason,
                     ?retry_after,
-                    "admin endpoint: too many failed logins from this address, refused (429); \
-                     further refusals this minute are only counted \
-                     (fbbus_admin_auth_failures_total)"
+                    "admin endpoint: too many failed logins {}, refused (429); further \
+                     refusals this minute are only counted (fbbus_admin_auth_failures_total)",
+                    scope.describe()
                 ),
             }
         }
@@ -273,7 +331,7 @@ impl AdminAuth {
                 )
                     .into_response()
             }
-            Refusal::Throttled(retry_after) => {
+            Refusal::Throttled(retry_after, scope) => {
                 // Whole seconds, rounded up: retrying at the announced time is not too early.
                 let seconds = retry_after.as_secs() + u64::from(retry_after.subsec_nanos() > 0);
                 let seconds = seconds.max(1);
@@ -282,7 +340,8 @@ impl AdminAuth {
                     [(header::RETRY_AFTER, HeaderValue::from(seconds))],
                     axum::Json(serde_json::json!({
                         "error": format!(
-                            "too many failed logins from this address; retry after {seconds} s"
+                            "too many failed logins {}; retry after {seconds} s",
+                            scope.describe()
                         )
                     })),
                 )
@@ -484,25 +543,100 @@ mod tests {
                 "{wrong:?}"
             );
         }
-        // From one address: three free failures, the fourth blocks it.
+        // From one address: three free failures, the fourth blocks it. (Guesses at a name
+        // that is no user: only the address and the endpoint count them.)
         for _ in 0..4 {
-            let wrong = headers(&basic(b"admin:guess"));
+            let wrong = headers(&basic(b"guesser:guess"));
             assert_eq!(auth.check(peer, &wrong).await, Err(Refusal::Invalid));
         }
         assert!(matches!(
             auth.check(peer, &right).await,
-            Err(Refusal::Throttled(_))
+            Err(Refusal::Throttled(..))
         ));
         // Another address is not.
         assert_eq!(
             auth.check(Some(IpAddr::from([10, 0, 0, 8])), &right).await,
             Ok(())
         );
-        let refused = auth.refuse(Refusal::Throttled(Duration::from_millis(1500)), peer);
+        let refused = auth.refuse(
+            Refusal::Throttled(Duration::from_millis(1500), Scope::Address),
+            peer,
+        );
         assert_eq!(refused.status(), StatusCode::TOO_MANY_REQUESTS);
         assert_eq!(refused.headers()[header::RETRY_AFTER], "2");
         let refused = auth.refuse(Refusal::Invalid, peer);
         assert_eq!(refused.status(), StatusCode::UNAUTHORIZED);
         assert_eq!(refused.headers()[header::WWW_AUTHENTICATE], CHALLENGE);
+    }
+
+    /// Guesses at one user from many addresses meet that user's block (an IPv6 /64 or a
+    /// pool of addresses gains nothing); a credential the cache verified still passes;
+    /// guesses at names that are no user meet the endpoint's block after
+    /// `OVERALL_FACTOR` times the free failures.
+    #[tokio::test]
+    async fn guesses_count_per_user_and_for_the_endpoint_too() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("admin-passwd");
+        let params = security::Argon2Params {
+            memory_kib: 64,
+            iterations: 1,
+            parallelism: 1,
+        };
+        let mut file = PasswordFile::default();
+        let phc = security::hash_password(b"s3cret", &params).unwrap();
+        file.set("admin", security::StoredHash::parse(&phc).unwrap())
+            .unwrap();
+        file.save(&path).unwrap();
+        let watched = WatchedFile::load("admin_password_file", &path, |p| {
+            PasswordFile::load(p).map_err(|e| e.to_string())
+        })
+        .unwrap();
+        let throttle = ThrottleSection {
+            free_failures: 3,
+            base_delay_ms: 60_000,
+            max_delay_ms: 60_000,
+        };
+        let auth = Arc::new(AdminAuth::new(
+            Arc::new(watched),
+            &throttle,
+            Arc::new(Metrics::new()),
+        ));
+        let headers = |value: &[u8]| {
+            let mut h = HeaderMap::new();
+            h.insert(
+                header::AUTHORIZATION,
+                HeaderValue::from_bytes(value).unwrap(),
+            );
+            h
+        };
+        let right = headers(&basic(b"admin:s3cret"));
+        let scraper = Some(IpAddr::from([10, 0, 0, 1]));
+        assert_eq!(auth.check(scraper, &right).await, Ok(()));
+        let wrong = headers(&basic(b"admin:guess"));
+        for i in 0..4u8 {
+            let from = Some(IpAddr::from([10, 0, 1, i]));
+            assert_eq!(auth.check(from, &wrong).await, Err(Refusal::Invalid), "{i}");
+        }
+        assert!(matches!(
+            auth.check(Some(IpAddr::from([10, 0, 1, 9])), &wrong).await,
+            Err(Refusal::Throttled(_, Scope::User))
+        ));
+        assert_eq!(auth.check(scraper, &right).await, Ok(()), "cached");
+        let nobody = headers(&basic(b"nobody:guess"));
+        // 30 failures are free (4 made above); the 31st blocks.
+        let free = 3 * OVERALL_FACTOR - 4 + 1;
+        for i in 0..free {
+            let from = Some(IpAddr::from([10, 1, (i / 200) as u8, (i % 200) as u8]));
+            assert_eq!(
+                auth.check(from, &nobody).await,
+                Err(Refusal::Invalid),
+                "{i}"
+            );
+        }
+        assert!(matches!(
+            auth.check(Some(IpAddr::from([10, 2, 0, 1])), &nobody).await,
+            Err(Refusal::Throttled(_, Scope::Endpoint))
+        ));
+        assert_eq!(auth.check(scraper, &right).await, Ok(()), "cached");
     }
 }

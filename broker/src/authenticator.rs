@@ -252,3 +252,13 @@ impl Authenticator {
         }
     }
 }
+
+impl Authenticator {
+    /// Whether `name` is a user of the password file (none without one). A client id that
+    /// is a user's name is that user's (`session::connect`).
+    pub fn is_user(&self, name: &str) -> bool {
+        self.passwords
+            .as_ref()
+            .is_some_and(|p| p.get().get(name).is_some())
+    }
+}

@@ -33,6 +33,7 @@
 
 mod admin;
 mod admin_auth;
+mod admin_writes;
 mod authenticator;
 #[cfg(feature = "bridge")]
 mod bridge;

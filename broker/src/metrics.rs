@@ -144,6 +144,7 @@ pub struct Metrics {
     /// Admin requests refused for their credentials (`[admin] password_file`), by reason:
     /// missing, invalid, throttled.
     pub admin_auth_failures: IntCounterVec,
+    pub admin_writes_refused: IntCounterVec,
     /// The router's offline persistent sessions, which it updates itself
     /// (`RouterHooks::saved_sessions`); copied into the two metrics below at each scrape.
     pub router_sessions: Arc<SavedSessions>,
@@ -284,6 +285,16 @@ impl Metrics {
                 ),
                 &[&["missing"], &["invalid"], &["throttled"]],
             ),
+            admin_writes_refused: with_series(
+                counter_vec(
+                    "fbbus_admin_writes_refused_total",
+                    "Admin writes (PUT a profile, DELETE a device) refused with 403, by reason \
+                     (remote: not from the broker's host; host, origin: the Host or Origin \
+                     header names neither an IP address, localhost nor [admin] allowed_hosts)",
+                    &["reason"],
+                ),
+                &[&["remote"], &["host"], &["origin"]],
+            ),
             typed_accepted: counter(
                 "fbbus_typed_messages_accepted_total",
                 "Publications on typed FB topics that matched their declaration and were routed",
@@ -343,7 +354,11 @@ impl Metrics {
                     "CONNECTs refused, by reason",
                     &["reason"],
                 ),
-                &[&["client_id_owned"], &["client_id_binding"]],
+                &[
+                    &["client_id_owned"],
+                    &["client_id_binding"],
+                    &["client_id_reserved"],
+                ],
             ),
             disconnects: counter_vec(
                 "fbbus_disconnects_total",

@@ -343,6 +343,10 @@ impl Broker {
                         ))
                     }),
                     console,
+                    writes: Arc::new(crate::admin_writes::WriteRules::new(
+                        &config.admin.allowed_hosts,
+                        Arc::clone(&metrics),
+                    )),
                 },
                 async move {
                     let _ = admin_shutdown.changed().await;

@@ -423,7 +423,7 @@ fn request_bodies_are_size_limited_and_a_slow_body_is_cut() {
     let broker = broker_with_admin(1_500);
     let put = |len: usize| {
         format!(
-            "PUT /api/v1/profiles/dev-a HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\
+            "PUT /api/v1/profiles/dev-a HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\
              Content-Length: {len}\r\n\r\n"
         )
     };

@@ -571,13 +571,14 @@ async fn a_session_dropped_at_the_limit_is_gone_for_everyone() {
     );
     mes_sends_command(port).await;
 
-    // devB's session is gone: devA may use the id now, and finds nothing of devB's.
+    // devB's session is gone: the id is free again, for devB only (a client id that is a
+    // user's name is that user's: issue 33), and devB finds nothing of its old session.
     let mut thief = RawClient::connect(port);
     thief.send(
         &raw::Connect {
             client_id: "devB",
             clean: false,
-            login: login("devA"),
+            login: login("devB"),
             ..Default::default()
         }
         .bytes(),

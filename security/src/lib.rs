@@ -86,4 +86,4 @@ pub use acl::{AclError, AclRules, Identity};
 pub use credential_cache::CredentialCache;
 pub use hash::{hash_password, Argon2Params, HashError, StoredHash};
 pub use password_file::{PasswordFile, PasswordFileError, Verification};
-pub use throttle::{LoginThrottle, ThrottleConfig};
+pub use throttle::{LoginThrottle, ThrottleConfig, ThrottleKey};

@@ -1,4 +1,5 @@
-//! Per-address login throttling with exponential backoff.
+//! Login throttling with exponential backoff, per client address (or per user, or for a
+//! whole endpoint: [`ThrottleKey`]).
 //!
 //! Password hashing makes each guess expensive for the attacker, but also
 //! for us: without a throttle, one client looping over passwords keeps a
@@ -29,9 +30,14 @@
 //! idle for `forget_after` (and no longer blocked) are dropped first, then
 //! the one whose last failure is oldest.
 //!
+//! The same rule can count failures by another key ([`ThrottleKey`]): per user name
+//! (guesses at one account from many addresses) or for a whole endpoint (`()`: every
+//! guess, whoever and whatever it targets).
+//!
 //! The caller passes the current time in, so tests need no sleeping.
 
 use std::collections::HashMap;
+use std::hash::Hash;
 use std::net::IpAddr;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
@@ -77,12 +83,36 @@ impl ThrottleConfig {
     }
 }
 
-/// Tracks failed logins per client address. Shared between connection
-/// tasks (`Send + Sync`).
+/// What failures are counted by. An address counts as its canonical form (an
+/// IPv4-mapped IPv6 address as the IPv4 address).
+pub trait ThrottleKey: Hash + Eq + Clone {
+    fn canonical(self) -> Self;
+}
+
+impl ThrottleKey for IpAddr {
+    fn canonical(self) -> IpAddr {
+        self.to_canonical()
+    }
+}
+
+/// A user name.
+impl ThrottleKey for String {
+    fn canonical(self) -> String {
+        self
+    }
+}
+
+/// The whole endpoint: one count for every failure.
+impl ThrottleKey for () {
+    fn canonical(self) {}
+}
+
+/// Tracks failed logins per client address (or per another [`ThrottleKey`]). Shared
+/// between connection tasks (`Send + Sync`).
 #[derive(Debug)]
-pub struct LoginThrottle {
+pub struct LoginThrottle<K: ThrottleKey = IpAddr> {
     config: ThrottleConfig,
-    addresses: Mutex<HashMap<IpAddr, Failures>>,
+    addresses: Mutex<HashMap<K, Failures>>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -105,8 +135,8 @@ impl Failures {
     }
 }
 
-impl LoginThrottle {
-    pub fn new(config: ThrottleConfig) -> LoginThrottle {
+impl<K: ThrottleKey> LoginThrottle<K> {
+    pub fn new(config: ThrottleConfig) -> LoginThrottle<K> {
         LoginThrottle {
             config,
             addresses: Mutex::new(HashMap::new()),
@@ -115,8 +145,8 @@ impl LoginThrottle {
 
     /// `Err(retry_after)` while `addr` is blocked. Call before verifying a
     /// password, and refuse the login without verifying if blocked.
-    pub fn check(&self, addr: IpAddr, now: Instant) -> Result<(), Duration> {
-        let addr = addr.to_canonical();
+    pub fn check(&self, addr: K, now: Instant) -> Result<(), Duration> {
+        let addr = addr.canonical();
         let mut addresses = self.lock();
         let Some(failures) = addresses.get(&addr) else {
             return Ok(());
@@ -132,11 +162,11 @@ impl LoginThrottle {
 
     /// Records a wrong password from `addr`. Returns how long the address
     /// is now blocked for, if this failure blocks it.
-    pub fn record_failure(&self, addr: IpAddr, now: Instant) -> Option<Duration> {
+    pub fn record_failure(&self, addr: K, now: Instant) -> Option<Duration> {
         if self.config.max_tracked == 0 {
             return None;
         }
-        let addr = addr.to_canonical();
+        let addr = addr.canonical();
         let mut addresses = self.lock();
         if !addresses.contains_key(&addr) && addresses.len() >= self.config.max_tracked {
             self.make_room(&mut addresses, now);
@@ -156,8 +186,8 @@ impl LoginThrottle {
     }
 
     /// Records a successful login from `addr`, clearing its failures.
-    pub fn record_success(&self, addr: IpAddr) {
-        self.lock().remove(&addr.to_canonical());
+    pub fn record_success(&self, addr: K) {
+        self.lock().remove(&addr.canonical());
     }
 
     /// Number of addresses currently remembered (for metrics).
@@ -166,13 +196,13 @@ impl LoginThrottle {
     }
 
     /// Frees at least one slot: forgotten entries first, then the oldest.
-    fn make_room(&self, addresses: &mut HashMap<IpAddr, Failures>, now: Instant) {
+    fn make_room(&self, addresses: &mut HashMap<K, Failures>, now: Instant) {
         addresses.retain(|_, failures| !failures.is_forgotten(now, self.config.forget_after));
         while addresses.len() >= self.config.max_tracked {
             let Some(oldest) = addresses
                 .iter()
                 .min_by_key(|(_, failures)| failures.last)
-                .map(|(addr, _)| *addr)
+                .map(|(addr, _)| addr.clone())
             else {
                 return;
             };
@@ -180,7 +210,7 @@ impl LoginThrottle {
         }
     }
 
-    fn lock(&self) -> MutexGuard<'_, HashMap<IpAddr, Failures>> {
+    fn lock(&self) -> MutexGuard<'_, HashMap<K, Failures>> {
         // The map is valid after any panic mid-update, so poisoning is moot.
         self.addresses
             .lock()

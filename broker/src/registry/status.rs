@@ -157,11 +157,14 @@ impl Registry {
                 turned.push((id.clone(), since));
             }
         }
+        let any_ended = !ended.is_empty();
         for (id, quiet) in ended {
             self.end_for_silence(&mut devices, &id, quiet);
         }
         if turned.is_empty() {
-            self.announce_count(&devices);
+            if any_ended {
+                self.announce_count(&devices);
+            }
             return;
         }
         let wall = SystemTime::now();

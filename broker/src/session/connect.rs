@@ -74,6 +74,7 @@ impl Session {
             let username = authenticate(ctx, peer, login, listener.anonymous).await?;
             let owner = ctx.identity.owner(username.as_deref());
             bound_to_username(ctx, peer, &client_id, username.as_deref(), &owner)?;
+            not_another_users_name(ctx, peer, &client_id, username.as_deref(), &owner)?;
             let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
             authorize_will(ctx, &client_id, username.as_deref(), will.as_ref())?;
             let lifetime = match version {
@@ -364,6 +365,45 @@ fn bound_to_username(
         ..refused(
             ConnectReturnCode::ClientIdentifierNotValid,
             "client_id_binding",
+        )
+    })
+}
+
+/// A client id that is the name of a user of the password file is that user's: no other
+/// client (another user, or an anonymous one on a loopback listener) may open a session
+/// under it (MQTT 5 0x85, 3.1.1 0x02), whatever `[auth] client_id` allows. Without it a
+/// user could open a kept session under a device's id while the device has none, and the
+/// ownership rule would then refuse the device its own id for good (issue 33). Once the
+/// client id has a session, the ownership rule (`claim`) decides; other client ids stay
+/// free under `client_id = "any"`.
+fn not_another_users_name(
+    ctx: &Context,
+    peer: SocketAddr,
+    client_id: &str,
+    username: Option<&str>,
+    owner: &Owner,
+) -> Result<(), Refused> {
+    if username == Some(client_id)
+        || !ctx.authenticator.is_user(client_id)
+        || ctx.sessions.holds(client_id)
+    {
+        return Ok(());
+    }
+    if ctx.identity.may_log(client_id, owner) {
+        tracing::warn!(
+            %peer,
+            client_id,
+            username = %owner,
+            "CONNECT refused: this client id is the name of another user of the password \
+             file, reserved for that user (logged once a minute per client id and user; all \
+             counted in fbbus_connects_refused_total{{reason=\"client_id_reserved\"}})"
+        );
+    }
+    Err(Refused {
+        logged: true,
+        ..refused(
+            ConnectReturnCode::ClientIdentifierNotValid,
+            "client_id_reserved",
         )
     })
 }

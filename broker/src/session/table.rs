@@ -186,6 +186,11 @@ impl SessionTable {
         Ok((session, previous_running))
     }
 
+    /// Whether `client_id` has a session, connected or kept.
+    pub fn holds(&self, client_id: &str) -> bool {
+        self.inner().clients.contains_key(client_id)
+    }
+
     /// Entries counted for `identity` now.
     #[cfg(test)]
     pub fn held_by(&self, identity: &str) -> usize {

@@ -83,6 +83,8 @@ pub struct Options {
     pub extra: String,
     /// Extra keys for the main listener table.
     pub listener_extra: String,
+    /// Extra keys for the `[admin]` table.
+    pub admin_extra: String,
     pub log_level: String,
     /// `text` or `json`.
     pub log_format: &'static str,
@@ -95,6 +97,7 @@ impl Default for Options {
         Options {
             extra: String::new(),
             listener_extra: String::new(),
+            admin_extra: String::new(),
             log_level: "info,rumqttd=warn".into(),
             log_format: "text",
             env: Vec::new(),
@@ -120,9 +123,11 @@ impl Broker {
             format!(
                 "[broker]\nline = \"test\"\nconnect_timeout_ms = 2000\n{extra}\n\
                  [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n{lextra}\n\
-                 [admin]\nbind = \"{admin}\"\n[log]\nlevel = \"{level}\"\nformat = \"{format}\"\n",
+                 [admin]\nbind = \"{admin}\"\n{aextra}\n\
+                 [log]\nlevel = \"{level}\"\nformat = \"{format}\"\n",
                 extra = options.extra,
                 lextra = options.listener_extra,
+                aextra = options.admin_extra,
                 level = options.log_level,
                 format = options.log_format,
             ),
