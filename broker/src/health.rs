@@ -25,9 +25,10 @@ use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use rumqttd::local::{LinkRx, LinkTx};
-use rumqttd::Notification;
 use tokio::sync::{watch, Notify};
 use tokio::time::{timeout, Instant};
+
+use crate::link;
 
 /// The router link of the readiness probe; clients may not take it (`fbbus:` prefix).
 pub const PROBE_CLIENT_ID: &str = "fbbus:probe";
@@ -184,20 +185,27 @@ async fn round_trip(tx: &mut LinkTx, rx: &mut LinkRx, seq: u64) -> bool {
     }
     let deadline = Instant::now() + PROBE_TIMEOUT;
     loop {
-        let notification = match tokio::time::timeout_at(deadline, rx.next()).await {
+        let first = match tokio::time::timeout_at(deadline, rx.next()).await {
             Ok(Ok(n)) => n,
             Ok(Err(_)) | Err(_) => return false,
         };
-        match notification {
-            Some(Notification::Forward(forward)) if forward.publish.payload[..] == payload[..] => {
-                return true
-            }
-            // The router paused the link (its queue was full): wake it, or give up if the
-            // router is gone.
-            Some(Notification::Unschedule) if rx.wake().await.is_err() => return false,
-            // An older probe's late answer, a subscription acknowledgement, or a client's
-            // publication on the probe topic: not this probe's.
-            _ => {}
+        // Anything else is an older probe's late answer, a subscription acknowledgement,
+        // or a client's publication on the probe topic: not this probe's.
+        let mut answered = false;
+        let taken = link::take_batch(rx, first, |forward| {
+            answered |= forward.publish.payload[..] == payload[..];
+        });
+        // The router paused the link (its queue was full): wake it even when answered,
+        // so the next probe finds it awake; give up if the router is gone.
+        let resumed = match taken {
+            Ok(paused) => paused.resume(rx).await.is_ok(),
+            Err(_) => false,
+        };
+        if answered {
+            return true;
+        }
+        if !resumed {
+            return false;
         }
     }
 }

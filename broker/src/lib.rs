@@ -43,6 +43,7 @@ mod console;
 mod fd_budget;
 mod health;
 mod identity;
+mod link;
 mod listener;
 mod logging;
 mod memory;
