@@ -147,6 +147,7 @@ impl BrokerPublisher {
 }
 
 /// The QoS (0, 1, 2) and packet id of a `Publish`.
+#[cfg_attr(not(feature = "bridge"), allow(dead_code))]
 pub fn qos_and_pkid(publish: &Publish) -> (u8, u16) {
     publish.qos_and_pkid()
 }

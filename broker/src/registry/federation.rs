@@ -1,6 +1,10 @@
 //! Other lines' devices, learned from the bus (`bridge`): their records as their own line
 //! says, never persisted, and whether their line can be reached, a fact about the link
 //! that never overwrites a device's own last will reason.
+//!
+//! Only the bus bridge feeds it: a broker built without the `bridge` feature never calls
+//! most of it.
+#![cfg_attr(not(feature = "bridge"), allow(dead_code))]
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, PoisonError};

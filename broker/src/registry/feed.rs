@@ -29,6 +29,7 @@ pub enum Change {
 impl Registry {
     /// Every change of a local device's record from now on is sent to `observer`.
     /// Returns the local records as they are now.
+    #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
     pub fn observe(&self, observer: tokio::sync::mpsc::UnboundedSender<Record>) -> Vec<Record> {
         let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let _ = self.observer.set(observer);

@@ -88,7 +88,9 @@ use crate::broker_publisher::{BrokerPublisher, Message};
 use crate::metrics::Metrics;
 use crate::silence::{Activity, Bound};
 
-pub use self::federation::{LineState, RecordRefused};
+pub use self::federation::LineState;
+#[cfg(any(feature = "bridge", test))]
+pub use self::federation::RecordRefused;
 pub use self::feed::{Change, CHANGES_CAPACITY};
 pub use self::journal::LoadError;
 pub use self::limits::{ForgetError, ForgetReason, Full, Limits};

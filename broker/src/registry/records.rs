@@ -69,6 +69,7 @@ pub(super) struct Devices {
     /// count when its last live record came. A query's answer was made before the live
     /// records that came after it was sent, so it must not replace them
     /// (`Registry::queried_record`). One entry per remote record: the records' bound.
+    #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
     pub(super) live_taken: u64,
     pub(super) live: HashMap<String, u64>,
     /// When each offline local device went offline (`[fb] forget_offline_after_s`): the
@@ -232,6 +233,7 @@ impl Devices {
     }
 
     /// Changes every record `which` selects with `change`.
+    #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
     pub(super) fn update_all(
         &mut self,
         which: impl Fn(&Record) -> bool,

@@ -13,7 +13,7 @@ pub struct PersistenceSection {
     /// The store's directory; relative to the config file's directory, or to the working
     /// directory for the embedded default.
     pub dir: PathBuf,
-    /// "always", "every <N> ms" or "os" (see `deploy/fbbus.example.toml`).
+    /// `"always"`, `"every <N> ms"` or `"os"` (see `deploy/fbbus.example.toml`).
     pub fsync: Fsync,
     /// Bytes of retained and queued messages the store keeps at most.
     pub max_bytes: usize,

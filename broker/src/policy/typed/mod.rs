@@ -412,6 +412,7 @@ impl FbSession {
     }
 
     /// The interface this session checks against, if any.
+    #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
     pub fn interface(&self) -> Option<&Arc<Interface>> {
         self.interface.as_ref()
     }
