@@ -25,6 +25,8 @@
 //!
 //! It exposes no secret: no password, hash or key is in any answer.
 
+use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -36,6 +38,7 @@ use axum::{Extension, Router};
 use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
+use serde::Deserialize;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 
@@ -45,6 +48,40 @@ use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::profiles::{Profiles, PutError};
 use crate::registry::{ForgetError, ForgetReason, Registry};
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AdminSection {
+    /// HTTP admin endpoint: /metrics, /healthz, /readyz, the registry API.
+    pub bind: SocketAddr,
+    /// `user:PHC` lines (argon2id, `fbbus passwd`) the admin endpoint checks HTTP Basic
+    /// credentials against, on every route. Required on a non-loopback `bind`; a file of
+    /// its own, so that a device's MQTT password never opens the admin plane.
+    pub password_file: Option<PathBuf>,
+    /// Admin connections open at once at most; beyond, a new one is closed at once.
+    pub max_connections: usize,
+    /// A request's header must arrive within this; an admin connection lives at most
+    /// `connection_timeout_ms` (slow bodies, slow readers, idle keep-alive).
+    pub header_timeout_ms: u64,
+    pub connection_timeout_ms: u64,
+    /// Host names under which admin writes are accepted, besides IP addresses and
+    /// `localhost` (the `Host` and `Origin` headers; DNS-rebinding defence, see
+    /// `admin_writes`).
+    pub allowed_hosts: Vec<String>,
+}
+
+impl Default for AdminSection {
+    fn default() -> Self {
+        AdminSection {
+            bind: SocketAddr::from(([127, 0, 0, 1], 9883)),
+            password_file: None,
+            max_connections: 64,
+            header_timeout_ms: 5_000,
+            connection_timeout_ms: 60_000,
+            allowed_hosts: Vec::new(),
+        }
+    }
+}
 
 #[derive(Clone)]
 pub struct AdminState {
@@ -266,8 +303,8 @@ pub struct Limits {
     pub connection_timeout: Duration,
 }
 
-impl From<&crate::config::AdminSection> for Limits {
-    fn from(a: &crate::config::AdminSection) -> Limits {
+impl From<&AdminSection> for Limits {
+    fn from(a: &AdminSection) -> Limits {
         Limits {
             max_connections: a.max_connections,
             header_timeout: Duration::from_millis(a.header_timeout_ms),

@@ -50,7 +50,7 @@ use base64::Engine as _;
 use security::{CredentialCache, LoginThrottle, PasswordFile, ThrottleConfig, Verification};
 use tokio::sync::Semaphore;
 
-use crate::config::ThrottleSection;
+use crate::authenticator::ThrottleSection;
 use crate::metrics::Metrics;
 use crate::watched_file::WatchedFile;
 
@@ -160,12 +160,7 @@ impl AdminAuth {
         throttle: &ThrottleSection,
         metrics: Arc<Metrics>,
     ) -> AdminAuth {
-        let config = ThrottleConfig {
-            free_failures: throttle.free_failures,
-            base_delay: Duration::from_millis(throttle.base_delay_ms),
-            max_delay: Duration::from_millis(throttle.max_delay_ms),
-            ..ThrottleConfig::default()
-        };
+        let config = throttle.throttle_config();
         AdminAuth {
             passwords,
             cache: CredentialCache::new(CACHE_CAPACITY),

@@ -14,15 +14,86 @@
 
 use std::io;
 use std::net::IpAddr;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use security::{CredentialCache, LoginThrottle, PasswordFile, StoredHash, Verification};
+use serde::Deserialize;
 
-use crate::config::AuthSection;
 use crate::metrics::Metrics;
 use crate::verifier::Verifier;
 use crate::watched_file::WatchedFile;
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthSection {
+    /// `user:PHC` lines (argon2id), or a Mosquitto password file.
+    pub password_file: Option<PathBuf>,
+    /// Access rules; without one every authenticated client may do everything.
+    pub acl_file: Option<PathBuf>,
+    /// Which client ids a client that logs in with a username may use: "any", "%u" (the
+    /// username) or "%u-*" (the username, or the username, `-` and anything).
+    pub client_id: crate::identity::ClientIdRule,
+    /// Rewrite a Mosquitto `$7$`/`$6$` entry as argon2id after its next successful login.
+    pub rehash_legacy: bool,
+    /// Password verifications run at once (argon2 is CPU-bound: more than the cores only queues).
+    pub verify_concurrency: usize,
+    /// Verified credentials remembered (as keyed MACs, never passwords) to skip argon2 on reconnect.
+    pub cache_capacity: usize,
+    /// How often the password and ACL files are checked for changes (SIGHUP reloads at once).
+    pub reload_poll_ms: u64,
+    pub throttle: ThrottleSection,
+}
+
+impl Default for AuthSection {
+    fn default() -> Self {
+        AuthSection {
+            password_file: None,
+            acl_file: None,
+            client_id: Default::default(),
+            rehash_legacy: true,
+            verify_concurrency: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(2),
+            cache_capacity: 100_000,
+            reload_poll_ms: 1_000,
+            throttle: ThrottleSection::default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ThrottleSection {
+    /// Failed logins from one address before backoff starts.
+    pub free_failures: u32,
+    pub base_delay_ms: u64,
+    pub max_delay_ms: u64,
+}
+
+impl ThrottleSection {
+    /// The login throttle these settings make: the MQTT logins' and the admin endpoint's
+    /// (each has a throttle of its own, tuned alike).
+    pub fn throttle_config(&self) -> security::ThrottleConfig {
+        security::ThrottleConfig {
+            free_failures: self.free_failures,
+            base_delay: Duration::from_millis(self.base_delay_ms),
+            max_delay: Duration::from_millis(self.max_delay_ms),
+            ..security::ThrottleConfig::default()
+        }
+    }
+}
+
+impl Default for ThrottleSection {
+    fn default() -> Self {
+        ThrottleSection {
+            free_failures: 5,
+            base_delay_ms: 1_000,
+            max_delay_ms: 60_000,
+        }
+    }
+}
 
 /// The result of a login attempt.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -53,12 +124,7 @@ impl Authenticator {
         passwords: Option<Arc<WatchedFile<PasswordFile>>>,
         metrics: Arc<Metrics>,
     ) -> io::Result<Authenticator> {
-        let throttle = security::ThrottleConfig {
-            free_failures: auth.throttle.free_failures,
-            base_delay: Duration::from_millis(auth.throttle.base_delay_ms),
-            max_delay: Duration::from_millis(auth.throttle.max_delay_ms),
-            ..security::ThrottleConfig::default()
-        };
+        let throttle = auth.throttle.throttle_config();
         Ok(Authenticator {
             passwords,
             cache: CredentialCache::new(auth.cache_capacity),

@@ -12,6 +12,7 @@ use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Packet, Publish, PublishProperties};
 use tokio::sync::mpsc;
 
+use crate::link;
 use crate::policy::origin;
 use crate::supervisor::Tasks;
 
@@ -72,15 +73,11 @@ impl BrokerPublisher {
     /// Starts the tasks that own the internal link `(tx, rx)`: core tasks (`supervisor`),
     /// since wills and registry records stop without them.
     pub fn start(link: (LinkTx, LinkRx), tasks: &Tasks) -> Arc<BrokerPublisher> {
-        let (mut tx, mut rx) = link;
+        let (mut tx, rx) = link;
         let (queue, mut messages) = mpsc::unbounded_channel::<Message>();
         tasks.core("broker publisher (acknowledgements)", async move {
             // The router acknowledges QoS 1 messages to this link; nothing waits for them.
-            while let Ok(notification) = rx.next().await {
-                if matches!(notification, Some(rumqttd::Notification::Unschedule)) {
-                    let _ = rx.wake().await;
-                }
-            }
+            link::discard(rx).await;
         });
         tasks.core("broker publisher", async move {
             let mut pkid: u16 = 0;
@@ -150,6 +147,7 @@ impl BrokerPublisher {
 }
 
 /// The QoS (0, 1, 2) and packet id of a `Publish`.
+#[cfg_attr(not(feature = "bridge"), allow(dead_code))]
 pub fn qos_and_pkid(publish: &Publish) -> (u8, u16) {
     publish.qos_and_pkid()
 }

@@ -19,15 +19,16 @@
 //!   [MQTT-4.7.2-1] and clients may not subscribe to `$` filters, so no client sees them;
 //!   a client publication under `$fbbus/` is refused (`policy::typed`), so none can feed it.
 
+use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use crate::supervisor::Tasks;
 use rumqttd::local::{LinkRx, LinkTx};
-use rumqttd::Notification;
 use tokio::sync::{watch, Notify};
 use tokio::time::{timeout, Instant};
+
+use crate::link;
 
 /// The router link of the readiness probe; clients may not take it (`fbbus:` prefix).
 pub const PROBE_CLIENT_ID: &str = "fbbus:probe";
@@ -134,14 +135,16 @@ pub struct Probe {
 }
 
 impl Probe {
-    /// Starts the probe's task on `link`. The link is subscribed to [`PROBE_TOPIC`] here.
-    pub fn start(link: (LinkTx, LinkRx), tasks: &Tasks) -> Probe {
+    /// The probe on `link`, and its task, which the caller spawns (health is told of
+    /// the tasks' deaths, so it cannot be the one to run them). The link is subscribed
+    /// to [`PROBE_TOPIC`] here.
+    pub fn start(link: (LinkTx, LinkRx)) -> (Probe, impl Future<Output = ()> + Send + 'static) {
         let (mut tx, mut rx) = link;
         let wanted = Arc::new(Notify::new());
         let (done_tx, done) = watch::channel(None);
         let subscribed = tx.try_subscribe(PROBE_TOPIC).is_ok();
         let task_wanted = Arc::clone(&wanted);
-        tasks.spawn(async move {
+        let task = async move {
             let mut seq: u64 = 0;
             loop {
                 task_wanted.notified().await;
@@ -151,8 +154,8 @@ impl Probe {
                     return;
                 }
             }
-        });
-        Probe { wanted, done }
+        };
+        (Probe { wanted, done }, task)
     }
 
     /// Whether a probe publication made the round trip, recently or now.
@@ -182,20 +185,27 @@ async fn round_trip(tx: &mut LinkTx, rx: &mut LinkRx, seq: u64) -> bool {
     }
     let deadline = Instant::now() + PROBE_TIMEOUT;
     loop {
-        let notification = match tokio::time::timeout_at(deadline, rx.next()).await {
+        let first = match tokio::time::timeout_at(deadline, rx.next()).await {
             Ok(Ok(n)) => n,
             Ok(Err(_)) | Err(_) => return false,
         };
-        match notification {
-            Some(Notification::Forward(forward)) if forward.publish.payload[..] == payload[..] => {
-                return true
-            }
-            // The router paused the link (its queue was full): wake it, or give up if the
-            // router is gone.
-            Some(Notification::Unschedule) if rx.wake().await.is_err() => return false,
-            // An older probe's late answer, a subscription acknowledgement, or a client's
-            // publication on the probe topic: not this probe's.
-            _ => {}
+        // Anything else is an older probe's late answer, a subscription acknowledgement,
+        // or a client's publication on the probe topic: not this probe's.
+        let mut answered = false;
+        let taken = link::take_batch(rx, first, |forward| {
+            answered |= forward.publish.payload[..] == payload[..];
+        });
+        // The router paused the link (its queue was full): wake it even when answered,
+        // so the next probe finds it awake; give up if the router is gone.
+        let resumed = match taken {
+            Ok(paused) => paused.resume(rx).await.is_ok(),
+            Err(_) => false,
+        };
+        if answered {
+            return true;
+        }
+        if !resumed {
+            return false;
         }
     }
 }

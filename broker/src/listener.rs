@@ -17,16 +17,37 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use serde::Deserialize;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_rustls::TlsAcceptor;
 
-use crate::context::Context;
+use crate::authenticator::AuthSection;
 use crate::session;
+use crate::session::Context;
+use crate::tls::TlsSection;
 use crate::wire::framed::Stream;
 
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ListenerSection {
+    pub name: String,
+    pub bind: SocketAddr,
+    /// Clients without a username may connect. Only allowed on a loopback address.
+    /// Defaults to true when there is no password file.
+    pub allow_anonymous: Option<bool>,
+    pub tls: Option<TlsSection>,
+}
+
+impl ListenerSection {
+    /// Whether clients without credentials are let in on this listener.
+    pub fn anonymous(&self, auth: &AuthSection) -> bool {
+        self.allow_anonymous.unwrap_or(auth.password_file.is_none())
+    }
+}
+
 pub struct Listener {
-    pub policy: Arc<ListenerPolicy>,
+    pub policy: Arc<session::ListenerPolicy>,
     pub socket: TcpListener,
     pub tls: Option<TlsAcceptor>,
 }
@@ -157,11 +178,4 @@ pub fn dead_link_options(tcp: &tokio::net::TcpStream, timeout: Duration) -> std:
     #[cfg(target_os = "linux")]
     socket.set_tcp_user_timeout(Some(timeout))?;
     Ok(())
-}
-
-/// What a listener decides for the connections it accepts.
-#[derive(Debug)]
-pub struct ListenerPolicy {
-    pub name: String,
-    pub anonymous: bool,
 }

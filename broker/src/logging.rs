@@ -4,9 +4,33 @@
 //! reasons, never a password, a hash or a packet dump (a CONNECT's Debug output would
 //! contain the password).
 
+use serde::Deserialize;
 use tracing_subscriber::EnvFilter;
 
-use crate::config::{LogFormat, LogSection};
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogSection {
+    /// A tracing filter: `info`, `debug`, `warn,broker=debug`. RUST_LOG overrides it.
+    /// The default keeps rumqttd's router (per-subscription chatter) at warn.
+    pub level: String,
+    pub format: LogFormat,
+}
+
+impl Default for LogSection {
+    fn default() -> Self {
+        LogSection {
+            level: "info,rumqttd=warn".into(),
+            format: LogFormat::Text,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Text,
+    Json,
+}
 
 pub fn init(log: &LogSection) -> Result<(), String> {
     let filter = match std::env::var("RUST_LOG") {

@@ -9,8 +9,8 @@ use broker::{Broker, Config};
 use clap::{Args, Parser, Subcommand};
 use security::{Argon2Params, PasswordFile, StoredHash};
 
-#[cfg(feature = "bridge")]
 mod admin_client;
+#[cfg(feature = "bridge")]
 mod bus_cert;
 mod devices_command;
 mod profile_command;

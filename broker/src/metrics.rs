@@ -563,15 +563,32 @@ impl Metrics {
             .typed_ports
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
-        let gone: Vec<(String, String)> =
+        let gone: std::collections::HashSet<(String, String)> =
             ports.iter().filter(|(d, _)| d == device).cloned().collect();
-        for key in gone {
-            for reason in crate::policy::typed::Refusal::ALL {
-                // Absent when the port was never refused for this reason: nothing to do.
-                let _ = self
-                    .typed_rejected
-                    .remove_label_values(&[&key.0, &key.1, reason.label()]);
+        if gone.is_empty() {
+            return;
+        }
+        // Each reason one of its ports was refused for is a series of the vector: read
+        // them from it, so that metrics need not know the policy's reasons.
+        use prometheus::core::Collector as _;
+        for family in self.typed_rejected.collect() {
+            for metric in family.get_metric() {
+                let label = |name: &str| {
+                    metric
+                        .get_label()
+                        .iter()
+                        .find(|l| l.get_name() == name)
+                        .map_or("", |l| l.get_value())
+                };
+                let (device, port) = (label("device"), label("port"));
+                if gone.contains(&(device.to_owned(), port.to_owned())) {
+                    let _ =
+                        self.typed_rejected
+                            .remove_label_values(&[device, port, label("reason")]);
+                }
             }
+        }
+        for key in gone {
             ports.remove(&key);
         }
     }
@@ -684,6 +701,25 @@ mod tests {
             ),
             1.0
         );
+    }
+
+    /// Forgetting a device removes its series, whatever the reasons its ports were
+    /// refused for, and only its own.
+    #[test]
+    fn forgetting_a_device_removes_its_refusal_series() {
+        let m = Metrics::new();
+        m.typed_refused("devA", "FB.P1", "payload_format_invalid");
+        m.typed_refused("devA", "FB.P1", "not_authorized");
+        m.typed_refused("devA", "FB.P2", "quota_exceeded");
+        m.typed_refused("devB", "FB.P1", "payload_format_invalid");
+        m.forget_device("devA");
+        let text = m.render();
+        let series: Vec<&str> = text
+            .lines()
+            .filter(|l| l.starts_with("fbbus_typed_messages_rejected_total{"))
+            .collect();
+        assert_eq!(series.len(), 1, "{series:?}");
+        assert!(series[0].contains("device=\"devB\""), "{series:?}");
     }
 
     fn value(text: &str, series: &str) -> f64 {

@@ -55,7 +55,8 @@ impl Pending {
     }
 
     /// Connections of `peer` before CONNECT now.
-    pub fn of(&self, peer: IpAddr) -> usize {
+    #[cfg(test)]
+    fn of(&self, peer: IpAddr) -> usize {
         let counts = self.counts.lock().unwrap_or_else(PoisonError::into_inner);
         counts.get(&peer.to_canonical()).copied().unwrap_or(0)
     }

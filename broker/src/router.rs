@@ -38,17 +38,34 @@ use rumqttd::local::{LinkBuilder, LinkError, LinkRx, LinkTx};
 use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
 use rumqttd::{Held, Notification, Router, RouterConfig, RouterHooks, Skipped};
 
-use crate::config::BrokerSection;
 use crate::health::Health;
 use crate::metrics::Metrics;
 
+/// What the router may hold: `[broker]`'s router keys, which the configuration's reader
+/// hands over (`config::BrokerSection::router`). The router owns their meaning, not the
+/// file they come from.
+#[derive(Debug, Clone, Copy)]
+pub struct Settings {
+    /// Client connections at once (`max_connections`); the router gets one slot more,
+    /// for the broker's internal link.
+    pub max_connections: usize,
+    /// Messages queued towards one connection before the router pauses delivery to it.
+    pub max_outgoing_packets: u64,
+    /// Commit-log segment size and segments kept, per subscribed filter.
+    pub segment_bytes: usize,
+    pub segment_count: usize,
+    /// Retained messages clients can make the router keep, and their bytes.
+    pub max_retained_messages: usize,
+    pub max_retained_bytes: usize,
+    /// Longest time publishers are held back for a lagging subscriber; zero: never.
+    pub slow_subscriber_hold: Duration,
+}
+
 /// Offline persistent sessions kept at most, by the router and by the broker's session
 /// table alike (the oldest closed is dropped beyond): every client that can be connected
-/// at once may also be away.
-pub fn saved_sessions_limit(broker: &BrokerSection) -> usize {
-    broker
-        .max_connections
-        .max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS)
+/// at once (`max_connections`) may also be away.
+pub fn saved_sessions_limit(max_connections: usize) -> usize {
+    max_connections.max(rumqttd::DEFAULT_MAX_SAVED_SESSIONS)
 }
 
 /// Topics whose retained messages are outside `max_retained_messages` and
@@ -84,23 +101,19 @@ pub struct RouterHandle {
 impl RouterHandle {
     /// Starts the router thread with the line's memory bounds. If the router ever stops
     /// (a panic, or its loop ending), `health` is told: the broker is dead without it.
-    pub fn spawn(
-        broker: &BrokerSection,
-        metrics: Arc<Metrics>,
-        health: &Arc<Health>,
-    ) -> RouterHandle {
+    pub fn spawn(settings: &Settings, metrics: Arc<Metrics>, health: &Arc<Health>) -> RouterHandle {
         let config = RouterConfig {
             // One extra for the broker's internal link.
-            max_connections: broker.max_connections + 1,
-            max_outgoing_packet_count: broker.router_max_outgoing_packets,
-            max_segment_size: broker.router_segment_bytes,
-            max_segment_count: broker.router_segment_count,
+            max_connections: settings.max_connections + 1,
+            max_outgoing_packet_count: settings.max_outgoing_packets,
+            max_segment_size: settings.segment_bytes,
+            max_segment_count: settings.segment_count,
             custom_segment: None,
             initialized_filters: None,
             shared_subscriptions_strategy: Default::default(),
-            max_saved_sessions: saved_sessions_limit(broker),
-            max_retained_messages: broker.max_retained_messages,
-            max_retained_bytes: broker.max_retained_bytes,
+            max_saved_sessions: saved_sessions_limit(settings.max_connections),
+            max_retained_messages: settings.max_retained_messages,
+            max_retained_bytes: settings.max_retained_bytes,
             // The broker's own retained messages (registry records, line counts) are
             // bounded by the registry, not by what clients retain: a flood of clients'
             // retained messages must never keep a device's record from being retained.
@@ -115,7 +128,7 @@ impl RouterHandle {
             // Exported as fbbus_retained_{messages,bytes} and, refused,
             // fbbus_limit_refusals_total{limit="retained_messages"|"retained_bytes"}.
             retained: Arc::clone(&metrics.router_retained),
-            hold_limit: Duration::from_millis(broker.slow_subscriber_hold_ms),
+            hold_limit: settings.slow_subscriber_hold,
             held: Some(Box::new(move |held: &Held<'_>| {
                 let outcome = if held.gave_up { "gave_up" } else { "caught_up" };
                 held_metrics

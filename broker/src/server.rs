@@ -15,12 +15,11 @@ use crate::admin_auth::AdminAuth;
 use crate::authenticator::Authenticator;
 use crate::broker_publisher::{BrokerPublisher, INTERNAL_CLIENT_ID};
 use crate::config::Config;
-use crate::context::Context;
 use crate::health::{Health, Probe, PROBE_CLIENT_ID};
 use crate::identity::Identities;
 use crate::listener::Listener;
-use crate::listener::ListenerPolicy;
 use crate::metrics::Metrics;
+use crate::observer::Observers;
 use crate::policy::access::Access;
 use crate::policy::typed::FbTopics;
 use crate::policy::PublishPolicy;
@@ -30,7 +29,8 @@ use crate::router::RouterHandle;
 use crate::session::lifetime::purge_evicted;
 use crate::session::redelivery::Redeliveries;
 use crate::session::table::SessionTable;
-use crate::session::Observers;
+use crate::session::Context;
+use crate::session::ListenerPolicy;
 use crate::store::{Restore, Store};
 use crate::supervisor::Tasks;
 use crate::watched_file::WatchedFile;
@@ -101,7 +101,7 @@ impl Broker {
                 .map_err(StartError::Verifier)?,
         );
 
-        let router = RouterHandle::spawn(&config.broker, Arc::clone(&metrics), &health);
+        let router = RouterHandle::spawn(&config.broker.router(), Arc::clone(&metrics), &health);
         let internal = router
             .link(INTERNAL_CLIENT_ID, true, 0)
             .await
@@ -111,7 +111,9 @@ impl Broker {
             .link(PROBE_CLIENT_ID, true, 0)
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
-        health.set_probe(Probe::start((probe.0, probe.1), &tasks));
+        let (probe, probe_task) = Probe::start((probe.0, probe.1));
+        tasks.spawn(probe_task);
+        health.set_probe(probe);
         let wills = Wills::new(Arc::clone(&publisher), Arc::clone(&metrics), tasks.clone());
         let registry_file = &config.fb.registry_file;
         let registry = Registry::open(
@@ -154,11 +156,13 @@ impl Broker {
         }
         // Session numbers continue from the persisted registry, so a device's first
         // connection after a restart is newer than anything the registry remembers.
-        let sessions = SessionTable::new(crate::router::saved_sessions_limit(&config.broker))
-            .evicting({
-                let (router, tasks, store) = (router.clone(), tasks.clone(), store.clone());
-                move |client_id| purge_evicted(&router, &tasks, store.as_ref(), client_id)
-            });
+        let sessions = SessionTable::new(crate::router::saved_sessions_limit(
+            config.broker.max_connections,
+        ))
+        .evicting({
+            let (router, tasks, store) = (router.clone(), tasks.clone(), store.clone());
+            move |client_id| purge_evicted(&router, &tasks, store.as_ref(), client_id)
+        });
         for (_, session) in registry.sessions() {
             sessions.seed(session);
         }
@@ -203,7 +207,9 @@ impl Broker {
             wills,
             fb,
             sessions,
-            redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(&config.broker)),
+            redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(
+                config.broker.max_connections,
+            )),
             store,
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
@@ -225,10 +231,10 @@ impl Broker {
         if let Some(store) = &ctx.store {
             ctx.wills.set_store(Arc::clone(store));
         }
-        crate::store::restore::put_back(&restore, &ctx)
+        crate::session::restore::put_back(&restore, &ctx)
             .await
             .map_err(StartError::Router)?;
-        let owners = crate::store::restore::owners(&restore);
+        let owners = crate::session::restore::owners(&restore);
         ctx.wills.restore(&owners, restore.wills);
 
         #[cfg(feature = "bridge")]

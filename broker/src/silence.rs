@@ -65,6 +65,12 @@ pub struct Bound {
 }
 
 impl Bound {
+    /// `[fb]`'s defaults: three periods, and never less than 5 s.
+    pub const DEFAULT: Bound = Bound {
+        factor: 3.0,
+        floor: Duration::from_secs(5),
+    };
+
     pub fn enabled(&self) -> bool {
         self.factor > 0.0
     }

@@ -18,7 +18,7 @@
 //! property reach subscribers unaltered [MQTT-3.3.2-17] [MQTT-3.3.2-18]. The session
 //! number of the connection it belongs to (Sparkplug's `bdSeq` idea) is kept beside the
 //! will, never in it: in the delayed wills' bookkeeping here, the "will published" log
-//! line, and the device's registry record (`session`, `registry.rs`), which says which
+//! line, and the device's registry record (`session`, `registry/`), which says which
 //! session went offline. (Wills used to carry it as a `fbbus-session` user property,
 //! which altered the application message.)
 

@@ -21,7 +21,7 @@
 //! - [`contract`]: on fbbus, publishers declare themselves and an FB subscriber (the
 //!   fb-bridge client API) counts typed INDs where the study counted them;
 //! - [`session`] and [`scenario`]: the scenarios run batches, A B A B in compare mode;
-//!   [`run`] assembles the [`model::Report`]; [`report`] writes the table, JSON, CSV,
+//!   [`run`](mod@run) assembles the [`model::Report`]; [`report`] writes the table, JSON, CSV,
 //!   JTL and SVG charts from it;
 //! - [`sink`]: the trivial in-process sink that measures the harness's own ceiling;
 //! - the network campaigns `mutate` and `churn` ([`scenario::campaign`]) speak raw MQTT

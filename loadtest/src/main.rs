@@ -99,7 +99,7 @@ struct Common {
     allow_remote: bool,
     /// Directory for report.json, batches.csv, batches.jtl and the SVG charts (compare:
     /// compare.txt; compare bridge: bridge.txt; compare persistence: persistence.txt;
-    /// compare abuse: abuse.txt). Default: target/loadtest/<scenario>
+    /// compare abuse: abuse.txt). Default: `target/loadtest/<scenario>`
     /// (compare abuse: target/loadtest/abuse), outside the source tree.
     #[arg(long, global = true, value_name = "DIR")]
     out: Option<PathBuf>,

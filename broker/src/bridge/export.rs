@@ -11,13 +11,13 @@ use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{
     Filter, Packet, PubAck, PubAckReason, QoS, RetainForwardRule, Subscribe, Unsubscribe,
 };
-use rumqttd::Notification;
 use tokio::sync::mpsc;
 
 use super::{EXPORT_FILTER, IMPORT_CLIENT_ID};
 use crate::broker_publisher;
-use crate::context::Context;
+use crate::link;
 use crate::policy::origin;
+use crate::session::Context;
 
 /// Subscribes to what other lines want, and puts what this line's clients publish there.
 pub(super) async fn export_loop(
@@ -34,6 +34,7 @@ pub(super) async fn export_loop(
         export,
         ctx,
     };
+    let mut forwards = Vec::new();
     loop {
         tokio::select! {
             change = remote.recv() => {
@@ -45,32 +46,22 @@ pub(super) async fn export_loop(
                 }
             }
             notification = rx.next() => {
-                let Ok(mut next) = notification else { return };
+                let Ok(first) = notification else { return };
                 // Everything the router delivered at once is exported, then acknowledged
                 // in one go: one router wake-up per batch, not one per message.
+                let taken = link::take_batch(&mut rx, first, |f| forwards.push(f));
                 let mut acks = Vec::new();
-                let mut unscheduled = false;
-                loop {
-                    match next {
-                        Some(Notification::Forward(forward)) => {
-                            acks.extend(exports.forward(forward).await);
-                        }
-                        Some(Notification::Unschedule) => unscheduled = true,
-                        _ => {}
-                    }
-                    next = match rx.recv_deadline(std::time::Instant::now()) {
-                        Ok(n) => n,
-                        Err(rumqttd::local::LinkError::RecvTimeout(_)) => break,
-                        Err(_) => return,
-                    };
+                for forward in forwards.drain(..) {
+                    acks.extend(exports.forward(forward).await);
                 }
+                let Ok(paused) = taken else { return };
                 if let Some(last) = acks.pop() {
                     tx.buffer().extend(acks);
                     if tx.send(last).await.is_err() {
                         return;
                     }
                 }
-                if unscheduled && rx.wake().await.is_err() {
+                if paused.resume(&rx).await.is_err() {
                     return;
                 }
             }

@@ -7,8 +7,8 @@ use std::sync::Arc;
 use fb_bridge::bus::link::{DeviceToken, Event, Inbox, Link};
 use tokio::sync::mpsc;
 
-use crate::context::Context;
 use crate::registry::{Record, RecordRefused, Status};
+use crate::session::Context;
 
 /// Liveliness and records of the other lines: the registry, and the exporter's interest.
 pub(super) async fn bus_events(

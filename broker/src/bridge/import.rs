@@ -11,15 +11,15 @@ use fb_bridge::bus::{BusConfig, Dedup};
 use fb_bridge::topic::TypedTopic;
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::Packet;
-use rumqttd::Notification;
 use tokio::sync::mpsc;
 
 use super::{Interest, IMPORT_CLIENT_ID};
 use crate::broker_publisher::{self, Message as BrokerMessage};
-use crate::context::Context;
+use crate::link;
 use crate::policy::origin;
 use crate::policy::typed::FbSession;
 use crate::policy::{Admission, Door, Publication, Stage};
+use crate::session::Context;
 
 /// Keeps one zenoh import per filter local clients subscribed to, counted.
 pub(super) async fn imports(
@@ -79,17 +79,11 @@ pub(super) async fn inject_loop(
     inbox: Inbox<Inbound>,
     route_keys: RouteKeys,
     ctx: Arc<Context>,
-    (mut tx, mut rx): (LinkTx, LinkRx),
+    (mut tx, rx): (LinkTx, LinkRx),
     import: Vec<String>,
 ) {
     // The router acknowledges QoS 1 messages to this link; nothing waits for them.
-    tokio::spawn(async move {
-        while let Ok(notification) = rx.next().await {
-            if matches!(notification, Some(Notification::Unschedule)) {
-                let _ = rx.wake().await;
-            }
-        }
-    });
+    tokio::spawn(link::discard(rx));
     let mut injector = Injector {
         dedup: Dedup::default(),
         route_keys,

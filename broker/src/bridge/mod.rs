@@ -74,7 +74,7 @@ use fb_bridge::topic::filter;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
-use crate::context::Context;
+use crate::session::Context;
 
 /// The router link messages from the bus enter through.
 pub const IMPORT_CLIENT_ID: &str = "fbbus:bridge-in";
@@ -112,7 +112,7 @@ pub struct Bridge {
 }
 
 /// Local subscriptions become imports.
-impl crate::session::SubscriptionObserver for Bridge {
+impl crate::observer::SubscriptionObserver for Bridge {
     /// A local client was granted `filter`.
     fn subscribed(&self, filter: &str) {
         for f in self.imports_for(filter) {

@@ -10,8 +10,8 @@ use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe};
 use rumqttd::Notification;
 
 use super::IMPORT_CLIENT_ID;
-use crate::context::Context;
 use crate::policy::origin;
+use crate::session::Context;
 
 static RETAINED_LINKS: AtomicU64 = AtomicU64::new(0);
 

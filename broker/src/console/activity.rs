@@ -36,10 +36,10 @@ use fb_bridge::Interface;
 use prometheus::{IntCounterVec, IntGaugeVec, Opts};
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe};
-use rumqttd::Notification;
 use serde::Serialize;
 use tokio::sync::broadcast;
 
+use crate::link;
 use crate::metrics::Metrics;
 use crate::registry::{Change, Registry, Status};
 
@@ -546,29 +546,18 @@ pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx
                 Err(broadcast::error::RecvError::Closed) => return,
             },
             notification = rx.next() => {
-                let Ok(mut next) = notification else { return };
+                let Ok(first) = notification else { return };
                 // Everything the router delivered at once, under one lock.
-                let mut unscheduled = false;
-                {
+                let taken = {
                     let mut state = activity.lock();
-                    loop {
-                        match next {
-                            Some(Notification::Forward(forward)) => {
-                                let p = &forward.publish;
-                                activity.received(&mut state, &p.topic, &p.payload, p.retain);
-                            }
-                            Some(Notification::Unschedule) => unscheduled = true,
-                            _ => {}
-                        }
-                        next = match rx.recv_deadline(std::time::Instant::now()) {
-                            Ok(n) => n,
-                            Err(rumqttd::local::LinkError::RecvTimeout(_)) => break,
-                            Err(_) => return,
-                        };
-                    }
-                }
+                    link::take_batch(&mut rx, first, |forward| {
+                        let p = &forward.publish;
+                        activity.received(&mut state, &p.topic, &p.payload, p.retain);
+                    })
+                };
+                let Ok(paused) = taken else { return };
                 // The router paused the link (its queue for it was full): wake it.
-                if unscheduled && rx.wake().await.is_err() {
+                if paused.resume(&rx).await.is_err() {
                     return;
                 }
             }

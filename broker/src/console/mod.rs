@@ -28,11 +28,37 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use prometheus::IntGauge;
+use serde::Deserialize;
 
 use crate::metrics::Metrics;
 use crate::profiles::Profiles;
 use crate::registry::Registry;
 use crate::supervisor::Tasks;
+
+/// The line console (`console`): the page on the admin endpoint, and what it keeps.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ConsoleSection {
+    /// Serve the console (`/`, `/console/*`, the feed) and keep the last port values and
+    /// refusals it shows. false: none of it, and no `fbbus:console` router link.
+    pub enabled: bool,
+    /// Last values of declared output ports kept at most, over every device; beyond,
+    /// a new port's value is not kept (counted in `fbbus_console_dropped_total`).
+    pub max_port_values: usize,
+    /// Refusals (from `fbbus/diag/<device>`) kept at most, over every device (and at
+    /// most `console::activity::REFUSALS_PER_DEVICE` per device).
+    pub max_refusals: usize,
+}
+
+impl Default for ConsoleSection {
+    fn default() -> Self {
+        ConsoleSection {
+            enabled: true,
+            max_port_values: 100_000,
+            max_refusals: 20_000,
+        }
+    }
+}
 
 /// What the console's routes share.
 pub struct Console {
@@ -54,7 +80,7 @@ impl Console {
     /// Starts the console's tasks (its router link's reader, the rates' sampler).
     #[allow(clippy::too_many_arguments)]
     pub fn start(
-        config: &crate::config::ConsoleSection,
+        config: &ConsoleSection,
         connection_timeout: Duration,
         bridge: bool,
         registry: Arc<Registry>,

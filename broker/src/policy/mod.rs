@@ -45,6 +45,7 @@ pub enum Door {
     Will,
     /// A message another line's broker put on the bus, published there by a device of
     /// that line.
+    #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
     Bus,
 }
 

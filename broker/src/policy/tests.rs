@@ -43,7 +43,7 @@ fn line(acl: Option<&str>) -> Line {
         None,
         Arc::clone(&publisher),
         Arc::clone(&metrics),
-        crate::config::FbSection::default().silence_bound(),
+        crate::silence::Bound::DEFAULT,
         crate::registry::Limits::NONE,
         &Tasks::new(&Health::new()),
     )

@@ -8,10 +8,10 @@ use rumqttd::protocol::{Disconnect, DisconnectReasonCode, Packet};
 use tokio::io::AsyncWriteExt;
 use tokio::time::timeout;
 
+use super::context::Context;
 use super::lifetime::end_idle_session;
 use super::packet_ids::Resume;
 use super::Session;
-use crate::context::Context;
 use crate::metrics::DisconnectReason;
 use crate::policy::typed::FbSession;
 use crate::policy::{Admission, Door, Publication};

@@ -14,15 +14,15 @@ use rumqttd::Notification;
 use security::Identity;
 
 use super::ack_order::AckOrder;
+use super::context::Context;
 use super::lifetime::{purge_router_session, SessionLifetime};
 use super::packet_ids::PacketIds;
 use super::table::{Owned, Refusal, Remains};
+use super::ListenerPolicy;
 use super::Session;
 use crate::authenticator::Outcome;
 use crate::broker_publisher::is_reserved_client_id;
-use crate::context::Context;
 use crate::identity::Owner;
-use crate::listener::ListenerPolicy;
 use crate::metrics::DisconnectReason;
 use crate::policy::typed::FbSession;
 use crate::router::unlink;

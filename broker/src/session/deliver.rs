@@ -16,8 +16,8 @@ use super::redelivery::{self};
 use super::{Session, HOLD_LIMIT};
 
 /// Encoded bytes after which `deliver` writes out before it encodes more
-/// (`broker.slow_consumer_max_bytes` leaves room for one batch and a packet).
-const WRITE_BATCH: usize = crate::config::MIN_QUEUED_BYTES;
+/// (`broker.slow_consumer_max_bytes` must leave room for one batch and a packet).
+pub const WRITE_BATCH: usize = 1024 * 1024;
 use crate::policy::origin;
 
 impl Session {

@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
-use crate::context::Context;
+use super::context::Context;
 use crate::router::{unlink, RouterHandle};
 use crate::session::table::Remains;
 use crate::store::{Record, Store};

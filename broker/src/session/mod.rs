@@ -20,10 +20,10 @@
 //! [`close`] (why a session ended, the DISCONNECT reason, the will); around them [`ack_order`], [`packet_ids`], [`redelivery`] (acknowledgements and packet
 //! ids the router leaves to us), [`table`] and [`lifetime`] (session numbers, MQTT 5
 //! session expiry), [`aliases`] (the topic aliases of deliveries), [`copies`] (one copy
-//! for overlapping subscriptions), [`observer`] (who else
-//! is told of subscriptions), [`write`] (every
+//! for overlapping subscriptions), [`write`] (every
 //! write to the client under its deadlines: liveness does not depend on the client
-//! reading). Bytes and packets are `wire`'s business.
+//! reading). Bytes and packets are `wire`'s business; who else is told of subscriptions,
+//! `observer`'s.
 //!
 //! fbbus runs its own connection loop instead of rumqttd's `Server` because the policy
 //! needs what that loop hides: the peer address (login throttling), keep-alive 0
@@ -34,20 +34,22 @@ pub mod ack_order;
 pub mod aliases;
 mod close;
 mod connect;
+mod context;
 pub mod copies;
 mod deliver;
 mod durable;
 mod inbound;
 pub mod lifetime;
-mod observer;
 pub mod packet_ids;
 mod persist;
 mod read_access;
 pub mod redelivery;
+pub mod restore;
 pub mod table;
 mod write;
 
-pub use observer::{Observers, SubscriptionObserver};
+pub use context::Context;
+pub use deliver::WRITE_BATCH;
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::net::SocketAddr;
@@ -64,14 +66,20 @@ use tokio::time::{timeout, Instant};
 use self::ack_order::AckOrder;
 use self::lifetime::SessionLifetime;
 use self::packet_ids::PacketIds;
-use crate::context::Context;
-use crate::listener::ListenerPolicy;
 use crate::policy::typed::FbSession;
 use crate::supervisor::CatchPanic;
 use crate::wills::Will;
 use crate::wire::codec::{connack, ReadError, Version};
 use crate::wire::framed::{Io, Stream};
 use close::End;
+
+/// What the listener a connection came in by decides for it (`listener`, from its
+/// `[[listener]]` section).
+#[derive(Debug)]
+pub struct ListenerPolicy {
+    pub name: String,
+    pub anonymous: bool,
+}
 
 /// Serves one accepted connection: reads its CONNECT and logs it in on this task, then
 /// runs the session on a task of its own until it ends. `slot` is its place under

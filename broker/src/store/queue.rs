@@ -13,8 +13,18 @@
 //! about twice the messages, and the messages at most `max_queued_messages`.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 
-use super::state::Queued;
+use super::record::{Message, Qos2};
+
+/// A message waiting in a session's queue, and how it is delivered.
+#[derive(Debug, Clone)]
+pub struct Queued {
+    pub message: Arc<Message>,
+    /// The QoS it is delivered at.
+    pub qos: u8,
+    pub qos2: Option<Qos2>,
+}
 
 #[derive(Debug, Clone, Default)]
 pub struct Queue {

@@ -15,7 +15,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
-use super::queue::Queue;
+use super::queue::{Queue, Queued};
 use super::record::{ClientId, Message, Options, Qos2, Record, Target};
 
 /// Limits on what the store keeps.
@@ -30,14 +30,6 @@ pub struct Limits {
     /// own topics are not counted.
     pub max_retained: usize,
     pub max_retained_bytes: usize,
-}
-
-#[derive(Debug, Clone)]
-pub struct Queued {
-    pub message: Arc<Message>,
-    /// The QoS it is delivered at.
-    pub qos: u8,
-    pub qos2: Option<Qos2>,
 }
 
 #[derive(Debug, Clone)]

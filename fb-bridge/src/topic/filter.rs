@@ -126,7 +126,7 @@ pub fn filter_matches(filter: &str, topic: &str) -> bool {
 /// Does every topic matched by filter `inner` also match filter `outer`?
 ///
 /// Both should be valid plain filters; a topic name is a filter that matches only
-/// itself, so `covers(filter, topic)` is "does `filter` match `topic`" ([`matches`]).
+/// itself, so `covers(filter, topic)` is "does `filter` match `topic`" ([`matches()`]).
 /// `+` covers one level (but not `#`), `#` covers the remaining levels including none (`x/#`
 /// covers `x`), and a filter starting with a wildcard never covers one starting with `$`.
 pub fn covers(outer: &str, inner: &str) -> bool {

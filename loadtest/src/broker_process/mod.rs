@@ -89,7 +89,7 @@ pub fn alive(pid: u32) -> bool {
     })
 }
 
-/// File descriptors `pid` has open (sockets included), when its /proc/<pid>/fd is
+/// File descriptors `pid` has open (sockets included), when its `/proc/<pid>/fd` is
 /// readable (same user or root).
 pub fn open_fds(pid: u32) -> Option<u64> {
     Some(fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count() as u64)

@@ -143,7 +143,7 @@ const BURST_DEADLINE: Duration = Duration::from_secs(60);
 const LATENCY_DEADLINE: Duration = Duration::from_secs(120);
 /// A safety net around one setup's whole measurement (start-up waits included).
 const SETUP_DEADLINE: Duration = Duration::from_secs(300);
-/// Linux's USER_HZ: the unit of utime and stime in /proc/<pid>/stat.
+/// Linux's USER_HZ: the unit of utime and stime in `/proc/<pid>/stat`.
 const TICKS_PER_SECOND: f64 = 100.0;
 
 /// What one setup measured in one round.
@@ -681,7 +681,7 @@ async fn bridge_counters(admin: SocketAddr) -> String {
     }
 }
 
-/// user + system CPU ticks of `pid` so far (/proc/<pid>/stat fields 14 and 15).
+/// user + system CPU ticks of `pid` so far (`/proc/<pid>/stat` fields 14 and 15).
 fn cpu_ticks(pid: u32) -> Option<u64> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
     // The command name (field 2) is in parentheses and may contain spaces.

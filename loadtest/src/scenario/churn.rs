@@ -27,7 +27,7 @@
 //! - `abandoned` (15): part of a CONNECT (possibly nothing), then a reset or close.
 //!
 //! Half MQTT 3.1.1, half MQTT 5. `--mix persistent_random=1` runs other weights (kinds
-//! not named: none), to see what one kind of connection leaves behind. See [`campaign`](super::campaign) for the rounds, the
+//! not named: none), to see what one kind of connection leaves behind. See [`campaign`] for the rounds, the
 //! routing probe, memory and the verdict.
 
 use std::sync::Arc;

@@ -19,7 +19,7 @@
 //! MQTT 5 properties, a payload above 64 KiB. Every label is counted in the report
 //! (`mutation_*`).
 //!
-//! See [`campaign`](super::campaign) for the rounds, the routing probe, memory and the
+//! See [`campaign`] for the rounds, the routing probe, memory and the
 //! verdict.
 
 use std::sync::Arc;

@@ -9,15 +9,15 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
+use super::redelivery::Redeliveries;
+use super::table::SessionTable;
 use crate::authenticator::Authenticator;
 use crate::identity::Identities;
 use crate::metrics::Metrics;
+use crate::observer::Observers;
 use crate::policy::typed::FbTopics;
 use crate::policy::PublishPolicy;
 use crate::router::RouterHandle;
-use crate::session::redelivery::Redeliveries;
-use crate::session::table::SessionTable;
-use crate::session::Observers;
 use crate::wills::Wills;
 
 /// Everything connections share, built once by `server`.

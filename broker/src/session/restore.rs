@@ -10,14 +10,14 @@ use std::time::Instant;
 use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe, SubscribeProperties};
 use rumqttd::Notification;
 
-use super::{Options, Restore, RestoredSession};
+use super::context::Context;
+use super::packet_ids::Resume;
+use super::table::Remains;
 use crate::broker_publisher::publish_packet;
-use crate::context::Context;
 use crate::identity::Owner;
 use crate::policy::origin;
 use crate::router::unlink;
-use crate::session::packet_ids::Resume;
-use crate::session::table::Remains;
+use crate::store::{Options, Restore, RestoredSession};
 
 /// The router link retained messages are put back through.
 const RESTORE_CLIENT_ID: &str = "fbbus:restore";
