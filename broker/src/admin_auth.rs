@@ -470,11 +470,9 @@ mod tests {
         assert_eq!(format!("{c:?}"), "Credentials { .. }");
     }
 
-    /// The whole check against a real password file: the right user and password pass
-    /// (the second time from the cache), anything else is one refusal, and a throttled
-    /// address is refused even the right password.
-    #[tokio::test]
-    async fn the_check_accepts_only_a_user_of_the_file() {
+    /// A check against a file of `users` (cheap argon2 parameters), three free failures
+    /// then a minute's block; the directory holds the file.
+    fn checker(users: &[(&str, &str)]) -> (tempfile::TempDir, Arc<AdminAuth>) {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("admin-passwd");
         let params = security::Argon2Params {
@@ -483,7 +481,7 @@ mod tests {
             parallelism: 1,
         };
         let mut file = PasswordFile::default();
-        for (user, password) in [("admin", "s3cret"), ("bediener-ü", "pässwort")] {
+        for (user, password) in users {
             let phc = security::hash_password(password.as_bytes(), &params).unwrap();
             file.set(user, security::StoredHash::parse(&phc).unwrap())
                 .unwrap();
@@ -498,19 +496,25 @@ mod tests {
             base_delay_ms: 60_000,
             max_delay_ms: 60_000,
         };
-        let auth = Arc::new(AdminAuth::new(
-            Arc::new(watched),
-            &throttle,
-            Arc::new(Metrics::new()),
-        ));
-        let headers = |value: &[u8]| {
-            let mut h = HeaderMap::new();
-            h.insert(
-                header::AUTHORIZATION,
-                HeaderValue::from_bytes(value).unwrap(),
-            );
-            h
-        };
+        let auth = AdminAuth::new(Arc::new(watched), &throttle, Arc::new(Metrics::new()));
+        (dir, Arc::new(auth))
+    }
+
+    fn headers(value: &[u8]) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::AUTHORIZATION,
+            HeaderValue::from_bytes(value).unwrap(),
+        );
+        h
+    }
+
+    /// The whole check against a real password file: the right user and password pass
+    /// (the second time from the cache), anything else is one refusal, and a throttled
+    /// address is refused even the right password.
+    #[tokio::test]
+    async fn the_check_accepts_only_a_user_of_the_file() {
+        let (_dir, auth) = checker(&[("admin", "s3cret"), ("bediener-ü", "pässwort")]);
         let peer = Some(IpAddr::from([10, 0, 0, 7]));
         let right = headers(&basic(b"admin:s3cret"));
         assert_eq!(auth.check(peer, &right).await, Ok(()));
@@ -575,40 +579,7 @@ mod tests {
     /// `OVERALL_FACTOR` times the free failures.
     #[tokio::test]
     async fn guesses_count_per_user_and_for_the_endpoint_too() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("admin-passwd");
-        let params = security::Argon2Params {
-            memory_kib: 64,
-            iterations: 1,
-            parallelism: 1,
-        };
-        let mut file = PasswordFile::default();
-        let phc = security::hash_password(b"s3cret", &params).unwrap();
-        file.set("admin", security::StoredHash::parse(&phc).unwrap())
-            .unwrap();
-        file.save(&path).unwrap();
-        let watched = WatchedFile::load("admin_password_file", &path, |p| {
-            PasswordFile::load(p).map_err(|e| e.to_string())
-        })
-        .unwrap();
-        let throttle = ThrottleSection {
-            free_failures: 3,
-            base_delay_ms: 60_000,
-            max_delay_ms: 60_000,
-        };
-        let auth = Arc::new(AdminAuth::new(
-            Arc::new(watched),
-            &throttle,
-            Arc::new(Metrics::new()),
-        ));
-        let headers = |value: &[u8]| {
-            let mut h = HeaderMap::new();
-            h.insert(
-                header::AUTHORIZATION,
-                HeaderValue::from_bytes(value).unwrap(),
-            );
-            h
-        };
+        let (_dir, auth) = checker(&[("admin", "s3cret")]);
         let right = headers(&basic(b"admin:s3cret"));
         let scraper = Some(IpAddr::from([10, 0, 0, 1]));
         assert_eq!(auth.check(scraper, &right).await, Ok(()));
