@@ -15,7 +15,7 @@ use crate::value::{Value, MS_PER_DAY};
 /// Encodes a message for `port` in canonical JSON.
 ///
 /// An event's `data` keys are written in WITH order. `port` only supplies those names; a
-/// message that does not fit its port (which [`decode`] never returns) is written as far
+/// message that does not fit its port (which [`decode`](super::decode) never returns) is written as far
 /// as the names go rather than panicking.
 pub fn encode(message: &Message, port: &OutputPort<'_>) -> Vec<u8> {
     let mut out = Vec::with_capacity(128);
