@@ -633,6 +633,8 @@ impl Config {
             if self.listeners[..i].iter().any(|o| o.name == l.name) {
                 return Err(invalid(file, &key("name"), "is used by another listener"));
             }
+            l.validate_kind()
+                .map_err(|(k, message)| invalid(file, &key(k), message))?;
             let loopback = l.bind.ip().is_loopback();
             let anonymous = l.anonymous(&self.auth);
             if !loopback && self.auth.password_file.is_none() {

@@ -6,7 +6,7 @@
 //! because that is where the line's rules live:
 //!
 //! ```text
-//!   TCP/TLS ─► listener ─► wire ─► session ──────────────────LinkTx──► rumqttd router
+//!   TCP/TLS/WS ─► listener ─► wire ─► session ──────────────────LinkTx──► rumqttd router
 //!                                  1 authenticate (connect)               │
 //!                                  2 authorize ┐ policy::PublishPolicy    │
 //!                                  3 check     ┘ (also wills, bus import) │
@@ -58,6 +58,7 @@ pub mod store;
 mod supervisor;
 mod tls;
 mod watched_file;
+mod websocket;
 mod wills;
 
 // For the fuzz targets (`broker/fuzz`) and the tests of the password verifier's memory:

@@ -83,6 +83,10 @@ impl DisconnectReason {
 pub struct Metrics {
     registry: Registry,
     pub connections: IntGauge,
+    /// Connections open and accepted per listener (after TLS and, for `ws`, the WebSocket
+    /// handshake), labelled `listener` and `transport` (mqtt, mqtts, ws, wss).
+    pub listener_connections: IntGaugeVec,
+    pub listener_accepted: IntCounterVec,
     pub connects: IntCounter,
     pub connects_refused: IntCounterVec,
     pub disconnects: IntCounterVec,
@@ -213,7 +217,27 @@ impl Metrics {
             g
         };
 
+        let listener_connections = IntGaugeVec::new(
+            Opts::new(
+                "fbbus_listener_connections",
+                "Connections open per listener, by transport (mqtt, mqtts, ws, wss); \
+                 CONNECT not necessarily read yet",
+            ),
+            &["listener", "transport"],
+        )
+        .expect("valid");
+        registry
+            .register(Box::new(listener_connections.clone()))
+            .expect("unique metric");
+
         Metrics {
+            listener_connections,
+            listener_accepted: counter_vec(
+                "fbbus_listener_accepted_total",
+                "Connections accepted per listener, by transport, once TLS and the WebSocket \
+                 handshake (ws, wss) completed",
+                &["listener", "transport"],
+            ),
             bridge_messages: counter_vec(
                 "fbbus_bridge_messages_total",
                 "Messages carried by the zenoh bridge, by direction (export: to other lines, import: from them)",

@@ -266,9 +266,11 @@ impl Broker {
                 policy: Arc::new(ListenerPolicy {
                     name: section.name.clone(),
                     anonymous: section.anonymous(&config.auth),
+                    transport: section.kind.transport(tls.is_some()),
                 }),
                 socket,
                 tls,
+                websocket: section.websocket().map(Arc::new),
             });
         }
         let admin_socket = bind("admin", config.admin.bind)?;
@@ -290,8 +292,10 @@ impl Broker {
             .map(|l| (l.policy.name.clone(), l.local_addr()))
             .collect();
         for listener in listeners {
+            let path = listener.websocket.as_ref().map(|w| w.path.as_str());
             tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
-                tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
+                transport = listener.policy.transport, path, tls = listener.tls.is_some(),
+                anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
             tasks.core(
                 "listener",
                 listener.run(Arc::clone(&ctx), Arc::clone(&slots)),
