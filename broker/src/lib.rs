@@ -56,6 +56,7 @@ mod session;
 mod silence;
 pub mod store;
 mod supervisor;
+mod sys;
 mod tls;
 mod watched_file;
 mod websocket;

@@ -83,6 +83,8 @@ impl DisconnectReason {
 pub struct Metrics {
     registry: Registry,
     pub connections: IntGauge,
+    /// The most connections open at once since start (`$SYS/broker/clients/maximum`).
+    connections_peak: std::sync::atomic::AtomicI64,
     /// Connections open and accepted per listener (after TLS and, for `ws`, the WebSocket
     /// handshake), labelled `listener` and `transport` (mqtt, mqtts, ws, wss).
     pub listener_connections: IntGaugeVec,
@@ -231,6 +233,7 @@ impl Metrics {
             .expect("unique metric");
 
         Metrics {
+            connections_peak: Default::default(),
             listener_connections,
             listener_accepted: counter_vec(
                 "fbbus_listener_accepted_total",
@@ -474,6 +477,18 @@ impl Metrics {
 
     pub fn disconnected(&self, reason: DisconnectReason) {
         self.disconnects.with_label_values(&[reason.label()]).inc();
+    }
+
+    /// Records the connections open now as the peak if they are more than any before.
+    pub fn note_connections_peak(&self) {
+        self.connections_peak
+            .fetch_max(self.connections.get(), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The most connections open at once since start.
+    pub fn connections_peak(&self) -> i64 {
+        self.connections_peak
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     pub fn refused(&self, reason: &str) {

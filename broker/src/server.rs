@@ -107,6 +107,12 @@ impl Broker {
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
         let publisher = BrokerPublisher::start((internal.0, internal.1), &tasks);
+        crate::sys::start(
+            Duration::from_secs(config.broker.sys_interval_s),
+            Arc::clone(&metrics),
+            Arc::clone(&publisher),
+            &tasks,
+        );
         let probe = router
             .link(PROBE_CLIENT_ID, true, 0)
             .await
