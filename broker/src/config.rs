@@ -581,6 +581,14 @@ impl Config {
                 "must be at most 3600 (0: the kernel's defaults)",
             ));
         }
+        // A day at most: figures older than that are no status.
+        if b.sys_interval_s > 86_400 {
+            return Err(invalid(
+                file,
+                "broker.sys_interval_s",
+                "must be at most 86400 (0: no $SYS topics)",
+            ));
+        }
         if self.auth.verify_concurrency == 0 {
             return Err(invalid(
                 file,
@@ -1034,6 +1042,7 @@ mod tests {
                 "broker.slow_consumer_max_bytes",
             ),
             ("dead_link_timeout_s = 3601", "broker.dead_link_timeout_s"),
+            ("sys_interval_s = 86401", "broker.sys_interval_s"),
         ] {
             let err = config(keys).unwrap_err().to_string();
             assert!(err.contains(key), "{keys}: {err}");

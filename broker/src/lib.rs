@@ -6,7 +6,7 @@
 //! because that is where the line's rules live:
 //!
 //! ```text
-//!   TCP/TLS/WS ─► listener ─► wire ─► session ──────────────────LinkTx──► rumqttd router
+//!   TCP/TLS ─► listener ─► wire ─► session ──────────────────LinkTx──► rumqttd router
 //!                                  1 authenticate (connect)               │
 //!                                  2 authorize ┐ policy::PublishPolicy    │
 //!                                  3 check     ┘ (also wills, bus import) │
@@ -14,10 +14,12 @@
 //!                                  5 meter (metrics) ◄──LinkRx── deliveries, acks
 //! ```
 //!
-//! **What it owns:** the listeners and the connection loop (`session`, over `wire`),
+//! **What it owns:** the listeners (MQTT over TCP, TLS and WebSockets: `listener`,
+//! `websocket`) and the connection loop (`session`, over `wire`),
 //! the publish policy every publication passes whatever its door (`policy`: access
 //! rules, typed FB topics, origin mark), last wills (`wills`), the device registry
-//! (`registry`), the broker's own publications (`broker_publisher`), the bus bridge
+//! (`registry`), the broker's own publications (`broker_publisher`, its `$SYS/` status in
+//! `sys`), the bus bridge
 //! to other lines (`bridge`, feature `bridge`), health, metrics and the admin endpoint
 //! (`health`, `metrics`, `admin`), the tasks it runs and what a panic does
 //! (`supervisor`), and assembly from a [`Config`] (`server`).

@@ -90,15 +90,18 @@ impl Handshake {
                 ));
             }
         }
-        let offered = request
+        let offered: Vec<&str> = request
             .headers()
             .get_all(header::SEC_WEBSOCKET_PROTOCOL)
             .iter()
             .filter_map(|v| v.to_str().ok())
             .flat_map(|v| v.split(','))
-            .map(str::trim);
-        for name in offered {
-            if let Some(known) = SUBPROTOCOLS.iter().find(|p| p.eq_ignore_ascii_case(name)) {
+            .map(str::trim)
+            .collect();
+        // `mqtt` whenever offered, whatever the order: the server must choose it
+        // [MQTT-6.0.0-4]; `mqttv3.1` only for a client that offers no `mqtt`.
+        for known in SUBPROTOCOLS {
+            if offered.iter().any(|name| name.eq_ignore_ascii_case(known)) {
                 return Ok(known);
             }
         }
@@ -360,6 +363,10 @@ mod tests {
         assert_eq!(
             open.check(&request("/mqtt?x=1", &[(proto, "foo, MQTTv3.1")])),
             Ok("mqttv3.1")
+        );
+        assert_eq!(
+            open.check(&request("/mqtt", &[(proto, "mqttv3.1, mqtt")])),
+            Ok("mqtt")
         );
         let reason = |r: Result<&str, Refused>| r.unwrap_err().reason;
         assert_eq!(
