@@ -296,6 +296,114 @@ fn a_protocol_at_the_wrong_kind_of_listener_is_named_in_the_log() {
     }
 }
 
+/// A client frame: binary, final, masked (RFC 6455 5.3: every client frame is).
+fn ws_frame(payload: &[u8]) -> Vec<u8> {
+    let mask = [0x5a, 0x17, 0xc3, 0x08];
+    let mut frame = vec![0x82];
+    match payload.len() {
+        n if n < 126 => frame.push(0x80 | n as u8),
+        n => {
+            frame.push(0x80 | 126);
+            frame.extend_from_slice(&(n as u16).to_be_bytes());
+        }
+    }
+    frame.extend_from_slice(&mask);
+    frame.extend(payload.iter().enumerate().map(|(i, b)| b ^ mask[i % 4]));
+    frame
+}
+
+/// The payload of the next (small, unmasked) server frame.
+fn read_ws_frame(s: &mut TcpStream) -> Vec<u8> {
+    let mut head = [0u8; 2];
+    s.read_exact(&mut head).unwrap();
+    assert_eq!(head[0], 0x82, "a final binary frame");
+    assert!(head[1] < 126, "a small frame");
+    let mut payload = vec![0u8; usize::from(head[1])];
+    s.read_exact(&mut payload).unwrap();
+    payload
+}
+
+/// A WebSocket client that stops reading is closed by the write deadline, as on TCP: its
+/// connection is a byte stream under the same session, so a flood it does not take ends
+/// it as a slow consumer after `slow_consumer_timeout_ms`. Also: a CONNECT and a
+/// SUBSCRIBE in one WebSocket message are two packets, as MQTT 5.0 section 6 says.
+#[test]
+fn a_websocket_client_that_stops_reading_is_a_slow_consumer() {
+    let ws_port = common::free_port();
+    let broker = Broker::start_with(
+        Options {
+            extra: format!(
+                "slow_consumer_timeout_ms = 1000\n\
+                 [[listener]]\nname = \"web\"\nkind = \"ws\"\nbind = \"127.0.0.1:{ws_port}\"\n"
+            ),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let ws: SocketAddr = format!("127.0.0.1:{ws_port}").parse().unwrap();
+    let mut s = TcpStream::connect_timeout(&ws, Duration::from_secs(2)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(
+        s,
+        "GET /mqtt HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n\
+         Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\
+         Sec-WebSocket-Protocol: mqtt\r\n\r\n"
+    )
+    .unwrap();
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        s.read_exact(&mut byte).unwrap();
+        head.push(byte[0]);
+    }
+    assert!(
+        head.starts_with(b"HTTP/1.1 101"),
+        "{}",
+        String::from_utf8_lossy(&head)
+    );
+    let mut packets = raw::Connect {
+        client_id: "ws-slow",
+        keep_alive: 0,
+        ..Default::default()
+    }
+    .bytes();
+    packets.extend(raw::subscribe(4, 1, &["slow/q0"]));
+    s.write_all(&ws_frame(&packets)).unwrap();
+    assert_eq!(read_ws_frame(&mut s)[0], 0x20, "CONNACK");
+    assert_eq!(read_ws_frame(&mut s)[0], 0x90, "SUBACK");
+    // From here on the client reads nothing.
+
+    let mut publisher = RawClient::connect(broker.port());
+    assert_eq!(
+        publisher.handshake(&raw::Connect {
+            client_id: "pub",
+            ..Default::default()
+        }),
+        0
+    );
+    publisher.send(&raw::publish_qos0("slow/q0", &[7u8; 32 * 1024]).repeat(256));
+    let series = r#"fbbus_disconnects_total{reason="slow_consumer"}"#;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while broker.metric(series) < 1.0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(
+        broker.metric(series),
+        1.0,
+        "{}\n{}",
+        broker.metrics(),
+        broker.log_text()
+    );
+    // The connection is gone from its listener's count too.
+    let open = r#"fbbus_listener_connections{listener="web",transport="ws"}"#;
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while broker.metric(open) > 0.0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(broker.metric(open), 0.0, "{}", broker.metrics());
+    drop(s);
+}
+
 // ------------------------------------------------------------ MQTT.js in Chromium
 
 /// Where `.ci/run` installs the npm packages the browser tests load: `FBBUS_NPM_DIR`, or
