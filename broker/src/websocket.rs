@@ -188,6 +188,11 @@ pub async fn accept(
             };
             let mut error = ErrorResponse::new(Some(format!("{}\n", why.detail)));
             *error.status_mut() = status;
+            // The detail quotes the request (its path, its origin): plain text only.
+            error.headers_mut().insert(
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("text/plain; charset=utf-8"),
+            );
             verdict = Some(why);
             Err(error)
         }

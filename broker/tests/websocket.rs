@@ -244,6 +244,7 @@ fn the_handshake_checks_path_subprotocol_and_origin() {
     ] {
         let (code, head) = upgrade(broker.mqtt, path, headers);
         assert_eq!(code, status, "{path} {headers:?}: {head}");
+        assert!(head.contains("content-type: text/plain"), "{head}");
         let series = format!(r#"fbbus_connects_refused_total{{reason="{reason}"}}"#);
         assert_eq!(broker.wait_metric(&series, 1.0), 1.0, "{series}");
     }
