@@ -122,9 +122,13 @@ impl BrokerPublisher {
     /// Queues `message`; it is published after every message queued before it.
     pub fn publish(&self, mut message: Message) {
         if let Some(store) = self.store.get() {
+            // `$SYS/` is the broker's status of the moment: published afresh at start.
             let own = message
                 .topic
-                .starts_with(fb_bridge::topic::BROKER_NAMESPACE.as_bytes());
+                .starts_with(fb_bridge::topic::BROKER_NAMESPACE.as_bytes())
+                || message
+                    .topic
+                    .starts_with(security::acl::SYS_PREFIX.as_bytes());
             if message.retain && message.stored == 0 && !own {
                 let seq = store.number();
                 message.stored = seq;

@@ -14,10 +14,12 @@
 //!                                  5 meter (metrics) ◄──LinkRx── deliveries, acks
 //! ```
 //!
-//! **What it owns:** the listeners and the connection loop (`session`, over `wire`),
+//! **What it owns:** the listeners (MQTT over TCP, TLS and WebSockets: `listener`,
+//! `websocket`) and the connection loop (`session`, over `wire`),
 //! the publish policy every publication passes whatever its door (`policy`: access
 //! rules, typed FB topics, origin mark), last wills (`wills`), the device registry
-//! (`registry`), the broker's own publications (`broker_publisher`), the bus bridge
+//! (`registry`), the broker's own publications (`broker_publisher`, its `$SYS/` status in
+//! `sys`), the bus bridge
 //! to other lines (`bridge`, feature `bridge`), health, metrics and the admin endpoint
 //! (`health`, `metrics`, `admin`), the tasks it runs and what a panic does
 //! (`supervisor`), and assembly from a [`Config`] (`server`).
@@ -59,8 +61,10 @@ mod session;
 mod silence;
 pub mod store;
 mod supervisor;
+mod sys;
 mod tls;
 mod watched_file;
+mod websocket;
 mod wills;
 
 // For the fuzz targets (`broker/fuzz`) and the tests of the password verifier's memory:

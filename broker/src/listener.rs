@@ -1,5 +1,6 @@
 //! A listener: accepts TCP connections, completes TLS if configured, enforces the
-//! connection limit, and hands each connection to `session::serve` on its own task.
+//! connection limit, completes the WebSocket handshake on a `ws` listener
+//! ([`crate::websocket`]), and hands each connection to `session::serve` on its own task.
 //!
 //! Unlike rumqttd's `Server`, it does not pause between accepts: a line that comes back
 //! after a power cut reconnects all at once, and the limit that matters is
@@ -14,18 +15,22 @@
 //! `tcp_retries2`).
 
 use std::net::SocketAddr;
+use std::pin::Pin;
 use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_rustls::TlsAcceptor;
 
 use crate::authenticator::AuthSection;
+use crate::metrics::Metrics;
 use crate::session;
-use crate::session::Context;
 use crate::tls::TlsSection;
+use crate::websocket;
 use crate::wire::framed::Stream;
 
 #[derive(Debug, Clone, Deserialize)]
@@ -33,10 +38,40 @@ use crate::wire::framed::Stream;
 pub struct ListenerSection {
     pub name: String,
     pub bind: SocketAddr,
+    /// What clients speak: MQTT over TCP (the default), or over WebSockets.
+    #[serde(default)]
+    pub kind: ListenerKind,
     /// Clients without a username may connect. Only allowed on a loopback address.
     /// Defaults to true when there is no password file.
     pub allow_anonymous: Option<bool>,
     pub tls: Option<TlsSection>,
+    /// `ws` only: the HTTP path of the upgrade request (default `/mqtt`).
+    pub path: Option<String>,
+    /// `ws` only: the origins browsers may connect from; unset: any.
+    pub allowed_origins: Option<Vec<String>>,
+}
+
+/// A listener's transport. `wss` is `ws` with the listener's `[listener.tls]`: it is
+/// accepted as a name too, and then needs the TLS section.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ListenerKind {
+    #[default]
+    Mqtt,
+    Ws,
+    Wss,
+}
+
+impl ListenerKind {
+    /// The label of the per-listener metrics and log lines: mqtt, mqtts, ws or wss.
+    pub fn transport(self, tls: bool) -> &'static str {
+        match (self, tls) {
+            (ListenerKind::Mqtt, false) => "mqtt",
+            (ListenerKind::Mqtt, true) => "mqtts",
+            (_, false) => "ws",
+            (_, true) => "wss",
+        }
+    }
 }
 
 impl ListenerSection {
@@ -44,12 +79,65 @@ impl ListenerSection {
     pub fn anonymous(&self, auth: &AuthSection) -> bool {
         self.allow_anonymous.unwrap_or(auth.password_file.is_none())
     }
+
+    /// The handshake a WebSocket listener checks; None for plain MQTT.
+    pub fn websocket(&self) -> Option<websocket::Handshake> {
+        (self.kind != ListenerKind::Mqtt).then(|| websocket::Handshake {
+            path: self
+                .path
+                .clone()
+                .unwrap_or_else(|| websocket::DEFAULT_PATH.to_owned()),
+            allowed_origins: self.allowed_origins.clone(),
+        })
+    }
+
+    /// The configuration mistakes of this listener's kind: (key, message).
+    pub fn validate_kind(&self) -> Result<(), (&'static str, String)> {
+        if self.kind == ListenerKind::Mqtt {
+            for (key, set) in [
+                ("path", self.path.is_some()),
+                ("allowed_origins", self.allowed_origins.is_some()),
+            ] {
+                if set {
+                    return Err((key, "only applies to a listener with kind = \"ws\"".into()));
+                }
+            }
+        }
+        if self.kind == ListenerKind::Wss && self.tls.is_none() {
+            return Err((
+                "tls",
+                "kind = \"wss\" needs a [listener.tls] section (cert and key)".into(),
+            ));
+        }
+        if let Some(path) = &self.path {
+            if !path.starts_with('/') || path.contains(['?', '#', ' ']) {
+                return Err((
+                    "path",
+                    format!("{path:?} is not an HTTP path such as \"/mqtt\""),
+                ));
+            }
+        }
+        if let Some(origins) = &self.allowed_origins {
+            if let Some(bad) = origins
+                .iter()
+                .find(|o| !o.contains("://") || o.ends_with('/'))
+            {
+                return Err((
+                    "allowed_origins",
+                    format!("{bad:?} is not an origin such as \"https://hmi.example:8443\" (scheme, host, optional port, no path)"),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 pub struct Listener {
     pub policy: Arc<session::ListenerPolicy>,
     pub socket: TcpListener,
     pub tls: Option<TlsAcceptor>,
+    /// Set on a WebSocket listener: the handshake it checks.
+    pub websocket: Option<Arc<websocket::Handshake>>,
 }
 
 impl Listener {
@@ -60,7 +148,7 @@ impl Listener {
     }
 
     /// Accepts connections until the broker shuts down.
-    pub async fn run(self, ctx: Arc<Context>, slots: Arc<Semaphore>) {
+    pub async fn run(self, ctx: Arc<session::Context>, slots: Arc<Semaphore>) {
         let mut shutdown = ctx.shutdown.clone();
         let (mut last_warning, mut refused_unlogged) = (None, 0u64);
         let (mut last_pending_warning, mut pending_unlogged) = (None, 0u64);
@@ -127,7 +215,9 @@ impl Listener {
             let ctx = Arc::clone(&ctx);
             let policy = Arc::clone(&self.policy);
             let tls = self.tls.clone();
+            let websocket = self.websocket.clone();
             tokio::spawn(async move {
+                let secure = tls.is_some();
                 let stream: Box<dyn Stream> = match tls {
                     None => Box::new(tcp),
                     Some(acceptor) => {
@@ -146,9 +236,84 @@ impl Listener {
                         }
                     }
                 };
+                let stream: Box<dyn Stream> = match websocket {
+                    None => stream,
+                    Some(handshake) => {
+                        let accepted = tokio::time::timeout(
+                            ctx.connect_timeout,
+                            websocket::accept(stream, secure, &handshake, ctx.max_packet),
+                        )
+                        .await;
+                        match accepted {
+                            Ok(Ok(ws)) => Box::new(ws),
+                            Ok(Err(why)) => {
+                                ctx.metrics.refused(why.reason);
+                                websocket::log_refused(&policy.name, peer, &why);
+                                return;
+                            }
+                            Err(_) => {
+                                ctx.metrics.refused("connect_timeout");
+                                tracing::debug!(%peer, "no WebSocket handshake in time; closed");
+                                return;
+                            }
+                        }
+                    }
+                };
+                let stream = Box::new(Counted::new(&ctx.metrics, &policy, stream));
                 session::serve(stream, peer, policy, ctx, slot, pending).await;
             });
         }
+    }
+}
+
+/// A connection counted in its listener's `fbbus_listener_connections` for as long as its
+/// stream lives: the session drops it when the connection ends, however it ends.
+struct Counted {
+    inner: Box<dyn Stream>,
+    open: prometheus::IntGauge,
+}
+
+impl Counted {
+    fn new(metrics: &Metrics, policy: &session::ListenerPolicy, inner: Box<dyn Stream>) -> Self {
+        let labels = [policy.name.as_str(), policy.transport];
+        metrics.listener_accepted.with_label_values(&labels).inc();
+        let open = metrics.listener_connections.with_label_values(&labels);
+        open.inc();
+        Counted { inner, open }
+    }
+}
+
+impl Drop for Counted {
+    fn drop(&mut self) {
+        self.open.dec();
+    }
+}
+
+impl AsyncRead for Counted {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl AsyncWrite for Counted {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }
 

@@ -83,6 +83,12 @@ impl DisconnectReason {
 pub struct Metrics {
     registry: Registry,
     pub connections: IntGauge,
+    /// The most connections open at once since start (`$SYS/broker/clients/maximum`).
+    connections_peak: std::sync::atomic::AtomicI64,
+    /// Connections open and accepted per listener (after TLS and, for `ws`, the WebSocket
+    /// handshake), labelled `listener` and `transport` (mqtt, mqtts, ws, wss).
+    pub listener_connections: IntGaugeVec,
+    pub listener_accepted: IntCounterVec,
     pub connects: IntCounter,
     pub connects_refused: IntCounterVec,
     pub disconnects: IntCounterVec,
@@ -215,7 +221,28 @@ impl Metrics {
             g
         };
 
+        let listener_connections = IntGaugeVec::new(
+            Opts::new(
+                "fbbus_listener_connections",
+                "Connections open per listener, by transport (mqtt, mqtts, ws, wss); \
+                 CONNECT not necessarily read yet",
+            ),
+            &["listener", "transport"],
+        )
+        .expect("valid");
+        registry
+            .register(Box::new(listener_connections.clone()))
+            .expect("unique metric");
+
         Metrics {
+            connections_peak: Default::default(),
+            listener_connections,
+            listener_accepted: counter_vec(
+                "fbbus_listener_accepted_total",
+                "Connections accepted per listener, by transport, once TLS and the WebSocket \
+                 handshake (ws, wss) completed",
+                &["listener", "transport"],
+            ),
             bridge_messages: counter_vec(
                 "fbbus_bridge_messages_total",
                 "Messages carried by the zenoh bridge, by direction (export: to other lines, import: from them)",
@@ -471,6 +498,18 @@ impl Metrics {
 
     pub fn disconnected(&self, reason: DisconnectReason) {
         self.disconnects.with_label_values(&[reason.label()]).inc();
+    }
+
+    /// Records the connections open now as the peak if they are more than any before.
+    pub fn note_connections_peak(&self) {
+        self.connections_peak
+            .fetch_max(self.connections.get(), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The most connections open at once since start.
+    pub fn connections_peak(&self) -> i64 {
+        self.connections_peak
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     pub fn refused(&self, reason: &str) {

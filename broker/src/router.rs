@@ -72,7 +72,7 @@ pub fn saved_sessions_limit(max_connections: usize) -> usize {
 /// `max_retained_bytes`: the broker's own (`fbbus/`: device records, line counts;
 /// `$fbbus/`: the readiness probe). Clients cannot publish there (the policy refuses
 /// every `fbbus/` topic but their own declaration, which is never routed).
-pub const RETAINED_UNCOUNTED: [&str; 2] = ["fbbus/", "$fbbus/"];
+pub const RETAINED_UNCOUNTED: [&str; 3] = ["fbbus/", "$fbbus/", "$SYS/"];
 
 /// How long the router must be quiet before it releases memory.
 pub const IDLE_AFTER: Duration = Duration::from_millis(500);

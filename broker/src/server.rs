@@ -107,6 +107,12 @@ impl Broker {
             .await
             .map_err(|e| StartError::Router(e.to_string()))?;
         let publisher = BrokerPublisher::start((internal.0, internal.1), &tasks);
+        crate::sys::start(
+            Duration::from_secs(config.broker.sys_interval_s),
+            Arc::clone(&metrics),
+            Arc::clone(&publisher),
+            &tasks,
+        );
         let probe = router
             .link(PROBE_CLIENT_ID, true, 0)
             .await
@@ -267,9 +273,11 @@ impl Broker {
                 policy: Arc::new(ListenerPolicy {
                     name: section.name.clone(),
                     anonymous: section.anonymous(&config.auth),
+                    transport: section.kind.transport(tls.is_some()),
                 }),
                 socket,
                 tls,
+                websocket: section.websocket().map(Arc::new),
             });
         }
         let admin_socket = bind("admin", config.admin.bind)?;
@@ -291,8 +299,10 @@ impl Broker {
             .map(|l| (l.policy.name.clone(), l.local_addr()))
             .collect();
         for listener in listeners {
+            let path = listener.websocket.as_ref().map(|w| w.path.as_str());
             tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
-                tls = listener.tls.is_some(), anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
+                transport = listener.policy.transport, path, tls = listener.tls.is_some(),
+                anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
             tasks.core(
                 "listener",
                 listener.run(Arc::clone(&ctx), Arc::clone(&slots)),

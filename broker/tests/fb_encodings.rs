@@ -303,13 +303,16 @@ async fn re_encoding_starts_with_the_first_subscriber_that_can_read_it() {
 async fn fb_subscribers_get_canonical_json_whatever_form_was_published() {
     let decl = r#"{"fbs": {"CONV": {
         "events_out": {"MOVED": {"with": ["MASK"]}},
-        "data_out": {"MASK": "WORD", "CYCLE": "TIME", "DAY": "DATE"}}}}"#;
+        "data_out": {"MASK": "WORD", "CYCLE": "TIME", "DAY": "DATE", "ON": "BOOL"}}}}"#;
     let broker = Broker::start();
     let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/conv-a"]).await;
     let mut sub = observer(&broker, "sub", &["fb/conv-a/#"]).await;
     let mut dev = Dev::connect(broker.port(), 5, "conv-a");
     declare_ok(&mut dev, decl, &mut diag_sub, &broker).await;
-    let cases: [(&str, &str, Value); 6] = [
+    let cases: [(&str, &str, Value); 8] = [
+        // BOOL as PLC code and people write it (issue 35).
+        ("ON", "1", json!(true)),
+        ("ON", "0", json!(false)),
         ("MASK", r#""16#FF""#, json!(255)),
         ("MASK", r#""2#1010""#, json!(10)),
         ("CYCLE", r#""TIME#1.5s""#, json!("T#1s500ms")),
@@ -335,4 +338,6 @@ async fn fb_subscribers_get_canonical_json_whatever_form_was_published() {
         }
     }
     assert!(wrong.is_empty(), "non-canonical JSON on fb/: {wrong:#?}");
+    // Only 1 and 0: any other integer is still refused.
+    assert_eq!(dev.publish("fb/conv-a/CONV/ON", b"2"), REFUSED);
 }

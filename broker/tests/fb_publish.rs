@@ -269,18 +269,20 @@ async fn refusals_have_their_reason_codes_and_are_never_delivered() {
         };
         got.push(m);
     }
+    // Canonical JSON is compared as JSON: key order and spacing are not part of the form
+    // (an event with a BOOL is re-encoded, since BOOL also reads 1 and 0).
+    let got: Vec<(String, serde_json::Value)> = got
+        .into_iter()
+        .map(|(topic, payload)| (topic, serde_json::from_slice(&payload).unwrap()))
+        .collect();
     assert_eq!(
         got,
         vec![
-            ("fb/conv-a/CONV/POSITION".to_owned(), b"7".to_vec()),
-            ("fb/conv-z/CONV/POSITION".to_owned(), b"8".to_vec()),
+            ("fb/conv-a/CONV/POSITION".to_owned(), json!(7)),
+            ("fb/conv-z/CONV/POSITION".to_owned(), json!(8)),
             (
                 "fb/conv-a/CONV/MOVED".to_owned(),
-                // Canonical JSON comes through as the publisher wrote it (key order and
-                // spacing are not part of the form), so compare it as JSON.
                 json!({"seq": 1, "ts": 2, "data": {"POSITION": 7, "SENSOR_IN": true}})
-                    .to_string()
-                    .into_bytes()
             ),
         ]
     );

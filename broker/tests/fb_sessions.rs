@@ -217,8 +217,9 @@ async fn typed_wills_are_checked_and_re_encoded() {
     let died = wait_record(&broker, "plc", "died", offline_because("connection lost")).await;
     assert_eq!(died["session"].as_u64(), Some(session), "{died}");
 
-    // An ill-typed will payload (0 is not a BOOL) is refused like a publication.
-    let bad = V4::connect_with(connect("plc-bad", "0")).await.unwrap();
+    // An ill-typed will payload (2 is not a BOOL; 0 and 1 are) is refused like a
+    // publication.
+    let bad = V4::connect_with(connect("plc-bad", "2")).await.unwrap();
     bad.client
         .publish(
             "fbbus/declare/plc-bad",

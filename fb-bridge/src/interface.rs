@@ -330,6 +330,22 @@ impl OutputPort<'_> {
             OutputPort::Event(with) => with.iter().all(|(_, t)| t.has_one_json_form()),
         }
     }
+
+    /// Whether `payload`, valid JSON accepted on this port and free of whitespace, is
+    /// canonical already, so it can be routed as it came: a port whose values have one
+    /// JSON form, or a BOOL data port (or BOOL array) whose payload has no digit (`true`,
+    /// `[true,false]`; not `1`, which BOOL reads too). An event carrying a BOOL is not
+    /// told apart (its `seq`, `ts` and other values have digits): it is re-encoded.
+    pub fn json_is_canonical(&self, payload: &[u8]) -> bool {
+        use crate::types::ElementaryType;
+        match self {
+            OutputPort::Data(DataType::Elementary(ElementaryType::Bool))
+            | OutputPort::Data(DataType::Array(ElementaryType::Bool, _)) => {
+                !payload.iter().any(u8::is_ascii_digit)
+            }
+            _ => self.has_one_json_form(),
+        }
+    }
 }
 
 impl Interface {
@@ -383,6 +399,21 @@ mod tests {
 
     fn decl(json: &str) -> Declaration {
         Declaration::from_json(json.as_bytes()).unwrap()
+    }
+
+    #[test]
+    fn a_bool_port_is_canonical_only_as_true_and_false() {
+        use crate::types::ElementaryType as T;
+        let bool_port = OutputPort::Data(DataType::Elementary(T::Bool));
+        assert!(bool_port.json_is_canonical(b"true"));
+        assert!(!bool_port.json_is_canonical(b"1"));
+        let flags = OutputPort::Data(DataType::Array(T::Bool, 2));
+        assert!(flags.json_is_canonical(b"[true,false]"));
+        assert!(!flags.json_is_canonical(b"[1,false]"));
+        let int_port = OutputPort::Data(DataType::Elementary(T::Int));
+        assert!(int_port.json_is_canonical(b"1"));
+        let event = OutputPort::Event(vec![("ON", DataType::Elementary(T::Bool))]);
+        assert!(!event.json_is_canonical(br#"{"data":{"ON":true}}"#));
     }
 
     #[test]

@@ -96,13 +96,15 @@ impl ElementaryType {
 
     /// Whether canonical JSON has the only form the decoder accepts for this type, so an
     /// accepted JSON value is already canonical. Not so for the bit strings (which also
-    /// accept `"16#FF"`), the time types (several literal spellings) and the reals (`1e0`,
+    /// accept `"16#FF"`), the time types (several literal spellings), the reals (`1e0`,
     /// `1.00`, `-0.0`, and for `REAL` values that round to another `f32`, such as `1e-50`
-    /// to 0: every encoding must carry the one value the port holds).
+    /// to 0: every encoding must carry the one value the port holds) and `BOOL` (`1`/`0`
+    /// for `true`/`false`).
     pub fn has_one_json_form(self) -> bool {
         !matches!(
             self,
-            Self::Real
+            Self::Bool
+                | Self::Real
                 | Self::Lreal
                 | Self::Byte
                 | Self::Word

@@ -39,6 +39,11 @@
 //! also checks each delivered topic ([`AclRules::can_read`]); for a topic
 //! the two checks agree.
 //!
+//! `$SYS/` topics are the broker's status (Mosquitto's names): only the broker publishes
+//! there, and who may read them has a default rule of its own ([`AclRules::can_read_sys`]):
+//! clients on loopback (the line's own tools on the broker's host) and clients an ACL rule
+//! grants read of them (`topic read $SYS/#`), a deny rule beating both.
+//!
 //! What a topic or filter is, what matches, covers and overlaps what, and
 //! how `$share/<group>/` is split off, is MQTT's grammar, decided in
 //! `fb_bridge::topic::filter` for the ACL, the bus and the broker alike.
@@ -52,6 +57,14 @@ use fb_bridge::topic::filter::{covers, overlaps, strip_share};
 /// The MQTT grammar lives in `fb_bridge::topic::filter`; these stay here because the
 /// broker checks its topics and filters through `security::acl`.
 pub use fb_bridge::topic::filter::{filter_matches, valid_filter, valid_topic};
+
+/// The prefix of the broker's status topics (`$SYS/broker/uptime`, ...).
+pub const SYS_PREFIX: &str = "$SYS/";
+
+/// Whether a topic or filter (a `$share/<group>/` prefix aside) is under `$SYS/`.
+pub fn is_sys(name: &str) -> bool {
+    strip_share(name).is_some_and(|f| f.starts_with(SYS_PREFIX))
+}
 
 /// Who is asking: the authenticated user name (if any) and the client id.
 #[derive(Debug, Clone, Copy)]
@@ -73,6 +86,16 @@ struct Rule {
     access: Access,
     /// A valid MQTT filter, possibly containing `%u` / `%c`.
     filter: String,
+}
+
+impl Rule {
+    fn in_scope(&self, who: Identity) -> bool {
+        match &self.scope {
+            Scope::Everyone => true,
+            Scope::User(user) => who.username == Some(user.as_str()),
+            Scope::Client(id) => who.client_id == id,
+        }
+    }
 }
 
 /// Which clients a rule applies to.
@@ -230,9 +253,10 @@ impl AclRules {
     }
 
     /// May `who` publish to `topic`? True iff some applicable write rule
-    /// matches the topic and no applicable deny rule does.
+    /// matches the topic and no applicable deny rule does. Never under `$SYS/`: the
+    /// broker's status is the broker's alone, whatever a rule grants.
     pub fn can_publish(&self, who: Identity, topic: &str) -> bool {
-        if !valid_topic(topic) {
+        if !valid_topic(topic) || is_sys(topic) {
             return false;
         }
         if self.allow_all {
@@ -283,17 +307,55 @@ impl AclRules {
         })
     }
 
+    /// May `who` subscribe to the `$SYS/` filter `filter`? From loopback: unless a deny
+    /// rule overlaps it. From elsewhere: only where a read rule grants it, as for any
+    /// filter ([`AclRules::can_subscribe`]); without an ACL file, nobody.
+    pub fn can_subscribe_sys(&self, who: Identity, loopback: bool, filter: &str) -> bool {
+        let Some(filter) = strip_share(filter) else {
+            return false;
+        };
+        if !valid_filter(filter) || !filter.starts_with(SYS_PREFIX) {
+            return false;
+        }
+        match (loopback, self.allow_all) {
+            (true, _) => !self.denies(who, |rule_filter| overlaps(filter, rule_filter)),
+            (false, true) => false,
+            (false, false) => self.can_subscribe(who, filter),
+        }
+    }
+
+    /// May `who` be sent the `$SYS/` topic `topic`? Exactly when
+    /// [`AclRules::can_subscribe_sys`] would allow a subscription to it.
+    pub fn can_read_sys(&self, who: Identity, loopback: bool, topic: &str) -> bool {
+        if !valid_topic(topic) || !topic.starts_with(SYS_PREFIX) {
+            return false;
+        }
+        match (loopback, self.allow_all) {
+            (true, _) => !self.denies(who, |rule_filter| covers(rule_filter, topic)),
+            (false, true) => false,
+            (false, false) => self.can_read(who, topic),
+        }
+    }
+
+    /// Whether a deny rule that applies to `who` matches (`applies` on its filter). A
+    /// deny rule whose substitution is unsafe denies.
+    fn denies(&self, who: Identity, applies: impl Fn(&str) -> bool) -> bool {
+        self.rules
+            .iter()
+            .filter(|rule| rule.access == Access::Deny && rule.in_scope(who))
+            .any(|rule| match substitute(&rule.filter, who) {
+                Substituted::Filter(filter) => applies(&filter),
+                Substituted::NoUser => false,
+                Substituted::Unsafe => true,
+            })
+    }
+
     /// Runs `applies(access, effective_filter)` over the rules that apply
     /// to `who`: allowed iff it is true for some grant and for no deny.
     fn decide(&self, who: Identity, applies: impl Fn(Access, &str) -> bool) -> bool {
         let mut granted = false;
         for rule in &self.rules {
-            let in_scope = match &rule.scope {
-                Scope::Everyone => true,
-                Scope::User(user) => who.username == Some(user.as_str()),
-                Scope::Client(id) => who.client_id == id,
-            };
-            if !in_scope {
+            if !rule.in_scope(who) {
                 continue;
             }
             let filter = match substitute(&rule.filter, who) {
@@ -427,6 +489,50 @@ topic deny secrets/#         # `deny` (Mosquitto style) overrides any grant
             Err(AclError::Line { line, problem, .. }) => (line, problem),
             other => panic!("expected a line error, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn sys_is_read_from_loopback_or_where_granted_and_a_deny_beats_both() {
+        let alice = Identity {
+            username: Some("alice"),
+            client_id: "a",
+        };
+        let bob = Identity {
+            username: Some("bob"),
+            client_id: "b",
+        };
+        let open = AclRules::allow_all();
+        assert!(open.can_subscribe_sys(bob, true, "$SYS/#"));
+        assert!(open.can_read_sys(bob, true, "$SYS/broker/uptime"));
+        assert!(!open.can_subscribe_sys(bob, false, "$SYS/#"));
+        assert!(!open.can_read_sys(bob, false, "$SYS/broker/uptime"));
+        assert!(
+            !open.can_subscribe_sys(bob, true, "fb/#"),
+            "not a $SYS filter"
+        );
+
+        let rules = AclRules::parse(
+            "user alice\ntopic read $SYS/#\nuser bob\ntopic read fb/#\n\
+             topic deny $SYS/broker/clients/#\n",
+        )
+        .unwrap();
+        assert!(rules.can_subscribe_sys(alice, false, "$SYS/#"));
+        assert!(rules.can_subscribe_sys(alice, false, "$share/g/$SYS/broker/+"));
+        assert!(!rules.can_subscribe_sys(bob, false, "$SYS/#"));
+        assert!(rules.can_subscribe_sys(bob, true, "$SYS/broker/uptime"));
+        assert!(
+            !rules.can_subscribe_sys(bob, true, "$SYS/#"),
+            "overlaps bob's deny"
+        );
+        assert!(rules.can_read_sys(bob, true, "$SYS/broker/uptime"));
+        assert!(!rules.can_read_sys(bob, true, "$SYS/broker/clients/connected"));
+        assert!(is_sys("$SYS/broker/version") && is_sys("$share/g/$SYS/#"));
+        assert!(!is_sys("$SYS") && !is_sys("fb/$SYS/x"));
+        // Nobody publishes $SYS, not even with a grant.
+        let writer = AclRules::parse("topic readwrite #\ntopic write $SYS/#\n").unwrap();
+        assert!(!writer.can_publish(alice, "$SYS/broker/uptime"));
+        assert!(!open.can_publish(alice, "$SYS/broker/uptime"));
+        assert!(open.can_publish(alice, "fb/x"));
     }
 
     #[test]
@@ -629,7 +735,7 @@ topic deny secrets/#         # `deny` (Mosquitto style) overrides any grant
         let all = AclRules::allow_all();
         assert!(all.is_allow_all());
         assert!(all.can_publish(c, "a/b"));
-        assert!(all.can_publish(c, "$SYS/x"));
+        assert!(!all.can_publish(c, "$SYS/x"), "the broker's own, even so");
         assert!(all.can_subscribe(c, "#"));
         assert!(all.can_subscribe(c, "$share/g/#"));
         // Malformed requests are refused even so.

@@ -75,6 +75,9 @@ pub struct BrokerSection {
     /// vanished (power cut, pulled cable) is noticed by the kernel within about this long,
     /// whatever the client's MQTT keep-alive (0 included). 0: the kernel's defaults.
     pub dead_link_timeout_s: u64,
+    /// How often the broker publishes its `$SYS/` status topics (Mosquitto's
+    /// `sys_interval`); 0: never.
+    pub sys_interval_s: u64,
 }
 
 impl BrokerSection {
@@ -113,6 +116,7 @@ impl Default for BrokerSection {
             slow_consumer_timeout_ms: 10_000,
             slow_consumer_max_bytes: 64 * 1024 * 1024,
             dead_link_timeout_s: 20,
+            sys_interval_s: 10,
         }
     }
 }

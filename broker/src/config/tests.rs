@@ -283,6 +283,7 @@ fn liveness_limits_are_bounded() {
             "broker.slow_consumer_max_bytes",
         ),
         ("dead_link_timeout_s = 3601", "broker.dead_link_timeout_s"),
+        ("sys_interval_s = 86401", "broker.sys_interval_s"),
     ] {
         let err = config(keys).unwrap_err().to_string();
         assert!(err.contains(key), "{keys}: {err}");
@@ -293,4 +294,43 @@ fn liveness_limits_are_bounded() {
             .dead_link_timeout(),
         None
     );
+}
+
+#[test]
+fn websocket_listener_keys_are_checked() {
+    let listener = |keys: &str| {
+        Config::parse(
+            &format!("[[listener]]\nname=\"a\"\nbind=\"127.0.0.1:1\"\n{keys}"),
+            "f",
+        )
+    };
+    let ws = listener(
+        "kind = \"ws\"\npath = \"/line/mqtt\"\nallowed_origins = [\"https://hmi.example:8443\"]\n",
+    )
+    .unwrap();
+    let handshake = ws.listeners[0].websocket().expect("a ws listener");
+    assert_eq!(handshake.path, "/line/mqtt");
+    assert!(listener("").unwrap().listeners[0].websocket().is_none());
+    assert_eq!(
+        listener("kind = \"ws\"\n").unwrap().listeners[0]
+            .websocket()
+            .unwrap()
+            .path,
+        "/mqtt"
+    );
+    for (keys, key) in [
+        ("kind = \"wss\"\n", "listener[0].tls"),
+        ("path = \"/mqtt\"\n", "listener[0].path"),
+        ("allowed_origins = []\n", "listener[0].allowed_origins"),
+        ("kind = \"ws\"\npath = \"mqtt\"\n", "listener[0].path"),
+        ("kind = \"ws\"\npath = \"/mqtt?x\"\n", "listener[0].path"),
+        (
+            "kind = \"ws\"\nallowed_origins = [\"hmi.example\"]\n",
+            "listener[0].allowed_origins",
+        ),
+        ("kind = \"websocket\"\n", "listener[0].kind"),
+    ] {
+        let err = listener(keys).unwrap_err().to_string();
+        assert!(err.contains(key), "{keys}: {err}");
+    }
 }

@@ -213,6 +213,14 @@ impl Config {
                 "must be at most 3600 (0: the kernel's defaults)",
             ));
         }
+        // A day at most: figures older than that are no status.
+        if b.sys_interval_s > 86_400 {
+            return Err(invalid(
+                file,
+                "broker.sys_interval_s",
+                "must be at most 86400 (0: no $SYS topics)",
+            ));
+        }
         if self.auth.verify_concurrency == 0 {
             return Err(invalid(
                 file,
@@ -269,6 +277,8 @@ impl Config {
             if self.listeners[..i].iter().any(|o| o.name == l.name) {
                 return Err(invalid(file, &key("name"), "is used by another listener"));
             }
+            l.validate_kind()
+                .map_err(|(k, message)| invalid(file, &key(k), message))?;
             let loopback = l.bind.ip().is_loopback();
             let anonymous = l.anonymous(&self.auth);
             if !loopback && self.auth.password_file.is_none() {

@@ -23,10 +23,10 @@ impl Access {
         file.map_or(Access::AllowAll, Access::Rules)
     }
 
-    /// May `who` publish on `topic`?
+    /// May `who` publish on `topic`? Never on `$SYS/`, the broker's status topics.
     pub fn can_publish(&self, who: Identity<'_>, topic: &str) -> bool {
         match self {
-            Access::AllowAll => true,
+            Access::AllowAll => !security::acl::is_sys(topic),
             Access::Rules(rules) => rules.get().can_publish(who, topic),
         }
     }
@@ -48,6 +48,24 @@ impl Access {
         match self {
             Access::AllowAll => None,
             Access::Rules(rules) => Some(rules.generation()),
+        }
+    }
+
+    /// May `who`, connected from loopback or not, subscribe to the `$SYS/` filter
+    /// `filter`? Loopback clients may, and others an ACL rule grants it to
+    /// ([`AclRules::can_subscribe_sys`]).
+    pub fn can_subscribe_sys(&self, who: Identity<'_>, loopback: bool, filter: &str) -> bool {
+        match self {
+            Access::AllowAll => AclRules::allow_all().can_subscribe_sys(who, loopback, filter),
+            Access::Rules(rules) => rules.get().can_subscribe_sys(who, loopback, filter),
+        }
+    }
+
+    /// May `who` be sent the `$SYS/` topic `topic`? As [`Access::can_subscribe_sys`].
+    pub fn can_read_sys(&self, who: Identity<'_>, loopback: bool, topic: &str) -> bool {
+        match self {
+            Access::AllowAll => AclRules::allow_all().can_read_sys(who, loopback, topic),
+            Access::Rules(rules) => rules.get().can_read_sys(who, loopback, topic),
         }
     }
 

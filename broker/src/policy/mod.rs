@@ -163,6 +163,7 @@ impl PublishPolicy {
     /// the client may publish, and never into the broker's `fbbus/` namespace, where it
     /// could forge registry records. Counted when refused.
     pub fn will_allowed(&self, who: Identity<'_>, topic: &str) -> bool {
+        // (`$SYS/` is refused by `can_publish` itself.)
         let allowed = fb_bridge::topic::filter::valid_topic(topic)
             && !topic.starts_with(fb_bridge::topic::BROKER_NAMESPACE)
             && self.access.can_publish(who, topic);

@@ -24,8 +24,9 @@ pattern readwrite fb/%c/#
 topic deny fb/plc-1/CONV/SECRET
 ";
 
-/// plc-1's interface: one INT output and the port the ACL denies.
-const DECLARATION: &str = r#"{"fbs":{"CONV":{"data_out":{"SPEED":"INT","SECRET":"INT"}}}}"#;
+/// plc-1's interface: an INT output, a BOOL one and the port the ACL denies.
+const DECLARATION: &str =
+    r#"{"fbs":{"CONV":{"data_out":{"SPEED":"INT","ON":"BOOL","SECRET":"INT"}}}}"#;
 
 struct Line {
     policy: PublishPolicy,
@@ -291,6 +292,27 @@ fn typed_messages_are_re_encoded_once_someone_reads_another_encoding() {
         } => {
             let topics: Vec<&str> = routes.iter().map(|(t, _)| t.as_str()).collect();
             assert_eq!(topics, ["fb/plc-1/CONV/SPEED", "fbdk/plc-1/CONV/SPEED"]);
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn a_bool_is_routed_as_published_as_true_and_re_encoded_from_1() {
+    let line = line(None);
+    let mut device = line.device();
+    match line.admit(Door::Client, &mut device, "fb/plc-1/CONV/ON", "true") {
+        Admission::Route { routes: None, .. } => {}
+        other => panic!("true is canonical, routed as published: {other:?}"),
+    }
+    match line.admit(Door::Client, &mut device, "fb/plc-1/CONV/ON", "1") {
+        Admission::Route {
+            routes: Some(routes),
+            ..
+        } => {
+            assert_eq!(routes.len(), 1, "{routes:?}");
+            assert_eq!(routes[0].0, "fb/plc-1/CONV/ON");
+            assert_eq!(&routes[0].1[..], b"true");
         }
         other => panic!("{other:?}"),
     }

@@ -131,6 +131,7 @@ impl Session {
 
         ctx.metrics.connects.inc();
         ctx.metrics.connections.inc();
+        ctx.metrics.note_connections_peak();
         let mut fb = FbSession::new(&ctx.fb, &client_id, username.as_deref(), linked.session);
         fb.set_peer(peer.ip());
         let profiles = ctx.fb.profiles.get();

@@ -394,9 +394,13 @@ impl Session {
                 } else {
                     SubscribeReasonCode::Failure
                 })
-            } else if filter::is_dollar(&filter.path) && !filter::is_shared(&filter.path) {
-                // fbbus publishes nothing under `$` topics yet, and rumqttd's router drops a
-                // connection that subscribes to one: refuse the filter, keep the client.
+            } else if filter::is_dollar(&filter.path)
+                && !filter::is_shared(&filter.path)
+                && !security::acl::is_sys(&filter.path)
+            {
+                // fbbus publishes nothing under `$` topics but `$SYS/`, and rumqttd's router
+                // drops a connection that subscribes to another: refuse the filter, keep the
+                // client.
                 Some(if v5 {
                     SubscribeReasonCode::ImplementationSpecific
                 } else {
@@ -521,10 +525,16 @@ impl Session {
     }
 
     pub(super) fn may_subscribe(&self, filter: &str) -> bool {
-        self.ctx
-            .policy
-            .access()
-            .can_subscribe(self.identity(), filter)
+        let access = self.ctx.policy.access();
+        if security::acl::is_sys(filter) {
+            return access.can_subscribe_sys(self.identity(), self.on_loopback(), filter);
+        }
+        access.can_subscribe(self.identity(), filter)
+    }
+
+    /// Whether this client connected from the broker's own host (the `$SYS` rule).
+    pub(super) fn on_loopback(&self) -> bool {
+        self.peer.ip().to_canonical().is_loopback()
     }
 
     pub(super) fn log_denial(&mut self, action: &'static str, topic: &str) {

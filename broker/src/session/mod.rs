@@ -79,6 +79,8 @@ use close::End;
 pub struct ListenerPolicy {
     pub name: String,
     pub anonymous: bool,
+    /// mqtt, mqtts, ws or wss: the label of the listener's metrics.
+    pub transport: &'static str,
 }
 
 /// Serves one accepted connection: reads its CONNECT and logs it in on this task, then

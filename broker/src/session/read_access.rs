@@ -73,6 +73,21 @@ impl Session {
     /// May this client be sent a message published on `topic`? Counts and logs a refusal.
     pub(super) fn may_read(&mut self, topic: &[u8]) -> bool {
         let access = self.ctx.policy.access();
+        // `$SYS/` has a rule of its own (loopback, or granted), with or without an ACL
+        // file; its deliveries are a few per `sys_interval_s`, not worth remembering.
+        if topic.starts_with(security::acl::SYS_PREFIX.as_bytes()) {
+            let readable = std::str::from_utf8(topic)
+                .is_ok_and(|topic| access.can_read_sys(self.identity(), self.on_loopback(), topic));
+            if !readable {
+                self.ctx
+                    .metrics
+                    .acl_denied
+                    .with_label_values(&["deliver"])
+                    .inc();
+                self.log_denial("deliver", &String::from_utf8_lossy(topic));
+            }
+            return readable;
+        }
         let Some(generation) = access.generation() else {
             return true;
         };

@@ -49,6 +49,27 @@ impl Refusal {
     }
 }
 
+/// Why the first bytes of a connection are not an MQTT CONNECT: (reason, log detail). An
+/// HTTP request is most likely a WebSocket client at a plain MQTT port (Node-RED with
+/// `ws://host:1883/mqtt`), a TLS hello an `mqtts://` client at a port without TLS.
+fn not_mqtt(first: &[u8]) -> (&'static str, &'static str) {
+    if first.starts_with(b"GET ") || b"GET ".starts_with(first) {
+        (
+            "websocket_on_mqtt",
+            "an HTTP request (a WebSocket handshake?) reached a plain MQTT listener: \
+             MQTT over WebSockets needs a [[listener]] with kind = \"ws\"",
+        )
+    } else if first[0] == 0x16 {
+        (
+            "tls_on_plain",
+            "a TLS hello reached a listener without TLS: connect without TLS, or to a \
+             listener with [listener.tls]",
+        )
+    } else {
+        ("malformed", "first packet is not an MQTT CONNECT")
+    }
+}
+
 /// Free room below which a read first reserves `BUSY_READ_RESERVE` more.
 const MIN_READ_ROOM: usize = 256;
 
@@ -156,13 +177,11 @@ impl Io {
         };
         let header = loop {
             // The first byte of a session must be CONNECT's; anything else (an HTTP
-            // request, a TLS hello on a plain port) is refused without waiting for more.
+            // request, a TLS hello on a plain port) is refused without waiting for more,
+            // saying what it was when it is a protocol of another kind of listener.
             if self.read.first().is_some_and(|b| *b != 0x10) {
-                return Err(refusal(
-                    "malformed",
-                    "first packet is not an MQTT CONNECT".into(),
-                    None,
-                ));
+                let (reason, detail) = not_mqtt(&self.read);
+                return Err(refusal(reason, detail.into(), None));
             }
             match self.next_frame() {
                 Ok(Some(header)) => break header,

@@ -68,6 +68,28 @@ mod tests {
     }
 
     #[test]
+    fn bool_strings_one_and_zero_read_as_dinasore_writes_them() {
+        // DINASORE's publisher writes str(value); with `string_numbers` the profile turns
+        // "1"/"0" back into numbers, which a BOOL port reads as true/false (issue 35).
+        let port = OutputPort::Event(vec![
+            ("ON", DataType::Elementary(T::Bool)),
+            ("OFF", DataType::Elementary(T::Bool)),
+        ]);
+        let payload =
+            crate::profile::unstring_numbers(br#"{"ON": "1", "OFF": "0"}"#, "EV", &port).unwrap();
+        let Ok(Message::Event(event)) = decode(&payload, "EV", &port) else {
+            panic!("{}", text(&payload));
+        };
+        assert_eq!(event.data, vec![Value::Bool(true), Value::Bool(false)]);
+        let payload =
+            crate::profile::unstring_numbers(br#"{"ON": "2", "OFF": "0"}"#, "EV", &port).unwrap();
+        assert!(matches!(
+            decode(&payload, "EV", &port),
+            Err(CodecError::Type { port, error: TypeError::OutOfRange { .. } }) if port == "ON"
+        ));
+    }
+
+    #[test]
     fn every_elementary_type_and_array_round_trips() {
         for (t, cases) in samples() {
             let port = data_port(t);

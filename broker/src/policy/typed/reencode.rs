@@ -50,16 +50,17 @@ impl FbSession {
             false => Vec::new(),
         };
         // Subscribers of fb/ always get canonical JSON. JSON that came in complete (nothing
-        // stamped) on a port whose types have one JSON form is canonical already and is
-        // routed as it came; other accepted forms (`"16#FF"`, `"TIME#1.5s"`, ...) are
+        // stamped) on a port whose types have one JSON form (or a BOOL port's `true`, not
+        // its `1`: `json_is_canonical`) is canonical already and is routed as it came;
+        // other accepted forms (`"16#FF"`, `"TIME#1.5s"`, ...) are
         // re-encoded. The other encodings have one form each: their bytes pass through.
         // Whitespace around or between tokens (`" 5 "`, `"5\n"`) and `-0` are valid JSON
         // but not canonical: such a payload is re-encoded too.
         let json_as_is = own.is_none()
             && typed.encoding == Encoding::Json
             && !stamped
-            && port.has_one_json_form()
             && !payload.iter().any(u8::is_ascii_whitespace)
+            && port.json_is_canonical(payload)
             && !payload.windows(2).any(|w| w == b"-0");
         let mut mirrors = Encoding::ALL
             .into_iter()

@@ -20,7 +20,7 @@
 //!
 //! | type | JSON | examples |
 //! |---|---|---|
-//! | `BOOL` | `true` / `false` only (not `0`/`1`) | `true` |
+//! | `BOOL` | `true` / `false`, or the integers `1` / `0` (accepted on input, never written) | `true`, `1` |
 //! | `SINT` `INT` `DINT` `LINT` `USINT` `UINT` `UDINT` `ULINT` | an integer within the type's range; `3.0`, `1e3` are refused | `-128`, `18446744073709551615` |
 //! | `BYTE` `WORD` `DWORD` `LWORD` | an integer within range, or a string with an IEC base-2/8/16 literal (accepted on input, never written) | `255`, `"16#FF"`, `"2#1010"`, `"8#17"`, `"16#FFFF_FFFF"` |
 //! | `REAL` | a number that rounds to a finite 32-bit float (integers too) | `0.1`, `3.4028235e38` |
@@ -199,7 +199,7 @@ mod payload_tests {
     fn decode_named_names_the_data_port() {
         let port = data(DataType::Elementary(T::Bool));
         assert!(matches!(
-            decode_named(b"1", "SENSOR_IN", &port),
+            decode_named(b"2", "SENSOR_IN", &port),
             Err(CodecError::Type { port, .. }) if port == "SENSOR_IN"
         ));
     }

@@ -149,10 +149,7 @@ fn array_from_json(j: &Json, t: ElementaryType, n: u16) -> Result<Value, TypeErr
 pub(super) fn scalar_from_token(token: Token<'_>, t: ElementaryType) -> Result<Value, TypeError> {
     use ElementaryType as T;
     Ok(match t {
-        T::Bool => match token {
-            Token::Bool(b) => Value::Bool(b),
-            _ => return Err(scalar_mismatch(token, t)),
-        },
+        T::Bool => Value::Bool(boolean(token)?),
         T::Sint => Value::Sint(fit(integer(token, t)?, t)?),
         T::Int => Value::Int(fit(integer(token, t)?, t)?),
         T::Dint => Value::Dint(fit(integer(token, t)?, t)?),
@@ -197,6 +194,23 @@ fn integer(token: Token<'_>, t: ElementaryType) -> Result<i128, TypeError> {
             }
             Err(scalar_mismatch(token, t))
         }
+        _ => Err(scalar_mismatch(token, t)),
+    }
+}
+
+/// A `BOOL`: `true`/`false`, or the integers `1`/`0` that PLC code and people write
+/// (IEC 61131-3 itself reads `BOOL#1` and `BOOL#0`; issue 35). Any other integer is out
+/// of range; `1.0` or `"1"` are of the wrong kind, as for the integer types.
+fn boolean(token: Token<'_>) -> Result<bool, TypeError> {
+    let t = ElementaryType::Bool;
+    match token {
+        Token::Bool(b) => Ok(b),
+        Token::Int(1) => Ok(true),
+        Token::Int(0) => Ok(false),
+        Token::Int(_) => Err(TypeError::OutOfRange {
+            ty: t,
+            value: token.number_text(),
+        }),
         _ => Err(scalar_mismatch(token, t)),
     }
 }
@@ -347,12 +361,39 @@ mod tests {
             ("true", T::Sint),
             ("[1]", T::Ulint),
             ("{}", T::Udint),
-            ("1", T::Bool),
-            ("0", T::Bool),
+            ("1.0", T::Bool),
+            (r#""1""#, T::Bool),
             (r#""true""#, T::Bool),
         ] {
             assert!(is_mismatch(&type_error(text, t)), "{text} as {t}");
         }
+    }
+
+    #[test]
+    fn bool_accepts_one_and_zero_as_plc_code_writes_them() {
+        use crate::codec::json::{encode, tests::decode_text};
+        use crate::codec::Message;
+        assert_eq!(decoded("1", T::Bool), Value::Bool(true));
+        assert_eq!(decoded("0", T::Bool), Value::Bool(false));
+        assert_eq!(type_error("2", T::Bool), out_of_range(T::Bool, "2"));
+        assert_eq!(type_error("-1", T::Bool), out_of_range(T::Bool, "-1"));
+        // Written back in the canonical form: JSON booleans.
+        let ty = DataType::Array(T::Bool, 3);
+        let port = crate::interface::OutputPort::Data(ty);
+        let message = decode_text("[1, 0, true]", ty).unwrap();
+        assert_eq!(
+            message,
+            Message::Data(Value::Array(
+                T::Bool,
+                vec![Value::Bool(true), Value::Bool(false), Value::Bool(true)]
+            ))
+        );
+        assert_eq!(encode(&message, &port), b"[true,false,true]");
+        // The tree reader agrees with the streaming one.
+        assert_eq!(
+            value_from_json(&serde_json::json!(1), DataType::Elementary(T::Bool)),
+            Ok(Value::Bool(true))
+        );
     }
 
     #[test]

@@ -2005,11 +2005,13 @@ fn validate_subscription(
         filter.path,
         connection.tenant_prefix
     );
-    // fbbus: `$fbbus/` is the embedding broker's own namespace (its readiness probe);
-    // fbbus refuses every other `$` filter of its clients before they reach the router.
+    // fbbus: `$fbbus/` is the embedding broker's own namespace (its readiness probe),
+    // `$SYS/` its status topics (their read rule is the broker's); fbbus refuses every
+    // other `$` filter of its clients before they reach the router.
     if filter.path.starts_with('$')
         && !filter.path.starts_with("$share")
         && !filter.path.starts_with("$fbbus/")
+        && !filter.path.starts_with("$SYS/")
     {
         return Err(RouterError::InvalidFilterPrefix(filter.path.to_owned()));
     }
