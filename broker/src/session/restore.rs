@@ -29,7 +29,10 @@ pub async fn put_back(restore: &Restore, ctx: &Context) -> Result<(), String> {
     for session in &restore.sessions {
         self::session(session, ctx).await?;
     }
+    // The store's line, under the store's log target whatever module puts it back: a
+    // line's `[log] level = "warn,broker::store=info"` (loadtest's) must still show it.
     tracing::info!(
+        target: "broker::store::restore",
         retained = restore.retained.len(),
         sessions = restore.sessions.len(),
         queued = restore.queued,
