@@ -107,7 +107,7 @@ impl Default for BrokerSection {
             max_retained_bytes: 64 * 1024 * 1024,
             max_sessions_per_identity: 1000,
             connect_timeout_ms: 5_000,
-            max_pending_per_address: 64,
+            max_pending_per_address: 512,
             max_keep_alive_s: 65_535,
             router_segment_bytes: 4 * 1024 * 1024,
             router_segment_count: 4,

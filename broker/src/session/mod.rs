@@ -94,7 +94,7 @@ pub struct ListenerPolicy {
 /// and reused by the next connection's login instead of leaving a hole next to each
 /// session's memory. The close, also large and short, runs boxed. `pending` is the
 /// connection's place among its address's connections before CONNECT (`pending`), given
-/// back once CONNECT is read.
+/// back as soon as CONNECT is read.
 pub async fn serve(
     stream: Box<dyn Stream>,
     peer: SocketAddr,
@@ -103,10 +103,7 @@ pub async fn serve(
     slot: OwnedSemaphorePermit,
     pending: crate::pending::PendingGuard,
 ) {
-    let accepted = CatchPanic::new(accept(stream, peer, listener, &ctx)).await;
-    // CONNECT read (or refused): the address's place before CONNECT is free again.
-    drop(pending);
-    let session = match accepted {
+    let session = match CatchPanic::new(accept(stream, peer, listener, &ctx, pending)).await {
         Ok(Some(session)) => session,
         Ok(None) => return,
         Err(message) => {
@@ -140,9 +137,14 @@ async fn accept(
     peer: SocketAddr,
     listener: Arc<ListenerPolicy>,
     ctx: &Arc<Context>,
+    pending: crate::pending::PendingGuard,
 ) -> Option<Session> {
     let mut io = Io::new(stream, ctx.max_packet).with_write_timeout(ctx.write_timeout);
-    let connect = match timeout(ctx.connect_timeout, io.read_connect()).await {
+    let connect = timeout(ctx.connect_timeout, io.read_connect()).await;
+    // CONNECT read (or not, in time): the address's place before CONNECT is free again,
+    // before the login, which may wait for argon2.
+    drop(pending);
+    let connect = match connect {
         Ok(Ok(packet)) => packet,
         Ok(Err(refusal)) => {
             refusal.report(&ctx.metrics, peer);
