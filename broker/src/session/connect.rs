@@ -351,23 +351,35 @@ fn bound_to_username(
     if ctx.identity.bound(client_id, username) {
         return Ok(());
     }
+    Err(client_id_refused(
+        ctx,
+        (peer, client_id, owner),
+        "[auth] client_id does not let this user use this client id",
+        "client_id_binding",
+    ))
+}
+
+/// A CONNECT refused for its client id (MQTT 5 0x85, 3.1.1 0x02): logged once a minute
+/// per client id and user with `why`, counted under `reason` by the caller.
+fn client_id_refused(
+    ctx: &Context,
+    (peer, client_id, owner): (SocketAddr, &str, &Owner),
+    why: &str,
+    reason: &'static str,
+) -> Refused {
     if ctx.identity.may_log(client_id, owner) {
         tracing::warn!(
             %peer,
             client_id,
             username = %owner,
-            "CONNECT refused: [auth] client_id does not let this user use this client id \
-             (logged once a minute per client id and user; all counted in \
-             fbbus_connects_refused_total{{reason=\"client_id_binding\"}})"
+            "CONNECT refused: {why} (logged once a minute per client id and user; all \
+             counted in fbbus_connects_refused_total{{reason=\"{reason}\"}})"
         );
     }
-    Err(Refused {
+    Refused {
         logged: true,
-        ..refused(
-            ConnectReturnCode::ClientIdentifierNotValid,
-            "client_id_binding",
-        )
-    })
+        ..refused(ConnectReturnCode::ClientIdentifierNotValid, reason)
+    }
 }
 
 /// A client id that is the name of a user of the password file is that user's: no other
@@ -390,23 +402,13 @@ fn not_another_users_name(
     {
         return Ok(());
     }
-    if ctx.identity.may_log(client_id, owner) {
-        tracing::warn!(
-            %peer,
-            client_id,
-            username = %owner,
-            "CONNECT refused: this client id is the name of another user of the password \
-             file, reserved for that user (logged once a minute per client id and user; all \
-             counted in fbbus_connects_refused_total{{reason=\"client_id_reserved\"}})"
-        );
-    }
-    Err(Refused {
-        logged: true,
-        ..refused(
-            ConnectReturnCode::ClientIdentifierNotValid,
-            "client_id_reserved",
-        )
-    })
+    Err(client_id_refused(
+        ctx,
+        (peer, client_id, owner),
+        "this client id is the name of another user of the password file, reserved for \
+         that user",
+        "client_id_reserved",
+    ))
 }
 
 /// The ownership rule (`identity`): a client id's session, connected or kept, belongs to
