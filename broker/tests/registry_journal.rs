@@ -63,6 +63,11 @@ async fn the_registry_journal_survives_a_crash_compacts_and_tolerates_a_torn_tai
         devices.push(dev);
     }
     wait_file(&broker, SNAPSHOT, "compacted", |t| t.contains("\"dev-10\"")).await;
+    // The snapshot is renamed into place before the journal is emptied: wait for both.
+    wait_file(&broker, JOURNAL, "emptied at compaction", |t| {
+        t.len() < 64 * 1024
+    })
+    .await;
     let journal = read(&broker, JOURNAL);
     assert!(
         journal.len() < 64 * 1024,
