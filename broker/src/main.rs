@@ -144,12 +144,17 @@ struct PasswdArgs {
 
 #[derive(Subcommand)]
 enum PasswdAction {
-    /// Add a user or change its password. The password is read from a no-echo prompt,
-    /// or with --stdin from the first line of standard input; never from the command line.
+    /// Add a user (or, with --force, change its password). The password is read from a
+    /// no-echo prompt, or with --stdin from the first line of standard input; never from
+    /// the command line.
     Add {
         user: String,
         #[arg(long)]
         stdin: bool,
+        /// Replace the password of a user the file already has. Without it that is
+        /// refused: a mistyped new device name must not change another device's password.
+        #[arg(long)]
+        force: bool,
         /// argon2id memory cost in KiB (default 8192).
         #[arg(long)]
         memory_kib: Option<u32>,
@@ -300,6 +305,7 @@ fn passwd(args: PasswdArgs) -> Result<()> {
         PasswdAction::Add {
             user,
             stdin,
+            force,
             memory_kib,
             iterations,
         } => {
@@ -312,11 +318,24 @@ fn passwd(args: PasswdArgs) -> Result<()> {
             }
             params.validate()?;
             let mut pf = load_or_new()?;
+            let existed = pf.get(&user).is_some();
+            if existed && !force {
+                bail!(
+                    "{0}: user `{user}` already exists; nothing changed. To replace its \
+                     password: fbbus passwd {0} add {user} --force",
+                    file.display()
+                );
+            }
             let password = read_password(stdin)?;
             let phc = security::hash_password(password.as_bytes(), &params)?;
             pf.set(&user, StoredHash::parse(&phc)?)?;
             pf.save(file)?;
-            eprintln!("{}: user `{user}` set (argon2id)", file.display());
+            let what = if existed {
+                "password replaced"
+            } else {
+                "added"
+            };
+            eprintln!("{}: user `{user}` {what} (argon2id)", file.display());
         }
         PasswdAction::Delete { user } => {
             let mut pf = PasswordFile::load(file)?;

@@ -71,9 +71,12 @@ impl ProfileSet {
             for (i, out) in profile.outputs.iter().enumerate() {
                 let owner = (Arc::clone(&profile), i);
                 if let Some((other, _)) = set.outputs.insert(out.topic.clone(), owner) {
+                    // Both named: which of the two came first is only the order read.
+                    let other_file = files.get(&other.device).map_or("?", String::as_str);
                     return Err(format!(
-                        "{file}: topic {} is already device {}'s: one device per topic",
-                        out.topic, other.device
+                        "topic {} is an output of device {} ({file}) and of device {} \
+                         ({other_file}): one device per topic",
+                        out.topic, profile.device, other.device
                     ));
                 }
             }
@@ -338,7 +341,12 @@ impl Speakers {
 /// Why [`Profiles::put`] did not put a profile.
 #[derive(Debug, thiserror::Error)]
 pub enum PutError {
-    #[error("this broker has no profiles directory: set [fb] profiles_dir")]
+    #[error(
+        "this broker has no profiles directory (the embedded default configuration has \
+         none). Give it one: in its config file, under [fb], `profiles_dir = \"profiles\"` \
+         (relative to the file), then restart it with `fbbus serve --config FILE` and \
+         declare again"
+    )]
     NoDirectory,
     #[error("{0}")]
     Invalid(String),
@@ -582,6 +590,26 @@ from = "conv1/CONV/SPEED"
         );
         assert!(profiles.reload(false, &metrics));
         assert_eq!(profiles.get().len(), 2);
+    }
+
+    /// Issue 35: a profile put beside another that publishes the same topic is refused
+    /// with both devices and their files named (it named the new device as the owner).
+    #[test]
+    fn a_conflicting_put_names_both_devices() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "conv2.toml", FORTE);
+        let profiles = Profiles::load(dir.path()).expect("loads");
+        let thief = FORTE.replace("\"conv2\"", "\"thief\"");
+        let err = profiles
+            .put("thief", &thief, &Metrics::new())
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            err,
+            "topic line1/conv2/position is an output of device conv2 (conv2.toml) and of \
+             device thief (thief.toml): one device per topic"
+        );
+        assert!(!dir.path().join("thief.toml").exists());
     }
 
     #[test]

@@ -118,6 +118,11 @@ impl RouterHandle {
             // bounded by the registry, not by what clients retain: a flood of clients'
             // retained messages must never keep a device's record from being retained.
             retained_uncounted_prefixes: RETAINED_UNCOUNTED.iter().map(|p| p.to_string()).collect(),
+            // A `#` subscriber gets each typed value once, on `fb/` (issue 35).
+            wildcard_hidden_prefixes: fb_bridge::topic::MIRROR_PREFIXES
+                .iter()
+                .map(|p| p.to_string())
+                .collect(),
         };
         let mut warned = SkipWarnings::default();
         let mut warned_holds = SkipWarnings::default();

@@ -256,10 +256,12 @@ async fn every_encoding_in_is_delivered_in_every_encoding_out() {
     );
 }
 
-/// Before anyone subscribes to dinasore/ or fbdk/, nothing is re-encoded into them; a
-/// subscriber to `#` or `+/...` turns both on.
+/// Before anyone subscribes to dinasore/ or fbdk/, nothing is re-encoded into them. A
+/// filter starting with a wildcard (`+/...`, `#`) gets a typed value once, on `fb/`, and
+/// turns no re-encoding on (issue 35: mirrors on request); a filter naming `fbdk/` turns
+/// that one on, and only it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn re_encoding_starts_with_the_first_subscriber_that_can_read_it() {
+async fn re_encoding_starts_with_the_first_subscriber_that_names_it() {
     let broker = Broker::start();
     let mut diag_sub = observer(&broker, "watch", &["fbbus/diag/forte"]).await;
     let mut dev = Dev::connect(broker.port(), 5, "forte");
@@ -269,29 +271,46 @@ async fn re_encoding_starts_with_the_first_subscriber_that_can_read_it() {
         dev.publish("fbdk/forte/CONV/POSITION", &[0x43, 0x00, 0x05]),
         0
     );
-    let mut got = Vec::new();
-    while got.len() < 3 {
-        let m = next_under(&mut plus, "", WAIT)
-            .await
-            .unwrap_or_else(|| panic!("+/... got only {got:?}\n{}", broker.log_text()));
-        got.push(m);
-    }
-    got.sort();
+    let got = next_under(&mut plus, "", WAIT)
+        .await
+        .unwrap_or_else(|| panic!("+/... got nothing\n{}", broker.log_text()));
+    assert_eq!(got, ("fb/forte/CONV/POSITION".to_owned(), b"5".to_vec()));
+    assert!(drain(&mut plus, QUIET).await.is_empty(), "one copy only");
+    assert!(
+        !broker
+            .log_text()
+            .contains("now also published in this encoding"),
+        "a wildcard filter turned a re-encoding on\n{}",
+        broker.log_text()
+    );
+
+    let mut named = observer(&broker, "named", &["fbdk/forte/#"]).await;
+    assert_eq!(dev.publish("fb/forte/CONV/POSITION", b"6"), 0);
+    let got = next_under(&mut named, "", WAIT)
+        .await
+        .unwrap_or_else(|| panic!("fbdk/... got nothing\n{}", broker.log_text()));
     assert_eq!(
         got,
-        vec![
-            (
-                "dinasore/forte/CONV/POSITION".to_owned(),
-                br#"{"POSITION":5}"#.to_vec()
-            ),
-            ("fb/forte/CONV/POSITION".to_owned(), b"5".to_vec()),
-            (
-                "fbdk/forte/CONV/POSITION".to_owned(),
-                vec![0x43, 0x00, 0x05]
-            ),
-        ]
+        (
+            "fbdk/forte/CONV/POSITION".to_owned(),
+            vec![0x43, 0x00, 0x06]
+        )
     );
-    assert!(drain(&mut plus, QUIET).await.is_empty());
+    let got = next_under(&mut plus, "", WAIT).await;
+    assert_eq!(
+        got,
+        Some(("fb/forte/CONV/POSITION".to_owned(), b"6".to_vec()))
+    );
+    assert!(drain(&mut plus, QUIET).await.is_empty(), "one copy only");
+    let log = broker.log_text();
+    assert!(
+        log.contains("namespace=\"fbdk\"") || log.contains("namespace=fbdk"),
+        "{log}"
+    );
+    assert!(
+        !log.contains("namespace=\"dinasore\"") && !log.contains("namespace=dinasore"),
+        "{log}"
+    );
 }
 
 /// Device contract section 3: `fb/...` carries canonical JSON, and the type table lists the

@@ -112,7 +112,7 @@ mod reference {
         level == "+" || level == "#"
     }
 
-    fn first_is_wildcard(filter: &str) -> bool {
+    pub fn first_is_wildcard(filter: &str) -> bool {
         wildcard(filter.split('/').next().unwrap_or(""))
     }
 
@@ -298,9 +298,13 @@ fn matching(t: &str, f: &str) {
     }
     let expected = reference::matches(t, f);
     assert_eq!(router, expected, "rumqttd matches({t:?}, {f:?})");
-    assert_eq!(acl_says, expected, "acl filter_matches({f:?}, {t:?})");
+    // fbbus routes as MQTT does, except that a filter starting with a wildcard does not
+    // reach the re-encoded copies (`dinasore/`, `fbdk/`; issue 35): the router gets
+    // those prefixes in its config, the typed-topic model applies them itself.
+    let routed = expected && !(fb_bridge::topic::is_mirror(t) && reference::first_is_wildcard(f));
+    assert_eq!(acl_says, routed, "acl filter_matches({f:?}, {t:?})");
     if !t.starts_with('$') {
-        assert_eq!(bus, expected, "bus filter_matches({f:?}, {t:?})");
+        assert_eq!(bus, routed, "bus filter_matches({f:?}, {t:?})");
     }
     // A one-rule ACL granting write on `f` lets exactly the matching topics be published,
     // except the broker's own `$SYS/` topics, which nobody publishes (issue 35).

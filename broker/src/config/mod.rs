@@ -27,7 +27,6 @@ pub use crate::tls::TlsSection;
 
 pub use self::broker::{BrokerSection, MAX_CONNECTIONS, MIN_QUEUED_BYTES};
 pub use self::fb::FbSection;
-use self::validate::invalid;
 
 mod broker;
 mod fb;
@@ -55,10 +54,22 @@ dir = "fbbus-store"
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
+    /// The OS error is the source, not part of this message: `fbbus: {e:#}` prints the
+    /// chain, and printed it twice when it was both.
+    #[error("cannot read config file {path}")]
     Read {
         path: PathBuf,
+        #[source]
         source: std::io::Error,
+    },
+    /// The file is not TOML, or a value has the wrong type: toml's own message, which
+    /// names the line and column and draws a caret under the place over several lines,
+    /// kept as it is; the key when there is one (a syntax error has none).
+    #[error("config file {file}: {}\n{message}", key_part(.key))]
+    Parse {
+        file: String,
+        key: String,
+        message: String,
     },
     #[error("config file {file}: key `{key}`: {message}")]
     Invalid {
@@ -66,6 +77,15 @@ pub enum ConfigError {
         key: String,
         message: String,
     },
+}
+
+/// `key `a.b`:` before a parse error's message, or nothing where serde had no key yet
+/// (`.`: a syntax error before any value).
+fn key_part(key: &str) -> String {
+    match key {
+        "" | "." => "not TOML:".to_owned(),
+        key => format!("key `{key}`:"),
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -115,13 +135,12 @@ impl Config {
     /// Parses and validates configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &str) -> Result<Config, ConfigError> {
         let deserializer = toml::Deserializer::new(text);
-        let config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
-            let key = e.path().to_string();
-            // toml's own message carries the line and column; keep only its first line
-            // plus the pointer lines so the error stays readable in a journal.
-            let message = e.into_inner().to_string().trim().replace('\n', " ");
-            invalid(file, &key, message)
-        })?;
+        let config: Config =
+            serde_path_to_error::deserialize(deserializer).map_err(|e| ConfigError::Parse {
+                file: file.to_owned(),
+                key: e.path().to_string(),
+                message: e.into_inner().to_string().trim_end().to_owned(),
+            })?;
         config.validate(file)?;
         Ok(config)
     }

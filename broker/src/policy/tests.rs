@@ -518,7 +518,10 @@ fn typed_line(
         Arc::clone(&line.fb),
         Arc::clone(&line.metrics),
     );
-    line.fb.subscribed("#");
+    // Every namespace read (a `#` subscriber does not read the copies: issue 35).
+    for filter in ["fb/#", "dinasore/#", "fbdk/#"] {
+        line.fb.subscribed(filter);
+    }
     let mut device = FbSession::new(&line.fb, "plc-1", Some("plc-1"), 1);
     let interface = Declaration::from_json(declaration)
         .unwrap()

@@ -129,7 +129,9 @@ impl Subscribers {
     fn matching(&self, topic: &str, out: &mut Vec<(ClientId, Wanted)>) {
         out.clear();
         let mut levels = topic.split('/');
-        self.walk(&mut levels, topic.starts_with('$'), out);
+        // `$` topics and the re-encoded copies: not for filters starting with a wildcard.
+        let hidden = topic.starts_with('$') || fb_bridge::topic::is_mirror(topic);
+        self.walk(&mut levels, hidden, out);
         if out.len() > 1 {
             out.sort_by(|a, b| a.0.cmp(&b.0));
             // One entry per session: its matching filters together.

@@ -109,10 +109,18 @@ fn starts_with_wildcard(filter: &str) -> bool {
 
 /// Does plain `filter` (no `$share/` prefix) match topic name `topic`?
 ///
+/// As MQTT's, except that a filter starting with a wildcard does not match the re-encoded
+/// copies' namespaces ([`super::is_mirror`]), as it does not match `$` topics: the rule
+/// fbbus's router routes by. Access rules do not use it ([`covers`]: a grant of `#`
+/// still covers `fbdk/#`).
+///
 /// Does not check validity: callers check their filters once ([`valid_filter`]), not at
 /// every message. [`filter_matches`] is the checked form for a subscription as a client
 /// sent it.
 pub fn matches(filter: &str, topic: &str) -> bool {
+    if starts_with_wildcard(filter) && super::is_mirror(topic) {
+        return false;
+    }
     // A topic name is a filter that matches exactly itself.
     covers(filter, topic)
 }
@@ -200,6 +208,15 @@ mod tests {
         assert!(matches("a/+/b", "a//b"));
         assert!(!matches("+/x", "$SYS/x"));
         assert!(matches("$SYS/+", "$SYS/x"));
+        // The re-encoded copies go to filters that name their namespace only.
+        for copy in ["fbdk/plc/F/P", "dinasore/plc/F/P"] {
+            assert!(!matches("#", copy) && !matches("+/plc/#", copy), "{copy}");
+            assert!(!filter_matches("$share/g/#", copy), "{copy}");
+            let namespace = copy.split('/').next().unwrap();
+            assert!(matches(&format!("{namespace}/#"), copy), "{copy}");
+            assert!(covers("#", copy), "access rules are not routing");
+        }
+        assert!(matches("#", "fb/plc/F/P") && matches("#", "fbdkx/a"));
     }
 
     #[test]

@@ -73,6 +73,18 @@ pub fn is_typed_namespace(topic: &str) -> bool {
         .is_some_and(|(ns, _)| Encoding::from_namespace(ns).is_some())
 }
 
+/// The namespaces of the re-encoded copies (`dinasore/`, `fbdk/`) with their slash: a
+/// filter starting with a wildcard does not match them, as it does not match `$` topics
+/// ([`filter::matches`]). A typed value is one value: a generic tool subscribed to `#`
+/// sees it once, canonically on `fb/`, not again as DINASORE's string and FORTE's bytes;
+/// a runtime that reads a copy names its namespace (`fbdk/#`, `dinasore/plc-1/...`).
+pub const MIRROR_PREFIXES: [&str; 2] = ["dinasore/", "fbdk/"];
+
+/// Whether `topic` is in a re-encoded copy's namespace ([`MIRROR_PREFIXES`]).
+pub fn is_mirror(topic: &str) -> bool {
+    MIRROR_PREFIXES.iter().any(|p| topic.starts_with(p))
+}
+
 /// Longest device id, in bytes.
 pub const MAX_DEVICE_ID: usize = 256;
 

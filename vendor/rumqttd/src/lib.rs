@@ -66,6 +66,12 @@ pub struct RouterConfig {
     /// nor refused: the embedder's own, which it bounds itself.
     #[serde(default)]
     pub retained_uncounted_prefixes: Vec<String>,
+    /// fbbus: topics starting with one of these are, like `$` topics [MQTT-4.7.2-1],
+    /// matched only by filters that name their first level: a filter starting with `#`
+    /// or `+` does not match them (the embedder's re-encoded copies of its own topics,
+    /// which a generic `#` subscriber would otherwise see once per encoding).
+    #[serde(default)]
+    pub wildcard_hidden_prefixes: Vec<String>,
 }
 
 // fbbus
@@ -92,6 +98,7 @@ impl Default for RouterConfig {
             max_retained_messages: usize::MAX,
             max_retained_bytes: usize::MAX,
             retained_uncounted_prefixes: Vec::new(),
+            wildcard_hidden_prefixes: Vec::new(),
         }
     }
 }

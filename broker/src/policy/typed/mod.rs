@@ -266,13 +266,13 @@ impl FbTopics {
         self.registry.disconnected(device, current, reason)
     }
 
-    /// A subscription was granted: start re-encoding into the namespaces it can match.
+    /// A subscription was granted: start re-encoding into the namespace it names (a
+    /// filter starting with a wildcard does not match the copies: `topic::MIRROR_PREFIXES`).
     pub fn subscribed(&self, filter: &str) {
         let filter = fb_bridge::topic::filter::unshared(filter);
         let first = filter.split('/').next().unwrap_or("");
         for (i, encoding) in Encoding::ALL.into_iter().enumerate() {
-            let matches = first == encoding.namespace() || matches!(first, "#" | "+");
-            if matches
+            if first == encoding.namespace()
                 && !self.mirrors[i].swap(true, Ordering::Relaxed)
                 && encoding != Encoding::Json
             {

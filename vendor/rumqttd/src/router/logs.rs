@@ -149,10 +149,11 @@ impl DataLog {
         match &self.publish_filters.get(topic) {
             Some(v) => Some(v.to_vec()),
             None => {
+                let hidden = &self.config.wildcard_hidden_prefixes;
                 let v: Vec<usize> = self
                     .filter_indexes
                     .iter()
-                    .filter(|(filter, _)| matches(topic, filter))
+                    .filter(|(filter, _)| routes(hidden, topic, filter))
                     .map(|(_, filter_idx)| *filter_idx)
                     .collect();
 
@@ -200,8 +201,9 @@ impl DataLog {
                 self.filter_indexes.insert(filter.to_owned(), idx);
 
                 // Match new filter to existing topics and add to publish_filters if it matches
+                let hidden = &self.config.wildcard_hidden_prefixes;
                 for (topic, filters) in publish_filters.iter_mut() {
-                    if matches(topic, filter) {
+                    if routes(hidden, topic, filter) {
                         filters.push(idx);
                     }
                 }
@@ -517,12 +519,24 @@ impl DataLog {
         }
 
         // no need to include timestamp when returning
+        let hidden = &self.config.wildcard_hidden_prefixes;
         self.retained_publishes
             .iter()
-            .filter(|(topic, _)| matches(topic, filter))
+            .filter(|(topic, _)| routes(hidden, topic, filter))
             .map(|(_, p)| (p.publish.clone(), p.properties.clone()))
             .collect()
     }
+}
+
+/// fbbus: whether a publication on `topic` goes to a subscription of `filter`: MQTT's
+/// match, except that a filter starting with a wildcard skips topics under the `hidden`
+/// prefixes (`RouterConfig::wildcard_hidden_prefixes`), as it skips `$` topics.
+fn routes(hidden: &[String], topic: &str, filter: &str) -> bool {
+    let wild = filter.starts_with('#') || filter.starts_with('+');
+    if wild && hidden.iter().any(|p| topic.starts_with(p.as_str())) {
+        return false;
+    }
+    matches(topic, filter)
 }
 
 pub struct Data<T> {
@@ -786,6 +800,41 @@ mod test {
         assert_eq!(retain(&mut data, "a", "1"), Ok(()));
         assert_eq!((stats.messages(), stats.bytes()), (1, 2));
         assert_eq!(data.read_retained_messages("#").len(), 1);
+    }
+
+    /// fbbus: a filter starting with a wildcard does not match topics under the hidden
+    /// prefixes, whether the filter or the topic came first, nor their retained messages;
+    /// a filter naming the prefix does.
+    #[test]
+    fn wildcard_filters_skip_hidden_prefixes() {
+        use crate::protocol::Publish;
+        let mut data = datalog();
+        data.config.wildcard_hidden_prefixes = vec!["mirror/".into()];
+        let (all, _) = data.next_native_offset("#");
+        let (plus, _) = data.next_native_offset("+/x");
+        let (named, _) = data.next_native_offset("mirror/#");
+        assert_eq!(data.matches("mirror/x"), Some(vec![named]));
+        let mut plain = data.matches("plain/x").unwrap();
+        plain.sort_unstable();
+        assert_eq!(plain, vec![all, plus]);
+        // A filter subscribed after the topic was cached.
+        let (late, _) = data.next_native_offset("+/+");
+        let (late_named, _) = data.next_native_offset("mirror/+");
+        let mut cached = data.matches("mirror/x").unwrap();
+        cached.sort_unstable();
+        assert_eq!(cached, vec![named, late_named]);
+        assert!(data.matches("plain/x").unwrap().contains(&late));
+        for topic in ["mirror/x", "plain/x"] {
+            data.insert_to_retained_publishes(
+                Publish::new(topic.to_owned(), "1".to_owned(), true),
+                None,
+                topic.to_owned(),
+            )
+            .unwrap();
+        }
+        assert_eq!(data.read_retained_messages("#").len(), 1);
+        assert_eq!(data.read_retained_messages("+/x").len(), 1);
+        assert_eq!(data.read_retained_messages("mirror/#").len(), 1);
     }
 
     /// fbbus: the topic cache starts over at `MAX_CACHED_TOPICS` instead of growing with
