@@ -48,6 +48,7 @@ use crate::health::Health;
 use crate::metrics::Metrics;
 use crate::profiles::{Profiles, PutError};
 use crate::registry::{ForgetError, ForgetReason, Registry};
+use crate::session::control::{DropError, SessionControl};
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -95,6 +96,8 @@ pub struct AdminState {
     pub console: Option<Arc<crate::console::Console>>,
     /// Who may write (`admin_writes`).
     pub writes: Arc<WriteRules>,
+    /// The sessions, to list and to drop a kept one (`session::control`).
+    pub sessions: Arc<SessionControl>,
 }
 
 impl HasWriteRules for AdminState {
@@ -114,6 +117,11 @@ pub fn routes(state: AdminState) -> Router {
         .route("/readyz", get(readyz))
         .route("/api/v1/devices", get(devices))
         .route("/api/v1/devices/:id", get(device).delete(forget_device))
+        .route("/api/v1/sessions", get(sessions))
+        .route(
+            "/api/v1/sessions/:client_id",
+            axum::routing::delete(drop_session),
+        )
         .route("/api/v1/profiles", get(profiles))
         .route("/api/v1/profiles/:device", put(put_profile))
         .merge(crate::console::routes(state.console.clone()))
@@ -229,6 +237,58 @@ async fn forget_device(
         Err(e @ (ForgetError::Online(_) | ForgetError::OtherLine(..))) => {
             error(StatusCode::CONFLICT, e.to_string())
         }
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct SessionPage {
+    limit: Option<usize>,
+    after: Option<String>,
+}
+
+/// The sessions, connected and kept, in client id order (issue 33): `?limit=N` (default
+/// 1,000, at most 10,000), `?after=<client id>`; `next` names the next page's `after`.
+/// Each with its owner (the username that created it, or `(anonymous)`), so an operator
+/// sees who holds a device's client id.
+async fn sessions(State(state): State<AdminState>, Query(page): Query<SessionPage>) -> Response {
+    let limit = page.limit.unwrap_or(DEVICES_PAGE);
+    if limit == 0 {
+        return error(StatusCode::BAD_REQUEST, "limit must be at least 1".into());
+    }
+    let (listed, total) = state
+        .sessions
+        .list(page.after.as_deref().unwrap_or(""), limit);
+    let next = (listed.len() == limit.min(crate::session::control::MAX_PAGE))
+        .then(|| listed.last().map(|l| l.client_id.clone()))
+        .flatten();
+    let sessions: Vec<serde_json::Value> = listed
+        .into_iter()
+        .map(|l| {
+            serde_json::json!({
+                "client_id": l.client_id,
+                "owner": l.owner.to_string(),
+                "status": if l.connected { "connected" } else { "kept" },
+                "session": l.session,
+                "expires_in_s": l.expires_in.map(|d| d.as_secs()),
+            })
+        })
+        .collect();
+    axum::Json(serde_json::json!({"sessions": sessions, "total": total, "next": next}))
+        .into_response()
+}
+
+/// `DELETE /api/v1/sessions/<client id>`: ends a kept offline session as its expiry
+/// would, so another identity may use the client id (a local write: `admin_writes`).
+async fn drop_session(
+    _: LocalWrite,
+    State(state): State<AdminState>,
+    Path(client_id): Path<String>,
+) -> Response {
+    match state.sessions.drop_kept(&client_id).await {
+        Ok(()) => axum::Json(serde_json::json!({"ok": true, "dropped": client_id})).into_response(),
+        Err(e @ DropError::Unknown(_)) => error(StatusCode::NOT_FOUND, e.to_string()),
+        Err(e @ DropError::Connected(_)) => error(StatusCode::CONFLICT, e.to_string()),
+        Err(e @ DropError::Stopping) => error(StatusCode::SERVICE_UNAVAILABLE, e.to_string()),
     }
 }
 

@@ -1,5 +1,5 @@
-//! The admin endpoint, as `fbbus devices` (and `fbbus devices forget`) and `fbbus declare`
-//! talk to it.
+//! The admin endpoint, as `fbbus devices` (and `fbbus devices forget`), `fbbus sessions`
+//! (and `fbbus sessions drop`) and `fbbus declare` talk to it.
 //!
 //! The admin endpoint is plain HTTP on loopback and fbbus's own, so a dozen lines of
 //! HTTP/1.1 here replace an HTTP client crate and its TLS stack.
@@ -41,6 +41,20 @@ fn authorization() -> Result<Option<String>> {
             "set both {USER_VAR} and {PASSWORD_VAR} (the admin endpoint's credentials), or neither"
         ),
     }
+}
+
+/// `text` as one URL path segment or query value: everything but the unreserved
+/// characters percent-encoded (a client id may hold any character, `/`, `?` and `&` too).
+pub fn percent_encode(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// GETs `path` and parses the JSON body.
@@ -131,4 +145,16 @@ fn header<'a>(head: &'a str, name: &str) -> Option<&'a str> {
         let (key, value) = line.split_once(':')?;
         key.trim().eq_ignore_ascii_case(name).then(|| value.trim())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ids_are_percent_encoded_for_paths_and_queries() {
+        assert_eq!(percent_encode("conv-a_1.x~"), "conv-a_1.x~");
+        assert_eq!(percent_encode("a b&c=d/é"), "a%20b%26c%3Dd%2F%C3%A9");
+        assert_eq!(percent_encode("a/b?c d%é"), "a%2Fb%3Fc%20d%25%C3%A9");
+    }
 }

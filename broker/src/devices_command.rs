@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::Result;
 use serde_json::Value;
 
-use crate::admin_client::{delete, get};
+use crate::admin_client::{delete, get, percent_encode};
 
 pub struct Options {
     pub admin: SocketAddr,
@@ -85,20 +85,6 @@ pub fn forget(admin: SocketAddr, id: &str) -> Result<()> {
     delete(admin, &format!("/api/v1/devices/{}", percent_encode(id)))?;
     println!("device {id} forgotten: its record and retained values are cleared");
     Ok(())
-}
-
-/// `text` as one URL path segment or query value: everything but the unreserved
-/// characters percent-encoded (a client id may hold any character, `/`, `?` and `&` too).
-fn percent_encode(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
-    for b in text.bytes() {
-        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.' | b'~') {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 /// The registry as an aligned table.
@@ -189,13 +175,6 @@ mod tests {
         assert!(lines[1].contains("conv-a") && lines[1].contains("online"));
         assert!(lines[2].contains("keep-alive expired"));
         assert_eq!(lines[3], "2 devices, 1 online");
-    }
-
-    #[test]
-    fn ids_are_percent_encoded_for_paths_and_queries() {
-        assert_eq!(percent_encode("conv-a_1.x~"), "conv-a_1.x~");
-        assert_eq!(percent_encode("a b&c=d/é"), "a%20b%26c%3Dd%2F%C3%A9");
-        assert_eq!(percent_encode("a/b?c d%é"), "a%2Fb%3Fc%20d%25%C3%A9");
     }
 
     #[test]

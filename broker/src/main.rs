@@ -14,6 +14,7 @@ mod admin_client;
 mod bus_cert;
 mod devices_command;
 mod profile_command;
+mod sessions_command;
 #[cfg(feature = "bridge")]
 mod zenohd_command;
 
@@ -75,6 +76,23 @@ enum Command {
         #[arg(long)]
         watch: bool,
     },
+    /// Show the sessions of a running broker (connected and kept offline) with the user
+    /// that owns each, or `drop` a kept one so that its client id is free again.
+    /// Credentials as for `devices`.
+    #[command(args_conflicts_with_subcommands = true)]
+    Sessions {
+        #[command(subcommand)]
+        action: Option<SessionsAction>,
+        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+        #[arg(long)]
+        admin: Option<std::net::SocketAddr>,
+        /// Take the admin endpoint from this configuration file.
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Put a device profile (TOML) into a running broker from its host: checked against
     /// every other profile, written into its profiles directory, in force at once.
     /// Credentials, for an admin endpoint with `[admin] password_file`: FBBUS_ADMIN_USER
@@ -115,6 +133,22 @@ enum DevicesAction {
     /// device is refused).
     Forget {
         id: String,
+        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+        #[arg(long)]
+        admin: Option<std::net::SocketAddr>,
+        /// Take the admin endpoint from this configuration file.
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+enum SessionsAction {
+    /// End the kept offline session of a client id, as its expiry would (from the
+    /// broker's host only; a connected session is refused): for a device locked out by a
+    /// session another user left under its client id.
+    Drop {
+        client_id: String,
         /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
         #[arg(long)]
         admin: Option<std::net::SocketAddr>,
@@ -196,6 +230,21 @@ fn main() -> std::process::ExitCode {
             json,
             watch,
         } => devices(id, admin, config, json, watch),
+        Command::Sessions {
+            action:
+                Some(SessionsAction::Drop {
+                    client_id,
+                    admin,
+                    config,
+                }),
+            ..
+        } => admin_address(admin, config).and_then(|a| sessions_command::drop(a, &client_id)),
+        Command::Sessions {
+            action: None,
+            admin,
+            config,
+            json,
+        } => admin_address(admin, config).and_then(|a| sessions_command::list(a, json)),
         Command::Declare {
             file,
             admin,

@@ -109,6 +109,8 @@ pub struct Metrics {
     pub publisher_hold_ms: IntCounter,
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
+    /// Kept sessions an operator dropped (`session::control`).
+    pub sessions_dropped: IntCounter,
     pub reloads: IntCounterVec,
     pub typed_accepted: IntCounter,
     pub typed_rejected: IntCounterVec,
@@ -462,6 +464,10 @@ impl Metrics {
             oversized_packets: counter(
                 "fbbus_oversized_packets_total",
                 "Connections closed for a packet over broker.max_packet_bytes",
+            ),
+            sessions_dropped: counter(
+                "fbbus_sessions_dropped_total",
+                "Kept offline sessions dropped by an operator (admin API DELETE /api/v1/sessions/ID)",
             ),
             reloads: counter_vec(
                 "fbbus_file_reloads_total",

@@ -354,6 +354,7 @@ impl Broker {
                         ))
                     }),
                     console,
+                    sessions: Arc::new(crate::session::control::SessionControl::new(&ctx)),
                     writes: Arc::new(crate::admin_writes::WriteRules::new(
                         &config.admin.allowed_hosts,
                         Arc::clone(&metrics),

@@ -132,8 +132,9 @@ pub fn purge_evicted(
     }
 }
 
-/// The expiry of a session is due: ends it in the router unless the client is back.
-pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
+/// The expiry of a session is due (or an operator drops it, `control`): ends it in the
+/// router unless the client is back. Returns whether it ended.
+pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) -> bool {
     // Linking under the table's lock orders the purge before any new connection of this
     // client id, whose own link then simply replaces the purge link.
     let linked = ctx.sessions.with_idle(client_id, session, || {
@@ -149,8 +150,10 @@ pub async fn end_idle_session(ctx: &Context, client_id: &str, session: u64) {
             };
             store.write(vec![ended], false).await;
         }
-        tracing::debug!(client_id, "session expired");
+        tracing::debug!(client_id, "session ended");
+        return true;
     }
+    false
 }
 
 /// How often the expiry task looks for sessions whose expiry is due: MQTT 5 expiry

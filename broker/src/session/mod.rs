@@ -35,6 +35,7 @@ pub mod aliases;
 mod close;
 mod connect;
 mod context;
+pub mod control;
 pub mod copies;
 mod deliver;
 mod durable;

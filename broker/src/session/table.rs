@@ -98,6 +98,17 @@ pub struct Owned {
     pub connected: bool,
 }
 
+/// One session as [`SessionTable::list`] shows it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Listed {
+    pub client_id: String,
+    pub owner: Owner,
+    pub session: u64,
+    pub connected: bool,
+    /// A kept session's time left, if it expires.
+    pub expires_in: Option<Duration>,
+}
+
 /// What remains of a session once its connection ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Remains {
@@ -184,6 +195,43 @@ impl SessionTable {
             inner.forget(&previous);
         }
         Ok((session, previous_running))
+    }
+
+    /// `client_id`'s newest session number, whether it is connected, and its owner.
+    pub fn state(&self, client_id: &str) -> Option<(u64, bool, Owner)> {
+        self.inner()
+            .clients
+            .get(client_id)
+            .map(|c| (c.latest, c.connected, c.owner.clone()))
+    }
+
+    /// The sessions whose client ids sort after `after`, at most `limit`, in client id
+    /// order; and how many sessions the table holds. For the operator (`control`): the
+    /// table is held only to copy the entries after `after`, sorted once released.
+    pub fn list(&self, after: &str, limit: usize) -> (Vec<Listed>, usize) {
+        let now = Instant::now();
+        let (mut listed, total) = {
+            let inner = self.inner();
+            let listed: Vec<Listed> = inner
+                .clients
+                .iter()
+                .filter(|(id, _)| id.as_str() > after)
+                .map(|(id, c)| Listed {
+                    client_id: id.clone(),
+                    owner: c.owner.clone(),
+                    session: c.latest,
+                    connected: c.connected,
+                    expires_in: c
+                        .closed
+                        .and_then(|(_, at)| at)
+                        .map(|at| at.saturating_duration_since(now)),
+                })
+                .collect();
+            (listed, inner.clients.len())
+        };
+        listed.sort_unstable_by(|a, b| a.client_id.cmp(&b.client_id));
+        listed.truncate(limit);
+        (listed, total)
     }
 
     /// Whether `client_id` has a session, connected or kept.
@@ -357,6 +405,29 @@ mod tests {
     fn open(t: &SessionTable, client_id: &str) -> (u64, bool) {
         t.open(client_id, &Owner::Anonymous)
             .expect("anonymous owns these")
+    }
+
+    #[test]
+    fn sessions_are_listed_in_pages_by_client_id() {
+        let t = SessionTable::new(10);
+        let user = Owner::User(Arc::from("devA"));
+        let (b, _) = t.open("devB", &user).unwrap();
+        t.close("devB", b, Remains::Kept(Some(Duration::from_secs(60))));
+        open(&t, "a-plc");
+        open(&t, "c-plc");
+        let (page, total) = t.list("", 2);
+        assert_eq!(total, 3);
+        let ids: Vec<&str> = page.iter().map(|l| l.client_id.as_str()).collect();
+        assert_eq!(ids, ["a-plc", "c-plc"]);
+        assert!(page[0].connected && page[0].expires_in.is_none());
+        let (rest, _) = t.list("c-plc", 2);
+        assert_eq!(rest.len(), 1);
+        assert_eq!(rest[0].client_id, "devB");
+        assert_eq!(rest[0].owner, user);
+        assert!(!rest[0].connected);
+        assert!(rest[0].expires_in.is_some_and(|d| d <= Duration::from_secs(60)));
+        assert_eq!(t.state("devB"), Some((b, false, user)));
+        assert_eq!(t.state("nobody"), None);
     }
 
     #[test]
