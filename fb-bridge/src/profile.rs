@@ -113,6 +113,14 @@ pub struct IdentityFile {
     /// is not recognised as another device.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub topics_only: bool,
+    /// With `topics_only`: the source addresses or networks (`10.1.2.7`, `10.1.2.0/24`,
+    /// IPv6 alike) whose clients may speak for the device. Empty: any address.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub speakers_from: Vec<String>,
+    /// With `topics_only`: the verified username a client must have logged in with to
+    /// speak for the device. None: no username, or the device id as username.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speaker_username: Option<String>,
 }
 
 /// How the device speaks on its own topics.
@@ -207,6 +215,60 @@ pub struct Profile {
     pub will_on_clean_disconnect: bool,
     /// [`LivenessFile::offline_after_silent_s`], resolved: None when off.
     pub offline_after_silent: Option<std::time::Duration>,
+    /// Who may speak for a `topics_only` device (default for the others: unused).
+    pub speakers: Speakers,
+}
+
+/// Who may speak for a `topics_only` device ([`IdentityFile::speakers_from`],
+/// [`IdentityFile::speaker_username`]): any client is recognised by the topics it
+/// publishes on, so a profile can narrow it to the runtime's host and user.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Speakers {
+    /// Source networks; empty: any address.
+    pub networks: Vec<ipnet::IpNet>,
+    /// The one username that may speak; None: no username, or the device id.
+    pub username: Option<String>,
+}
+
+impl Speakers {
+    /// Whether a client from `peer` (None: not a network client) logged in as `username`
+    /// may speak for `device`.
+    pub fn admit(
+        &self,
+        device: &str,
+        peer: Option<std::net::IpAddr>,
+        username: Option<&str>,
+    ) -> bool {
+        let user_ok = match &self.username {
+            Some(wanted) => username == Some(wanted.as_str()),
+            None => username.is_none_or(|u| u == device),
+        };
+        // An IPv4 client on an IPv6 socket arrives as ::ffff:a.b.c.d.
+        let from_ok = self.networks.is_empty()
+            || peer.is_some_and(|p| {
+                let p = p.to_canonical();
+                self.networks.iter().any(|n| n.contains(&p))
+            });
+        user_ok && from_ok
+    }
+
+    /// What the profile allows, for an operator reading a refusal.
+    pub fn describe(&self) -> String {
+        let from = match self.networks.is_empty() {
+            true => "any address".to_owned(),
+            false => self
+                .networks
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", "),
+        };
+        let user = match &self.username {
+            Some(u) => format!("user {u}"),
+            None => "no username or the device id as username".to_owned(),
+        };
+        format!("from {from}, {user}")
+    }
 }
 
 /// How a connection is recognised as the device.
@@ -319,6 +381,35 @@ impl ProfileFile {
                 Identity::ClientId(self.device.clone())
             }
         };
+        let mut speakers = Speakers {
+            networks: Vec::new(),
+            username: self.identity.speaker_username.clone(),
+        };
+        for (i, text) in self.identity.speakers_from.iter().enumerate() {
+            let net = text
+                .parse::<ipnet::IpNet>()
+                .or_else(|_| text.parse::<std::net::IpAddr>().map(ipnet::IpNet::from));
+            match net {
+                // `10.1.2.7/24` means its network.
+                Ok(net) => speakers.networks.push(net.trunc()),
+                Err(_) => errors.push(err(
+                    format!("identity.speakers_from[{i}]"),
+                    format!(
+                        "{text:?} is not an address or network (10.1.2.7, 10.1.2.0/24, fd00::/64)"
+                    ),
+                )),
+            }
+        }
+        if speakers.username.as_deref() == Some("") {
+            errors.push(err("identity.speaker_username", "not empty"));
+        }
+        if identity != Identity::TopicsOnly && speakers != Speakers::default() {
+            errors.push(err(
+                "identity",
+                "speakers_from and speaker_username are for topics_only devices (the others \
+                 are recognised by client id or username)",
+            ));
+        }
         let default_encoding = match encoding(&self.speaks.encoding, "speaks.encoding") {
             Ok(e) => e,
             Err(e) => {
@@ -539,6 +630,7 @@ impl ProfileFile {
             periods,
             will_on_clean_disconnect: self.liveness.will_on_clean_disconnect,
             offline_after_silent,
+            speakers,
         })
     }
 }

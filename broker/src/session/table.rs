@@ -425,7 +425,9 @@ mod tests {
         assert_eq!(rest[0].client_id, "devB");
         assert_eq!(rest[0].owner, user);
         assert!(!rest[0].connected);
-        assert!(rest[0].expires_in.is_some_and(|d| d <= Duration::from_secs(60)));
+        assert!(rest[0]
+            .expires_in
+            .is_some_and(|d| d <= Duration::from_secs(60)));
         assert_eq!(t.state("devB"), Some((b, false, user)));
         assert_eq!(t.state("nobody"), None);
     }

@@ -164,8 +164,18 @@ impl FbSession {
         let mine = match &self.profile {
             Some(p) => p.device == profile.device,
             None => {
+                if profile.identity == Identity::TopicsOnly && !self.may_speak_for(profile) {
+                    // Described under the device's id, where its operator looks.
+                    let detail = format!(
+                        "{} is topics-only device {}'s own topic; its profile lets only \
+                         clients {} speak for it",
+                        own.topic,
+                        profile.device,
+                        profile.speakers.describe()
+                    );
+                    return self.refused_as(fb, profile, own, Refusal::NotAuthorized, detail);
+                }
                 profile.identity == Identity::TopicsOnly
-                    && self.username.as_deref().is_none_or(|u| u == profile.device)
             }
         };
         if !mine {
@@ -232,6 +242,15 @@ impl FbSession {
         };
         let first = (own.topic.clone(), payload.clone());
         self.accepted(fb, profiles, &typed, &port, message, payload, Some(first))
+    }
+
+    /// Whether this connection may speak for topics-only `profile`: its username and
+    /// source address as the profile's `speakers_from` and `speaker_username` allow
+    /// (by default: any address, no username or the device id).
+    fn may_speak_for(&self, profile: &Profile) -> bool {
+        profile
+            .speakers
+            .admit(&profile.device, self.peer, self.username.as_deref())
     }
 
     /// From now on this connection speaks for the topics-only device of `profile` (it
@@ -338,12 +357,7 @@ impl FbSession {
         let Some(profile) = profiles.input(filter) else {
             return;
         };
-        if profile.identity != Identity::TopicsOnly
-            || self
-                .username
-                .as_deref()
-                .is_some_and(|u| u != profile.device)
-        {
+        if profile.identity != Identity::TopicsOnly || !self.may_speak_for(profile) {
             return;
         }
         let profile = Arc::clone(profile);
