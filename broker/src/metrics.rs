@@ -260,7 +260,7 @@ impl Metrics {
                 "Messages from other lines refused because they did not come from where they \
                  claim, by origin line (at most 64 lines, then `other`) and reason \
                  (forged_origin, unknown_device, local_device, other_line_device; for registry records: \
-                 forged_record, local_device, claimed_device)",
+                 forged_record, local_device, claimed_device, line_share, remote_full)",
                 &["line", "reason"],
             ),
             bridge_remote_subscriptions: gauge(

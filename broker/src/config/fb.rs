@@ -44,6 +44,13 @@ pub struct FbSection {
     /// values, as `fbbus devices forget` does. 0: never (a device away for maintenance
     /// keeps its record until it is forgotten by hand).
     pub forget_offline_after_s: u64,
+    /// Devices of one other line of the bus this line takes (their records, their typed
+    /// values): a line announcing more gets the rest refused
+    /// (`fbbus_limit_refusals_total{limit="remote_devices_per_line"}`), no other line's
+    /// place is taken.
+    pub max_remote_devices_per_line: usize,
+    /// Devices of all other lines together (`limit="remote_devices"`).
+    pub max_remote_devices: usize,
     /// The largest declaration payload read, in bytes; a longer one is refused unread
     /// (`fbbus_limit_refusals_total{limit="declaration_bytes"}`).
     pub max_declaration_bytes: usize,
@@ -90,6 +97,8 @@ impl FbSection {
             max_per_identity: self.max_devices_per_identity,
             forget_offline_after: (self.forget_offline_after_s > 0)
                 .then(|| std::time::Duration::from_secs(self.forget_offline_after_s)),
+            max_remote_per_line: self.max_remote_devices_per_line,
+            max_remote: self.max_remote_devices,
         }
     }
 }
@@ -111,6 +120,8 @@ impl Default for FbSection {
             max_devices: registry.max_devices,
             max_devices_per_identity: registry.max_per_identity,
             forget_offline_after_s: registry.forget_offline_after.map_or(0, |d| d.as_secs()),
+            max_remote_devices_per_line: registry.max_remote_per_line,
+            max_remote_devices: registry.max_remote,
             max_declaration_bytes: declarations.max_declaration_bytes,
             max_fbs: declarations.max_fbs,
             max_ports: declarations.max_ports,

@@ -190,8 +190,15 @@ fn registry_limits_default_and_are_at_least_1() {
             max_devices: 10_000,
             max_per_identity: 100,
             forget_offline_after: None,
+            max_remote_per_line: 5_000,
+            max_remote: 40_000,
         }
     );
+    let set = limits("max_remote_devices_per_line = 7\nmax_remote_devices = 70").unwrap();
+    assert_eq!((set.max_remote_per_line, set.max_remote), (7, 70));
+    assert!(limits("max_remote_devices = 0")
+        .unwrap_err()
+        .contains("fb.max_remote_devices"));
     let set = limits("max_devices = 20\nforget_offline_after_s = 3600").unwrap();
     assert_eq!(set.max_devices, 20);
     assert_eq!(

@@ -114,6 +114,11 @@ impl Config {
                 "fb.max_devices_per_identity",
                 self.fb.max_devices_per_identity,
             ),
+            (
+                "fb.max_remote_devices_per_line",
+                self.fb.max_remote_devices_per_line,
+            ),
+            ("fb.max_remote_devices", self.fb.max_remote_devices),
         ] {
             if value == 0 {
                 return Err(invalid(file, key, "must be at least 1"));

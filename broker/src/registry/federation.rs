@@ -36,6 +36,10 @@ pub enum RecordRefused {
     LocalDevice,
     /// The device is online on a third line.
     HeldByAnotherLine,
+    /// A new device of a line that has `[fb] max_remote_devices_per_line` here already.
+    LineShare,
+    /// A new device of another line while `[fb] max_remote_devices` are held.
+    RemoteFull,
 }
 
 impl RecordRefused {
@@ -45,6 +49,8 @@ impl RecordRefused {
             RecordRefused::ForgedLine => "forged_record",
             RecordRefused::LocalDevice => "local_device",
             RecordRefused::HeldByAnotherLine => "claimed_device",
+            RecordRefused::LineShare => "line_share",
+            RecordRefused::RemoteFull => "remote_full",
         }
     }
 }
@@ -131,7 +137,41 @@ impl Registry {
             Some(held) if held.line != record.line && held.status == Status::Online => {
                 return Err(RecordRefused::HeldByAnotherLine)
             }
-            _ => {}
+            // Already this line's: a change, never refused for a share.
+            Some(held) if held.line == record.line => {}
+            // New to this line here: within its share and the whole.
+            _ => {
+                let counts = &devices.counts;
+                let of_line = counts.remote_by_line.get(from).copied().unwrap_or(0);
+                let at = |held: i64, max: usize| usize::try_from(held).is_ok_and(|n| n >= max);
+                let refused = if at(of_line, self.limits.max_remote_per_line) {
+                    Some(RecordRefused::LineShare)
+                } else if at(counts.remote, self.limits.max_remote) {
+                    Some(RecordRefused::RemoteFull)
+                } else {
+                    None
+                };
+                if let Some(refused) = refused {
+                    let (limit, value) = match refused {
+                        RecordRefused::LineShare => {
+                            ("remote_devices_per_line", self.limits.max_remote_per_line)
+                        }
+                        _ => ("remote_devices", self.limits.max_remote),
+                    };
+                    self.refused_at_limit(&mut devices, limit, |since| {
+                        tracing::warn!(
+                            line = from,
+                            device = record.id,
+                            limit,
+                            refused_since_last_line = since,
+                            "a new device of another line not taken from the bus: [fb] \
+                             max_{limit} = {value} reached; its line's other devices are kept \
+                             (logged at most once a minute; fbbus_limit_refusals_total)"
+                        )
+                    });
+                    return Err(refused);
+                }
+            }
         }
         match queried_at {
             Some(mark) if devices.live.get(&record.id).is_some_and(|&at| at > mark) => {

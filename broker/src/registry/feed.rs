@@ -72,7 +72,7 @@ impl Registry {
             by_status,
             online_here,
             silent,
-            local: _,
+            ..
         } = devices.counts;
         self.metrics.registry_silent_devices.set(silent);
         for (status, count) in [Status::Online, Status::Offline, Status::Unreachable]

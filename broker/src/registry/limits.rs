@@ -25,15 +25,25 @@ pub struct Limits {
     pub max_per_identity: usize,
     /// A local device offline this long is forgotten; None: never.
     pub forget_offline_after: Option<Duration>,
+    /// Devices of one other line taken from the bus, at most (issue 33: a line's share):
+    /// a line that announces more gets the rest refused, and no other line loses its
+    /// place.
+    pub max_remote_per_line: usize,
+    /// Devices of all other lines together, at most.
+    pub max_remote: usize,
 }
 
 impl Default for Limits {
-    /// `[fb]`'s defaults: 10,000 devices, 100 per identity, never forgotten by age.
+    /// `[fb]`'s defaults: 10,000 devices, 100 per identity, never forgotten by age; of
+    /// other lines 5,000 a line (a line of about 1,000 devices, five times over) and
+    /// 40,000 in all (a plant of eight such lines, five times over).
     fn default() -> Limits {
         Limits {
             max_devices: 10_000,
             max_per_identity: 100,
             forget_offline_after: None,
+            max_remote_per_line: 5_000,
+            max_remote: 40_000,
         }
     }
 }
@@ -45,6 +55,8 @@ impl Limits {
         max_devices: usize::MAX,
         max_per_identity: usize::MAX,
         forget_offline_after: None,
+        max_remote_per_line: usize::MAX,
+        max_remote: usize::MAX,
     };
 }
 
@@ -133,26 +145,40 @@ impl Registry {
             devices.register(id, registrant);
             return Ok(());
         };
-        self.metrics
-            .limit_refusals
-            .with_label_values(&[full.limit()])
-            .inc();
-        let now = Instant::now();
-        let (last, unlogged) = devices.refusals_unlogged.entry(full.limit()).or_default();
-        *unlogged += 1;
-        if last.is_none_or(|t| now.duration_since(t) >= LIMIT_LOG_INTERVAL) {
+        self.refused_at_limit(devices, full.limit(), |since| {
             tracing::warn!(
                 device = id,
                 registrant,
                 limit = full.limit(),
-                refused_since_last_line = *unlogged,
+                refused_since_last_line = since,
                 "new device refused: {full} (logged at most once a minute per limit; \
                  fbbus_limit_refusals_total)"
-            );
+            )
+        });
+        Err(full)
+    }
+
+    /// A refusal at registry limit `limit`: counted in `fbbus_limit_refusals_total`, and
+    /// `log` called with the number refused since its last call, at most once a minute
+    /// per limit.
+    pub(super) fn refused_at_limit(
+        &self,
+        devices: &mut Devices,
+        limit: &'static str,
+        log: impl FnOnce(u64),
+    ) {
+        self.metrics
+            .limit_refusals
+            .with_label_values(&[limit])
+            .inc();
+        let now = Instant::now();
+        let (last, unlogged) = devices.refusals_unlogged.entry(limit).or_default();
+        *unlogged += 1;
+        if last.is_none_or(|t| now.duration_since(t) >= LIMIT_LOG_INTERVAL) {
+            log(*unlogged);
             *last = Some(now);
             *unlogged = 0;
         }
-        Err(full)
     }
 
     /// Forgets the offline device `id` of this line: its record, its retained record on

@@ -86,7 +86,7 @@ pub(super) struct Devices {
 }
 
 /// Devices by status (every line), and this line's online devices.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub(super) struct Counts {
     pub(super) by_status: [i64; 3],
     /// This line's devices (`[fb] max_devices`).
@@ -94,6 +94,9 @@ pub(super) struct Counts {
     pub(super) online_here: i64,
     /// Online and silent, every line.
     pub(super) silent: i64,
+    /// Other lines' devices, by line (`Limits::max_remote_per_line`), and in all.
+    pub(super) remote_by_line: HashMap<String, i64>,
+    pub(super) remote: i64,
 }
 
 impl Counts {
@@ -102,6 +105,13 @@ impl Counts {
         self.by_status[record.status as usize] += sign;
         if record.line == line {
             self.local += sign;
+        } else {
+            self.remote += sign;
+            let held = self.remote_by_line.entry(record.line.clone()).or_default();
+            *held += sign;
+            if *held <= 0 {
+                self.remote_by_line.remove(&record.line);
+            }
         }
         if record.status == Status::Online && record.line == line {
             self.online_here += sign;

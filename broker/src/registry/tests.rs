@@ -355,7 +355,7 @@ async fn new_devices_are_admitted_within_the_limits() {
     let limits = Limits {
         max_devices: 3,
         max_per_identity: 2,
-        forget_offline_after: None,
+        ..Limits::default()
     };
     let (registry, metrics) = limited(limits, Some(&path));
     let refusals = |limit: &str| metrics.limit_refusals.with_label_values(&[limit]).get();
@@ -407,6 +407,57 @@ async fn new_devices_are_admitted_within_the_limits() {
         "a registered d2 and d4 before the restart"
     );
     assert!(reopened.declare("d6", 8, interface(), "b").is_ok());
+}
+
+/// Issue 33: other lines' devices are taken within a share per line and a whole; a line
+/// over its share gets its new devices refused (counted), keeps the ones it has and may
+/// change them, and another line still gets its place.
+#[test]
+fn other_lines_devices_are_taken_within_a_share_per_line() {
+    let limits = Limits {
+        max_remote_per_line: 2,
+        max_remote: 3,
+        ..Limits::default()
+    };
+    let (registry, metrics) = limited(limits, None);
+    let refusals = |limit: &str| metrics.limit_refusals.with_label_values(&[limit]).get();
+    assert_eq!(
+        registry.remote_record("b", remote("b1", "b", Status::Online)),
+        Ok(())
+    );
+    assert_eq!(
+        registry.remote_record("b", remote("b2", "b", Status::Online)),
+        Ok(())
+    );
+    assert_eq!(
+        registry.remote_record("b", remote("b3", "b", Status::Online)),
+        Err(RecordRefused::LineShare)
+    );
+    assert!(registry.get("b3").is_none());
+    // A change of one it holds is taken.
+    assert_eq!(
+        registry.remote_record("b", remote("b2", "b", Status::Offline)),
+        Ok(())
+    );
+    assert_eq!(registry.get("b2").unwrap().status, Status::Offline);
+    // Another line has its place, up to the whole.
+    assert_eq!(
+        registry.remote_record("c", remote("c1", "c", Status::Online)),
+        Ok(())
+    );
+    assert_eq!(
+        registry.remote_record("c", remote("c2", "c", Status::Online)),
+        Err(RecordRefused::RemoteFull)
+    );
+    assert_eq!(
+        (
+            refusals("remote_devices_per_line"),
+            refusals("remote_devices")
+        ),
+        (1, 1)
+    );
+    // Local devices are not other lines' share.
+    assert!(registry.declare("d1", 1, interface(), "a").is_ok());
 }
 
 /// Forgetting: refused for an unknown, online or remote device; an offline one goes
