@@ -140,6 +140,8 @@ pub struct Metrics {
     pub bridge_remote_subscriptions: IntGauge,
     pub bridge_imports: IntGauge,
     pub bridge_liveliness: IntCounterVec,
+    /// Registry queries this line sent other lines (`bridge::federation`).
+    pub bridge_record_queries: IntCounterVec,
     pub bridge_retained_replayed: IntCounter,
     /// Requests refused at a limit, by limit (`subscriptions_per_client`, ...).
     pub limit_refusals: IntCounterVec,
@@ -274,6 +276,11 @@ impl Metrics {
             bridge_liveliness: counter_vec(
                 "fbbus_bridge_liveliness_changes_total",
                 "Liveliness changes seen on the bus, by kind (line_up, line_down, device_up, device_down)",
+                &["kind"],
+            ),
+            bridge_record_queries: counter_vec(
+                "fbbus_bridge_record_queries_total",
+                "Registry queries sent to other lines for records missed: one device's, or a whole line's (kind device, line)",
                 &["kind"],
             ),
             bridge_retained_replayed: counter(

@@ -1,8 +1,19 @@
 //! Registry federation: this line's devices announced on the bus, the other lines'
 //! records and liveliness taken into the registry.
+//!
+//! A line puts a device's record on every change, before its liveliness token, so a
+//! device usually comes up here with its record already taken. Only a record missed (a
+//! line that joined later, a partition) is asked for, and asking is coalesced per line
+//! ([`Asks`]): the devices of one line seen without a record within [`COLLECT`] are asked
+//! for one by one when they are few, with one query for the whole line when they are more
+//! than [`ASK_ONE_BY_ONE`] or the line itself came up. Before (issue 32), each unknown
+//! device's token made this line ask for every record of its line: a line of 1,000
+//! devices coming up cost each other line 1,000 queries of 1,000 records, zenoh's queues
+//! filled and it closed the transports.
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
 
 use fb_bridge::bus::link::{DeviceToken, Event, Inbox, Link};
 use tokio::sync::mpsc;
@@ -18,6 +29,7 @@ pub(super) async fn bus_events(
     ctx: Arc<Context>,
 ) {
     let registry = &ctx.fb.registry;
+    let asks = Asks::default();
     let liveliness = |kind: &str| {
         ctx.metrics
             .bridge_liveliness
@@ -38,18 +50,7 @@ pub(super) async fn bus_events(
                 registry.line_reachable(&line);
                 // Every record of the line, online or not, in the background: the
                 // events keep flowing meanwhile.
-                let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
-                let asked = Some(registry.live_mark());
-                tokio::spawn(async move {
-                    match link.query_records(&line).await {
-                        Ok(records) => {
-                            for (from, device, json) in records {
-                                apply_record(&ctx, &from, &device, &json, asked);
-                            }
-                        }
-                        Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
-                    }
-                });
+                asks.ask(&link, &ctx, &line, None);
             }
             Event::LineDown(line) => {
                 liveliness("line_down");
@@ -61,17 +62,7 @@ pub(super) async fn bus_events(
                 if registry.get(&device).is_some_and(|r| r.line == line) {
                     registry.remote_status(&line, &device, Status::Online);
                 } else {
-                    let (link, ctx) = (Arc::clone(&link), Arc::clone(&ctx));
-                    let asked = Some(registry.live_mark());
-                    tokio::spawn(async move {
-                        if let Ok(records) = link.query_records(&line).await {
-                            for (from, d, json) in records {
-                                if d == device {
-                                    apply_record(&ctx, &from, &d, &json, asked);
-                                }
-                            }
-                        }
-                    });
+                    asks.ask(&link, &ctx, &line, Some(device));
                 }
             }
             Event::DeviceDown { line, device } => {
@@ -86,6 +77,80 @@ pub(super) async fn bus_events(
                 }
             }
             Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json, None),
+        }
+    }
+}
+
+/// How long the devices of a line seen without a record are collected before they are
+/// asked for together.
+const COLLECT: Duration = Duration::from_millis(100);
+
+/// More unknown devices of one line than this within [`COLLECT`]: one query for the
+/// whole line instead.
+const ASK_ONE_BY_ONE: usize = 16;
+
+/// What is to be asked of each line: some devices, or (None) all of them.
+#[derive(Clone, Default)]
+struct Asks(Arc<Mutex<HashMap<String, Option<Vec<String>>>>>);
+
+impl Asks {
+    /// Asks line `line` for the record of `device`, or (None) of every device, together
+    /// with whatever else is asked of it within [`COLLECT`].
+    fn ask(&self, link: &Arc<Link>, ctx: &Arc<Context>, line: &str, device: Option<String>) {
+        let first = {
+            let mut asks = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+            let first = !asks.contains_key(line);
+            let entry = asks
+                .entry(line.to_owned())
+                .or_insert_with(|| Some(Vec::new()));
+            match (entry.as_mut(), device) {
+                (Some(devices), Some(device)) if devices.len() < ASK_ONE_BY_ONE => {
+                    devices.push(device)
+                }
+                _ => *entry = None,
+            }
+            first
+        };
+        if first {
+            let (asks, link, ctx) = (self.clone(), Arc::clone(link), Arc::clone(ctx));
+            let line = line.to_owned();
+            tokio::spawn(async move {
+                tokio::time::sleep(COLLECT).await;
+                let asked = asks
+                    .0
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .remove(&line);
+                let Some(asked) = asked else { return };
+                let registry = &ctx.fb.registry;
+                let queries: Vec<Option<String>> = match asked {
+                    None => vec![None],
+                    // Those whose records came meanwhile are not asked for.
+                    Some(devices) => devices
+                        .into_iter()
+                        .filter(|d| !registry.get(d).is_some_and(|r| r.line == line))
+                        .map(Some)
+                        .collect(),
+                };
+                for device in queries {
+                    let kind = if device.is_some() { "device" } else { "line" };
+                    ctx.metrics
+                        .bridge_record_queries
+                        .with_label_values(&[kind])
+                        .inc();
+                    let mark = Some(registry.live_mark());
+                    match link.query_records(&line, device.as_deref()).await {
+                        Ok(records) => {
+                            for (from, d, json) in records {
+                                if device.as_deref().is_none_or(|wanted| wanted == d) {
+                                    apply_record(&ctx, &from, &d, &json, mark);
+                                }
+                            }
+                        }
+                        Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
+                    }
+                }
+            });
         }
     }
 }

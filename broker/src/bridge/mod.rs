@@ -292,9 +292,17 @@ async fn run(
     let local_now = ctx.fb.registry.observe(local_records);
 
     let registry = Arc::clone(&ctx.fb.registry);
-    link.serve_records(move || {
-        registry
-            .local()
+    let this_line = registry.line().to_owned();
+    link.serve_records(move |device| {
+        let records = match device {
+            Some(id) => registry
+                .get(id)
+                .filter(|r| r.line == this_line)
+                .into_iter()
+                .collect(),
+            None => registry.local(),
+        };
+        records
             .into_iter()
             .map(|r| {
                 (

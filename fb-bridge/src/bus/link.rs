@@ -520,16 +520,21 @@ impl Link {
     }
 
     /// Answers registry queries (`fbbus/@/record/<line>/<device or *>`) with `records`'
-    /// answer: (device id, record JSON) of every local device.
+    /// answer: (device id, record JSON) of the one local device a query names
+    /// (`records(Some(id))`), or of every local device (`records(None)`, a wildcard): a
+    /// query for one device does not cost the whole registry (issue 32).
     pub async fn serve_records(
         &self,
-        records: impl Fn() -> Vec<(String, Vec<u8>)> + Send + Sync + 'static,
+        records: impl Fn(Option<&str>) -> Vec<(String, Vec<u8>)> + Send + Sync + 'static,
     ) -> Result<(), LinkError> {
         let line = self.line.clone();
         self.session
             .declare_queryable(format!("{}/record/{}/*", keys::CONTROL, self.line))
             .callback(move |query: Query| {
-                for (device, json) in records() {
+                let asked = keys::parse_line_item("record", query.key_expr().as_str())
+                    .map(|(_, device)| device)
+                    .filter(|device| !device.contains(['*', '$']));
+                for (device, json) in records(asked) {
                     let key = keys::record_key(&line, &device);
                     let Ok(k) = KeyExpr::try_from(key) else {
                         continue;
@@ -544,14 +549,20 @@ impl Link {
             .map_err(zerr)
     }
 
-    /// The records `line` (`*`: every line) serves, as (line, device, JSON).
+    /// The records `line` (`*`: every line) serves, as (line, device, JSON): of `device`
+    /// only, or (None) all of them.
     pub async fn query_records(
         &self,
         line: &str,
+        device: Option<&str>,
     ) -> Result<Vec<(String, String, Vec<u8>)>, LinkError> {
         let replies = self
             .session
-            .get(format!("{}/record/{line}/*", keys::CONTROL))
+            .get(format!(
+                "{}/record/{line}/{}",
+                keys::CONTROL,
+                device.unwrap_or("*")
+            ))
             .timeout(Duration::from_secs(2))
             .await
             .map_err(zerr)?;
