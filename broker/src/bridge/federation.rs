@@ -128,7 +128,7 @@ impl Asks {
                     // Those whose records came meanwhile are not asked for.
                     Some(devices) => devices
                         .into_iter()
-                        .filter(|d| !registry.get(d).is_some_and(|r| r.line == line))
+                        .filter(|d| registry.get(d).is_none_or(|r| r.line != line))
                         .map(Some)
                         .collect(),
                 };
