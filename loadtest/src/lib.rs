@@ -40,6 +40,7 @@ pub mod machine;
 pub mod message;
 pub mod model;
 pub mod raw_client;
+pub mod relay;
 pub mod report;
 pub mod rig;
 pub mod rng;

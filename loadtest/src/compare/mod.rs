@@ -188,6 +188,40 @@ struct RunArgs {
     /// Duration of the steady-rate latency scenario in seconds (default 10; --quick 2).
     #[arg(long, value_name = "SECONDS")]
     latency_secs: Option<u64>,
+    /// How the clients reach each broker, comma-separated: tcp (direct), tcp-relay
+    /// (through the harness's relay, byte for byte), ws (through the relay, MQTT over
+    /// WebSockets to the broker's ws listener). Each broker runs once per transport, as
+    /// `<broker>/<transport>`; ws is compared with tcp-relay, which has the same hop
+    /// (`loadtest::relay`). Default: tcp.
+    #[arg(long, value_delimiter = ',', value_name = "LIST")]
+    transport: Vec<String>,
+}
+
+/// How a contender's clients reach it (`--transport`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Transport {
+    Tcp,
+    TcpRelay,
+    WebSocket,
+}
+
+impl Transport {
+    fn parse(name: &str) -> Result<Transport> {
+        Ok(match name.trim() {
+            "tcp" => Transport::Tcp,
+            "tcp-relay" => Transport::TcpRelay,
+            "ws" => Transport::WebSocket,
+            other => bail!("unknown transport `{other}` (known: tcp, tcp-relay, ws)"),
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Transport::Tcp => "tcp",
+            Transport::TcpRelay => "tcp-relay",
+            Transport::WebSocket => "ws",
+        }
+    }
 }
 
 /// One broker of the comparison: a label in the tables and what to start.
@@ -195,6 +229,9 @@ pub struct Contender {
     pub label: String,
     pub kind: Kind,
     pub program: PathBuf,
+    /// How its clients reach it; with several transports the label is
+    /// `<broker>/<transport>`.
+    pub transport: Transport,
 }
 
 impl CompareArgs {
@@ -399,6 +436,7 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
             label: "fbbus".into(),
             kind: Kind::Fbbus,
             program: existing_fbbus(default.to_path_buf())?,
+            transport: Transport::Tcp,
         }]);
     }
     let mut out: Vec<Contender> = Vec::new();
@@ -418,6 +456,7 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
             label: name,
             kind: Kind::Fbbus,
             program: existing_fbbus(PathBuf::from(path))?,
+            transport: Transport::Tcp,
         });
     }
     Ok(out)
@@ -483,14 +522,38 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
                 program: mosquitto
                     .clone()
                     .unwrap_or_else(|| PathBuf::from("mosquitto")),
+                transport: Transport::Tcp,
             }),
             Kind::Rumqttd => contenders.push(Contender {
                 label: "rumqttd".into(),
                 kind: Kind::Rumqttd,
                 program: harness.to_path_buf(),
+                transport: Transport::Tcp,
             }),
             Kind::MosquittoDefault => {}
         }
+    }
+    let transports = match args.transport.is_empty() {
+        true => vec![Transport::Tcp],
+        false => args
+            .transport
+            .iter()
+            .map(|t| Transport::parse(t))
+            .collect::<Result<Vec<_>>>()?,
+    };
+    if transports != [Transport::Tcp] {
+        // One contender per broker and transport, grouped by transport.
+        contenders = transports
+            .iter()
+            .flat_map(|&transport| {
+                contenders.iter().map(move |c| Contender {
+                    label: format!("{}/{}", c.label, transport.name()),
+                    kind: c.kind,
+                    program: c.program.clone(),
+                    transport,
+                })
+            })
+            .collect();
     }
 
     let mut t = Transcript::default();
@@ -530,10 +593,12 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
             program: mosquitto
                 .clone()
                 .unwrap_or_else(|| PathBuf::from("mosquitto")),
+            transport: Transport::Tcp,
         };
         for c in &contenders {
             runs.push(c);
             if c.kind == Kind::Mosquitto
+                && c.transport == Transport::Tcp
                 && !args.no_mosquitto_default
                 && matches!(scenario, Scenario::Fanin | Scenario::Latency)
             {
@@ -605,19 +670,59 @@ async fn run_one(
             "mosquitto is not installed (apt-get install -y mosquitto, or --mosquitto PATH)".into(),
         );
     }
+    // A WebSocket listener beside the broker's TCP one, for `--transport ws`.
+    let ws_port = match contender.transport {
+        Transport::WebSocket => match (contender.kind, spawn::free_port()) {
+            (Kind::Rumqttd, _) => {
+                return Outcome::failed(scenario, "rumqttd is run without websockets".into())
+            }
+            (_, Ok(port)) => Some(port),
+            (_, Err(e)) => return Outcome::failed(scenario, format!("no free port: {e}")),
+        },
+        _ => None,
+    };
+    let ws_table = ws_port.map_or(String::new(), |port| {
+        format!("\n[[listener]]\nname = \"ws\"\nkind = \"ws\"\nbind = \"127.0.0.1:{port}\"\n")
+    });
+    let ws_lines: Vec<String> = ws_port.map_or(Vec::new(), |port| {
+        vec![
+            format!("listener {port} 127.0.0.1"),
+            "protocol websockets".into(),
+        ]
+    });
     let spec = Spec {
         kind: contender.kind,
         program: &contender.program,
         broker_keys: fbbus_broker_options,
-        tables: "",
+        tables: &ws_table,
         auth: auth.map(|s| &s.files),
         acl: fbbus_acl,
         persistence: None,
-        mosquitto_lines: &[],
+        mosquitto_lines: &ws_lines,
     };
     let mut broker: Running = match spawn::start(&spec).await {
         Ok(b) => b,
         Err(e) => return Outcome::failed(scenario, format!("failed to start: {e}")),
+    };
+    // The clients go through the relay: the scenario sees the relay's address.
+    let upstream = match (contender.transport, ws_port) {
+        (Transport::Tcp, _) => None,
+        (Transport::TcpRelay, _) => Some(loadtest::relay::Upstream::Tcp(broker.addr)),
+        (Transport::WebSocket, Some(port)) => Some(loadtest::relay::Upstream::WebSocket {
+            addr: SocketAddr::from(([127, 0, 0, 1], port)),
+            path: "/mqtt".into(),
+        }),
+        (Transport::WebSocket, None) => None,
+    };
+    let _relay = match upstream {
+        Some(upstream) => match loadtest::relay::start(upstream).await {
+            Ok(relay) => {
+                broker.addr = relay.addr;
+                Some(relay)
+            }
+            Err(e) => return Outcome::failed(scenario, format!("relay: {e}")),
+        },
+        None => None,
     };
     // A safety net above the scenario's own deadline.
     let limit = params.deadline * 2 + Duration::from_secs(params.latency_secs + 30);

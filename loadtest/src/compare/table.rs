@@ -7,7 +7,7 @@ use std::path::Path;
 use loadtest::broker_process::spawn::{self, Kind};
 
 use super::scenarios::{Outcome, Params, Scenario};
-use super::{Contender, Transcript, KEEP_ALIVE_SECS};
+use super::{Contender, Transcript, Transport, KEEP_ALIVE_SECS};
 
 #[allow(clippy::too_many_arguments)]
 pub fn header(
@@ -169,13 +169,13 @@ pub fn ratio_line(
     if rounds > 1 {
         line.push_str(&format!(" [median of {rounds}]"));
     }
-    let mut labels: Vec<(&str, Kind)> = Vec::new();
+    let mut labels: Vec<(&str, Kind, Transport)> = Vec::new();
     for (c, _, _) in rows {
-        if !labels.iter().any(|(l, _)| *l == c.label) {
-            labels.push((&c.label, c.kind));
+        if !labels.iter().any(|(l, _, _)| *l == c.label) {
+            labels.push((&c.label, c.kind, c.transport));
         }
     }
-    for (label, _) in &labels {
+    for (label, _, _) in &labels {
         let Some(m) = median_of(rows, label) else {
             continue;
         };
@@ -188,22 +188,41 @@ pub fn ratio_line(
         };
         line.push_str(&format!("   {label} {value}"));
     }
-    let fbbus: Vec<&str> = labels
-        .iter()
-        .filter(|(_, k)| *k == Kind::Fbbus)
-        .map(|(l, _)| *l)
-        .collect();
+    // fbbus against each peer, and later fbbus builds against the first, on the same
+    // transport; a WebSocket row against the same broker through the TCP relay (else
+    // direct TCP).
     let mut pairs: Vec<(&str, &str)> = Vec::new();
-    for f in &fbbus {
-        for (other, kind) in &labels {
-            if matches!(kind, Kind::Mosquitto | Kind::Rumqttd) {
-                pairs.push((f, other));
+    for &transport in [Transport::Tcp, Transport::TcpRelay, Transport::WebSocket].iter() {
+        let fbbus: Vec<&str> = labels
+            .iter()
+            .filter(|(_, k, t)| *k == Kind::Fbbus && *t == transport)
+            .map(|(l, _, _)| *l)
+            .collect();
+        for f in &fbbus {
+            for (other, kind, t) in &labels {
+                if matches!(kind, Kind::Mosquitto | Kind::Rumqttd) && *t == transport {
+                    pairs.push((f, other));
+                }
+            }
+        }
+        if let Some((first, later)) = fbbus.split_first() {
+            for f in later {
+                pairs.push((f, first));
             }
         }
     }
-    if let Some((first, later)) = fbbus.split_first() {
-        for f in later {
-            pairs.push((f, first));
+    for (label, _, transport) in &labels {
+        if *transport != Transport::WebSocket {
+            continue;
+        }
+        let base = label.trim_end_matches("/ws");
+        let over = |t: &str| format!("{base}/{t}");
+        let reference = labels
+            .iter()
+            .find(|(l, _, _)| *l == over("tcp-relay"))
+            .or_else(|| labels.iter().find(|(l, _, _)| *l == over("tcp")));
+        if let Some((reference, _, _)) = reference {
+            pairs.push((label, reference));
         }
     }
     for (a, b) in &pairs {
