@@ -125,6 +125,8 @@ mod tests {
 
     /// A WebSocket server that answers each binary message with the same bytes, checking
     /// the path and subprotocol the relay asks for.
+    // tungstenite's handshake callback returns its error response by value.
+    #[allow(clippy::result_large_err)]
     async fn ws_echo() -> SocketAddr {
         let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
