@@ -128,19 +128,7 @@ fn table(body: &Value) -> String {
             text("last_will_reason"),
         ]);
     }
-    let widths: Vec<usize> = (0..7)
-        .map(|c| rows.iter().map(|r| r[c].chars().count()).max().unwrap_or(0))
-        .collect();
-    let mut out = String::new();
-    for row in &rows {
-        let line: Vec<String> = row
-            .iter()
-            .zip(&widths)
-            .map(|(cell, w)| format!("{cell:<w$}"))
-            .collect();
-        out.push_str(line.join("  ").trim_end());
-        out.push('\n');
-    }
+    let mut out = crate::terminal_table::aligned(&rows);
     let online = devices
         .iter()
         .filter(|d| d.get("status").and_then(Value::as_str) == Some("online"))

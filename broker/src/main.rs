@@ -15,6 +15,7 @@ mod bus_cert;
 mod devices_command;
 mod profile_command;
 mod sessions_command;
+mod terminal_table;
 #[cfg(feature = "bridge")]
 mod zenohd_command;
 
@@ -63,12 +64,8 @@ enum Command {
         action: Option<DevicesAction>,
         /// One device's record instead of the list.
         id: Option<String>,
-        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
-        #[arg(long)]
-        admin: Option<std::net::SocketAddr>,
-        /// Take the admin endpoint from this configuration file.
-        #[arg(long, short)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        endpoint: AdminEndpoint,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -83,12 +80,8 @@ enum Command {
     Sessions {
         #[command(subcommand)]
         action: Option<SessionsAction>,
-        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
-        #[arg(long)]
-        admin: Option<std::net::SocketAddr>,
-        /// Take the admin endpoint from this configuration file.
-        #[arg(long, short)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        endpoint: AdminEndpoint,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -100,12 +93,8 @@ enum Command {
     Declare {
         /// The profile file (docs/runtimes.md).
         file: PathBuf,
-        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
-        #[arg(long)]
-        admin: Option<std::net::SocketAddr>,
-        /// Take the admin endpoint from this configuration file.
-        #[arg(long, short)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        endpoint: AdminEndpoint,
     },
     /// Device profiles without a broker: check one, or derive them from a 4diac boot file
     /// (FORTE's, or a DINASORE's data_model.fboot).
@@ -133,12 +122,8 @@ enum DevicesAction {
     /// device is refused).
     Forget {
         id: String,
-        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
-        #[arg(long)]
-        admin: Option<std::net::SocketAddr>,
-        /// Take the admin endpoint from this configuration file.
-        #[arg(long, short)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        endpoint: AdminEndpoint,
     },
 }
 
@@ -149,12 +134,8 @@ enum SessionsAction {
     /// session another user left under its client id.
     Drop {
         client_id: String,
-        /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
-        #[arg(long)]
-        admin: Option<std::net::SocketAddr>,
-        /// Take the admin endpoint from this configuration file.
-        #[arg(long, short)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        endpoint: AdminEndpoint,
     },
 }
 
@@ -219,37 +200,45 @@ fn main() -> std::process::ExitCode {
         #[cfg(feature = "bridge")]
         Command::ZenohdConfig(args) => zenohd_command::run(args),
         Command::Devices {
-            action: Some(DevicesAction::Forget { id, admin, config }),
+            action: Some(DevicesAction::Forget { id, endpoint }),
             ..
-        } => admin_address(admin, config).and_then(|a| devices_command::forget(a, &id)),
+        } => endpoint
+            .address()
+            .and_then(|a| devices_command::forget(a, &id)),
         Command::Devices {
             action: None,
             id,
-            admin,
-            config,
+            endpoint,
             json,
             watch,
-        } => devices(id, admin, config, json, watch),
+        } => endpoint.address().and_then(|admin| {
+            devices_command::run(devices_command::Options {
+                admin,
+                json,
+                watch: watch.then_some(Duration::from_secs(1)),
+                id,
+            })
+        }),
         Command::Sessions {
             action:
                 Some(SessionsAction::Drop {
                     client_id,
-                    admin,
-                    config,
+                    endpoint,
                 }),
             ..
-        } => admin_address(admin, config).and_then(|a| sessions_command::drop(a, &client_id)),
+        } => endpoint
+            .address()
+            .and_then(|a| sessions_command::drop(a, &client_id)),
         Command::Sessions {
             action: None,
-            admin,
-            config,
+            endpoint,
             json,
-        } => admin_address(admin, config).and_then(|a| sessions_command::list(a, json)),
-        Command::Declare {
-            file,
-            admin,
-            config,
-        } => admin_address(admin, config).and_then(|a| profile_command::declare(&file, a)),
+        } => endpoint
+            .address()
+            .and_then(|a| sessions_command::list(a, json)),
+        Command::Declare { file, endpoint } => endpoint
+            .address()
+            .and_then(|a| profile_command::declare(&file, a)),
         Command::Profile { action } => match action {
             ProfileAction::Check { file } => profile_command::check(&file),
             ProfileAction::Import(args) => profile_command::import(&args),
@@ -264,22 +253,6 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
-}
-
-fn devices(
-    id: Option<String>,
-    admin: Option<std::net::SocketAddr>,
-    config: Option<PathBuf>,
-    json: bool,
-    watch: bool,
-) -> Result<()> {
-    let admin = admin_address(admin, config)?;
-    devices_command::run(devices_command::Options {
-        admin,
-        json,
-        watch: watch.then_some(Duration::from_secs(1)),
-        id,
-    })
 }
 
 /// Validates the file and loads everything it names (password file, ACL, TLS files).
@@ -447,13 +420,23 @@ fn read_password(from_stdin: bool) -> Result<String> {
 }
 
 /// The admin endpoint: `--admin`, else the one `--config` names, else the default.
-fn admin_address(
+/// Which admin endpoint a command talks to (`devices`, `sessions`, `declare`).
+#[derive(clap::Args)]
+struct AdminEndpoint {
+    /// The admin endpoint; default: the one --config names, else 127.0.0.1:9883.
+    #[arg(long)]
     admin: Option<std::net::SocketAddr>,
+    /// Take the admin endpoint from this configuration file.
+    #[arg(long, short)]
     config: Option<PathBuf>,
-) -> Result<std::net::SocketAddr> {
-    Ok(match (admin, config) {
-        (Some(a), _) => a,
-        (None, Some(path)) => Config::load(&path)?.admin.bind,
-        (None, None) => Config::embedded_default().admin.bind,
-    })
+}
+
+impl AdminEndpoint {
+    fn address(self) -> Result<std::net::SocketAddr> {
+        Ok(match (self.admin, self.config) {
+            (Some(a), _) => a,
+            (None, Some(path)) => Config::load(&path)?.admin.bind,
+            (None, None) => Config::embedded_default().admin.bind,
+        })
+    }
 }

@@ -74,19 +74,7 @@ fn table(sessions: &[Value]) -> String {
             expires,
         ]);
     }
-    let widths: Vec<usize> = (0..5)
-        .map(|c| rows.iter().map(|r| r[c].chars().count()).max().unwrap_or(0))
-        .collect();
-    let mut out = String::new();
-    for row in &rows {
-        let cells: Vec<String> = row
-            .iter()
-            .zip(&widths)
-            .map(|(cell, w)| format!("{cell:<w$}"))
-            .collect();
-        out.push_str(cells.join("  ").trim_end());
-        out.push('\n');
-    }
+    let mut out = crate::terminal_table::aligned(&rows);
     let kept = sessions
         .iter()
         .filter(|s| s.get("status").and_then(Value::as_str) == Some("kept"))

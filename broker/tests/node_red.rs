@@ -6,7 +6,7 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -14,23 +14,10 @@ use common::fb::*;
 use common::{free_port, Broker, Options};
 use serde_json::json;
 
-/// Where `.ci/run` installs the npm packages: `FBBUS_NPM_DIR`, or `~/.cache/fbbus/npm`.
+/// Node-RED's start script, from the npm package `.ci/run` installs.
 fn node_red() -> Option<PathBuf> {
-    let dir = std::env::var_os("FBBUS_NPM_DIR")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/fbbus/npm")))?;
-    let red = dir.join("node_modules/node-red/red.js");
-    if red.is_file() && common::have("node") {
-        return Some(red);
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!(
-            "{} missing; .ci/run should have installed npm node-red",
-            red.display()
-        );
-    }
-    eprintln!("SKIPPED: {} missing (run .ci/run)", red.display());
-    None
+    common::require("node").then_some(())?;
+    common::npm_file("node-red/red.js")
 }
 
 /// Node-RED as a child process, killed when dropped; its output in `log`.

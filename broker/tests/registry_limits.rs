@@ -8,7 +8,7 @@
 mod common;
 
 use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::net::TcpStream;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -16,7 +16,7 @@ use serde_json::Value;
 
 use common::clients::V4;
 use common::fb::*;
-use common::raw::{self, RawClient};
+use common::raw;
 use common::{Broker, Options};
 
 const QUOTA_EXCEEDED: u8 = 0x97;
@@ -33,30 +33,12 @@ fn broker(fb: &str) -> Broker {
 
 /// An MQTT 5 device connected from `source` (a loopback address).
 fn device_from(broker: &Broker, source: &str, id: &str) -> Dev {
-    tokio::task::block_in_place(|| {
-        let socket =
-            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
-        let local: SocketAddr = format!("{source}:0").parse().unwrap();
-        socket.bind(&local.into()).unwrap();
-        socket.connect(&broker.mqtt.into()).unwrap();
-        let stream: TcpStream = socket.into();
-        stream
-            .set_read_timeout(Some(Duration::from_secs(10)))
-            .unwrap();
-        let mut raw = RawClient { stream };
-        let code = raw.handshake(&raw::Connect {
-            version: 5,
-            client_id: id,
-            ..Default::default()
-        });
-        assert_eq!(code, 0, "{id} refused");
-        Dev {
-            raw,
-            version: 5,
-            pkid: 0,
-            id: id.to_owned(),
-        }
-    })
+    let connect = raw::Connect {
+        version: 5,
+        client_id: id,
+        ..Default::default()
+    };
+    Dev::connect_from(broker, source, &connect)
 }
 
 /// Asserts a declaration was refused at `limit`: 0x97, and the reason on its diag topic.

@@ -7,12 +7,11 @@
 
 mod common;
 
-use std::net::{SocketAddr, TcpStream};
 use std::time::Duration;
 
 use common::clients::WAIT;
 use common::fb::*;
-use common::raw::{self, RawClient};
+use common::raw;
 use common::{add_user, Broker, Options};
 
 const PROFILE: &str = r#"
@@ -55,31 +54,29 @@ fn line(profile: &str, auth: &str, listener: &str) -> Broker {
 
 /// An MQTT 5 client with a random client id from loopback address `source`.
 fn client_from(broker: &Broker, source: &str, id: &str, login: Option<(&str, &str)>) -> Dev {
-    tokio::task::block_in_place(|| {
-        let socket =
-            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
-        let local: SocketAddr = format!("{source}:0").parse().unwrap();
-        socket.bind(&local.into()).unwrap();
-        socket.connect(&broker.mqtt.into()).unwrap();
-        let stream: TcpStream = socket.into();
-        stream
-            .set_read_timeout(Some(Duration::from_secs(10)))
-            .unwrap();
-        let mut raw = RawClient { stream };
-        let code = raw.handshake(&raw::Connect {
-            version: 5,
-            client_id: id,
-            login,
-            ..Default::default()
-        });
-        assert_eq!(code, 0, "{id} refused");
-        Dev {
-            raw,
-            version: 5,
-            pkid: 0,
-            id: id.to_owned(),
-        }
-    })
+    let connect = raw::Connect {
+        version: 5,
+        client_id: id,
+        login,
+        ..Default::default()
+    };
+    Dev::connect_from(broker, source, &connect)
+}
+
+/// `fbbus profile check` on `profile`: (passed, stderr).
+fn profile_check(profile: &str) -> (bool, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("dina.toml");
+    std::fs::write(&file, profile).unwrap();
+    let (ok, _, err) = common::run(
+        std::process::Command::new(common::fbbus_bin()).args([
+            "profile",
+            "check",
+            file.to_str().unwrap(),
+        ]),
+        Duration::from_secs(30),
+    );
+    (ok, err)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -165,32 +162,14 @@ async fn a_speaker_username_admits_that_user_only() {
 /// A bad network, or the keys on a device that is not topics-only, are profile errors.
 #[test]
 fn speakers_are_checked_in_the_profile() {
-    let bad = PROFILE.replace("127.0.9.0/24", "127.0.9.0/99");
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("dina.toml"), bad).unwrap();
-    let (ok, out, err) = common::run(
-        std::process::Command::new(common::fbbus_bin()).args([
-            "profile",
-            "check",
-            dir.path().join("dina.toml").to_str().unwrap(),
-        ]),
-        Duration::from_secs(30),
-    );
-    assert!(!ok, "{out}");
+    let (ok, err) = profile_check(&PROFILE.replace("127.0.9.0/24", "127.0.9.0/99"));
+    assert!(!ok);
     assert!(
         err.contains("identity.speakers_from[1]") && err.contains("127.0.9.0/99"),
         "{err}"
     );
-    let not_topics_only = PROFILE.replace("topics_only = true", "client_id = \"dina\"");
-    std::fs::write(dir.path().join("dina.toml"), not_topics_only).unwrap();
-    let (ok, _, err) = common::run(
-        std::process::Command::new(common::fbbus_bin()).args([
-            "profile",
-            "check",
-            dir.path().join("dina.toml").to_str().unwrap(),
-        ]),
-        Duration::from_secs(30),
-    );
+    let (ok, err) = profile_check(&PROFILE.replace("topics_only = true", "client_id = \"dina\""));
     assert!(!ok);
     assert!(err.contains("are for topics_only devices"), "{err}");
+    assert!(profile_check(PROFILE).0, "the test's own profile is valid");
 }

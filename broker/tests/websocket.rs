@@ -407,24 +407,9 @@ fn a_websocket_client_that_stops_reading_is_a_slow_consumer() {
 
 // ------------------------------------------------------------ MQTT.js in Chromium
 
-/// Where `.ci/run` installs the npm packages the browser tests load: `FBBUS_NPM_DIR`, or
-/// `~/.cache/fbbus/npm`.
+/// MQTT.js's browser build, from the npm package `.ci/run` installs.
 fn mqtt_js() -> Option<PathBuf> {
-    let dir = std::env::var_os("FBBUS_NPM_DIR")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/fbbus/npm")))?;
-    let file = dir.join("node_modules/mqtt/dist/mqtt.min.js");
-    if file.is_file() {
-        return Some(file);
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!(
-            "{} missing; .ci/run should have installed npm mqtt",
-            file.display()
-        );
-    }
-    eprintln!("SKIPPED: {} missing (run .ci/run)", file.display());
-    None
+    common::npm_file("mqtt/dist/mqtt.min.js")
 }
 
 fn require_browser() -> bool {

@@ -90,6 +90,21 @@ impl Dev {
         })
     }
 
+    /// Connects with `connect` from the loopback address `source`; panics if refused.
+    pub fn connect_from(broker: &super::Broker, source: &str, connect: &raw::Connect) -> Dev {
+        tokio::task::block_in_place(|| {
+            let mut raw = RawClient::connect_from(broker.mqtt, source);
+            let code = raw.handshake(connect);
+            assert_eq!(code, 0, "{} refused", connect.client_id);
+            Dev {
+                raw,
+                version: connect.version,
+                pkid: 0,
+                id: connect.client_id.to_owned(),
+            }
+        })
+    }
+
     pub fn connect(port: u16, version: u8, id: &str) -> Dev {
         Dev::try_connect(
             port,

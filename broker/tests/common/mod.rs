@@ -375,6 +375,27 @@ pub fn have(program: &str) -> bool {
         .unwrap_or(false)
 }
 
+/// A file of an npm package `.ci/run` installs (MQTT.js, Node-RED) into `FBBUS_NPM_DIR`,
+/// or `~/.cache/fbbus/npm`: `node_modules/<file>`. Missing: a failure in CI, elsewhere
+/// None with the test skipped loudly.
+pub fn npm_file(file: &str) -> Option<PathBuf> {
+    let dir = std::env::var_os("FBBUS_NPM_DIR")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/fbbus/npm")))?;
+    let path = dir.join("node_modules").join(file);
+    if path.is_file() {
+        return Some(path);
+    }
+    if std::env::var_os("CI").is_some() {
+        panic!(
+            "{} missing; .ci/run should have installed it",
+            path.display()
+        );
+    }
+    eprintln!("SKIPPED: {} missing (run .ci/run)", path.display());
+    None
+}
+
 /// Requires a program; in CI its absence is a failure, elsewhere the test is skipped loudly.
 pub fn require(program: &str) -> bool {
     if have(program) {

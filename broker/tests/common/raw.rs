@@ -244,6 +244,21 @@ impl RawClient {
         RawClient { stream }
     }
 
+    /// A connection to `broker` from the loopback address `source` (127.0.0.0/8: a
+    /// broker that counts per address sees another host).
+    pub fn connect_from(broker: std::net::SocketAddr, source: &str) -> RawClient {
+        let socket =
+            socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+        let local: std::net::SocketAddr = format!("{source}:0").parse().unwrap();
+        socket.bind(&local.into()).unwrap();
+        socket.connect(&broker.into()).unwrap();
+        let stream: TcpStream = socket.into();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        RawClient { stream }
+    }
+
     pub fn send(&mut self, bytes: &[u8]) {
         self.stream.write_all(bytes).unwrap();
     }
