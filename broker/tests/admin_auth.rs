@@ -15,17 +15,11 @@ use std::net::{IpAddr, SocketAddr, TcpStream};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use base64::Engine as _;
-use common::Broker;
+use common::{basic, Broker, Options};
 
 const USER: &str = "ops";
 /// Distinctive enough that finding it in a log or a metric cannot be a coincidence.
 const PASSWORD: &str = "Zq7-admin-secret-Pw41";
-
-fn basic(user: &str, password: &str) -> String {
-    let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
-    format!("Basic {token}")
-}
 
 /// One HTTP/1.0 request from `from` (a loopback address of the test's choice, so that a
 /// throttled address does not lock the harness out): (status, head, body).
@@ -67,26 +61,16 @@ fn get(broker: &Broker, path: &str, authorization: Option<&str>) -> (u16, String
 /// A broker whose admin endpoint (on 127.0.0.1) wants a user of `admin-passwd`: `ops`
 /// with [`PASSWORD`]. `extra`: more TOML before the listener.
 fn protected(extra: &str) -> Broker {
-    let dir = tempfile::tempdir().unwrap();
-    common::add_user(&dir.path().join("admin-passwd"), USER, PASSWORD);
-    let mqtt: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let admin: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let config = dir.path().join("fbbus.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[broker]\nline = \"test\"\n{extra}\n\
-             [[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\
-             [admin]\nbind = \"{admin}\"\npassword_file = \"admin-passwd\"\n\
-             [log]\nlevel = \"debug,rumqttd=warn\"\n"
-        ),
+    Broker::start_with(
+        Options {
+            extra: extra.into(),
+            admin_extra: "password_file = \"admin-passwd\"\n".into(),
+            log_level: "debug,rumqttd=warn".into(),
+            admin_authorization: Some(basic(USER, PASSWORD)),
+            ..Options::default()
+        },
+        |dir| common::add_user(&dir.join("admin-passwd"), USER, PASSWORD),
     )
-    .unwrap();
-    Broker::spawn_as(dir, config, mqtt, admin, &[], Some(basic(USER, PASSWORD)))
 }
 
 #[test]

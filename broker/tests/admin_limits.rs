@@ -382,24 +382,15 @@ fn polling_the_device_listing_does_not_stall_a_well_behaved_client() {
 
 /// A broker whose admin connections live at most `connection_ms`.
 fn broker_with_admin(connection_ms: u64) -> Broker {
-    let dir = tempfile::tempdir().unwrap();
-    let mqtt: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let admin: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let config = dir.path().join("fbbus.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[broker]\nline = \"t\"\n[[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\
-             [admin]\nbind = \"{admin}\"\nheader_timeout_ms = 500\n\
-             connection_timeout_ms = {connection_ms}\n"
-        ),
+    Broker::start_with(
+        common::Options {
+            admin_extra: format!(
+                "header_timeout_ms = 500\nconnection_timeout_ms = {connection_ms}\n"
+            ),
+            ..Default::default()
+        },
+        |_| {},
     )
-    .unwrap();
-    Broker::spawn(dir, config, mqtt, admin)
 }
 
 /// The status code of the answer to `head` + `body`.

@@ -12,7 +12,7 @@ use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
 use common::bus::{self, Line, Python};
-use common::clients::{V4, WAIT};
+use common::clients::V4;
 use common::Broker;
 use serde_json::Value;
 
@@ -55,19 +55,7 @@ async fn declared(port: u16, id: &str, will: bool) -> V4 {
         ));
     }
     let mut dev = V4::connect_with(options).await.unwrap();
-    dev.subscribe(&format!("fbbus/diag/{id}")).await;
-    dev.client
-        .publish(
-            format!("fbbus/declare/{id}"),
-            rumqttc::QoS::AtLeastOnce,
-            false,
-            CONV,
-        )
-        .await
-        .unwrap();
-    let answer = dev.next_publish(WAIT).await.expect("declaration answer");
-    let answer: Value = serde_json::from_slice(&answer.payload).unwrap();
-    assert_eq!(answer["ok"], true, "{answer}");
+    dev.declare(id, CONV).await;
     dev
 }
 

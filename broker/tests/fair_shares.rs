@@ -171,30 +171,17 @@ fn a_users_name_is_not_anothers_client_id() {
 /// address, while the scraper whose credentials the broker verified before goes on.
 #[test]
 fn admin_guesses_from_many_addresses_meet_the_users_block() {
-    use base64::Engine;
-    let dir = tempfile::tempdir().unwrap();
-    common::add_user(&dir.path().join("admin-passwd"), "ops", "Right-Pw-1");
-    let mqtt: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let admin: SocketAddr = format!("127.0.0.1:{}", common::free_port())
-        .parse()
-        .unwrap();
-    let config = dir.path().join("fbbus.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[broker]\nline = \"test\"\n[[listener]]\nname = \"main\"\nbind = \"{mqtt}\"\n\
-             [admin]\nbind = \"{admin}\"\npassword_file = \"admin-passwd\"\n"
-        ),
-    )
-    .unwrap();
-    let basic = |user: &str, pw: &str| {
-        let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{pw}"));
-        format!("Basic {token}")
-    };
+    let basic = common::basic;
     let right = basic("ops", "Right-Pw-1");
-    let broker = Broker::spawn_as(dir, config, mqtt, admin, &[], Some(right.clone()));
+    let broker = Broker::start_with(
+        common::Options {
+            admin_extra: "password_file = \"admin-passwd\"\n".into(),
+            admin_authorization: Some(right.clone()),
+            ..Default::default()
+        },
+        |dir| common::add_user(&dir.join("admin-passwd"), "ops", "Right-Pw-1"),
+    );
+    let admin = broker.admin;
     let from = |last: u8, authorization: &str| -> u16 {
         let socket =
             socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();

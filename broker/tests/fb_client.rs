@@ -19,19 +19,11 @@ const BURST: i64 = 5_000;
 /// `dev-a`, declared with two INT outputs, as a plain MQTT client that can burst.
 async fn declared_publisher(broker: &Broker) -> V4 {
     let mut a = V4::connect(broker.port(), "dev-a", None).await.unwrap();
-    a.subscribe("fbbus/diag/dev-a").await;
-    a.client
-        .publish(
-            "fbbus/declare/dev-a",
-            rumqttc::QoS::AtLeastOnce,
-            false,
-            r#"{"fbs":{"CONV":{"data_out":{"POSITION":"INT","SPEED":"INT"}}}}"#,
-        )
-        .await
-        .unwrap();
-    let answer = a.next_publish(Duration::from_secs(5)).await.expect("diag");
-    let answer = String::from_utf8_lossy(&answer.payload);
-    assert!(answer.contains(r#""ok":true"#), "{answer}");
+    a.declare(
+        "dev-a",
+        r#"{"fbs":{"CONV":{"data_out":{"POSITION":"INT","SPEED":"INT"}}}}"#,
+    )
+    .await;
     a
 }
 

@@ -55,7 +55,7 @@ fn ratio(line: &str, pair: &str) -> Option<f64> {
 
 #[test]
 fn quick_fanin_and_connrate_against_fbbus() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let started = Instant::now();
     let run = loadtest(
         &[
@@ -96,7 +96,7 @@ fn quick_fanin_and_connrate_against_fbbus() {
 
 #[test]
 fn two_fbbus_binaries_alternate_and_report_new_over_old() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let old = format!("old={fbbus}");
     let new = format!("new={fbbus}");
     let run = loadtest(
@@ -151,7 +151,7 @@ fn fbbus_mosquitto_and_raw_rumqttd_side_by_side() {
     if !std::path::Path::new("/usr/sbin/mosquitto").is_file() && !require("mosquitto") {
         return;
     }
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let run = loadtest(
         &[
             "compare",
@@ -204,7 +204,7 @@ fn fbbus_mosquitto_and_raw_rumqttd_side_by_side() {
 /// `compare bridge --quick` links two fbbus lines over zenoh and reports the hop.
 #[test]
 fn quick_bridge_scenario_reports_the_hop() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let run = loadtest(&["compare", "bridge", "--quick", "--fbbus", fbbus], &[]);
     assert!(run.success, "compare bridge failed\n{}", run.context());
     let across = run
@@ -226,7 +226,7 @@ fn quick_bridge_scenario_reports_the_hop() {
 /// alternating round by round, every burst message across both, and the mtls/tcp ratios.
 #[test]
 fn quick_bridge_over_tcp_and_mutual_tls_alternates_and_reports_the_ratio() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let run = loadtest(
         &[
             "compare",
@@ -321,7 +321,7 @@ fn quick_bridge_over_tcp_and_mutual_tls_alternates_and_reports_the_ratio() {
 /// `store restored` figures read from its log, and the goal lines.
 #[test]
 fn quick_persistence_measures_the_store_and_the_restart() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let with_mosquitto =
         std::path::Path::new("/usr/sbin/mosquitto").is_file() || require("mosquitto");
     let mut args = vec!["compare", "persistence", "--quick", "--fbbus", fbbus];
@@ -410,7 +410,7 @@ fn quick_persistence_measures_the_store_and_the_restart() {
 /// here: they are the broker's, and --quick is no measurement).
 #[test]
 fn quick_abuse_runs_every_flood_and_states_the_goals() {
-    let fbbus = fbbus_bin().to_str().unwrap();
+    let fbbus = fbbus_bin();
     let started = Instant::now();
     let run = loadtest(&["compare", "abuse", "--quick", "--fbbus", fbbus], &[]);
     let elapsed = started.elapsed();

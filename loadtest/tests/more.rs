@@ -84,7 +84,7 @@ fn write_pki(dir: &Path) {
 /// refuses with advice.
 #[test]
 fn tls_target_with_ca() {
-    let fbbus = Fbbus::start_with(
+    let fbbus = common::fbbus_with(
         "tls",
         "",
         "[listener.tls]\ncert = \"server.crt\"\nkey = \"server.key\"\n",

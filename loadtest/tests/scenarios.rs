@@ -760,7 +760,7 @@ const WRONG_PASSWORD: &str = "Wr0ng-pw-k3Z";
 
 #[test]
 fn storm_with_authentication_and_refusal() {
-    let fbbus = Fbbus::start_with(
+    let fbbus = common::fbbus_with(
         "test",
         "[auth]\npassword_file = \"passwd\"\n",
         "allow_anonymous = false\n",
@@ -841,14 +841,14 @@ fn assert_no_secret(run: &Run, password: &str) {
 fn bridge_carries_every_message_from_line_a_to_line_b() {
     let zenoh_a = format!("tcp/127.0.0.1:{}", common::free_port());
     let zenoh_b = format!("tcp/127.0.0.1:{}", common::free_port());
-    let line_a = Fbbus::start_with(
+    let line_a = common::fbbus_with(
         "la",
         "",
         "",
         &format!("[bridge]\nlisten = [\"{zenoh_a}\"]\nconnect = []\nlease_ms = 1000\n"),
         |_| {},
     );
-    let line_b = Fbbus::start_with(
+    let line_b = common::fbbus_with(
         "lb",
         "",
         "",

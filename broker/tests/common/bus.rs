@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use super::clients::{V4, WAIT};
+use super::clients::V4;
 use super::{free_port, http_get, Broker};
 
 /// How long zenoh has to carry declarations and liveliness between lines on loopback.
@@ -185,19 +185,7 @@ pub async fn device(line: &Line, id: &str) -> V4 {
 /// own diagnostics (`fbbus/diag/<id>`).
 pub async fn device_with(line: &Line, id: &str, interface: &str) -> V4 {
     let mut dev = V4::connect(line.port(), id, None).await.unwrap();
-    dev.subscribe(&format!("fbbus/diag/{id}")).await;
-    dev.client
-        .publish(
-            format!("fbbus/declare/{id}"),
-            rumqttc::QoS::AtLeastOnce,
-            false,
-            interface,
-        )
-        .await
-        .unwrap();
-    let answer = dev.next_publish(WAIT).await.expect("declaration answer");
-    let answer: Value = serde_json::from_slice(&answer.payload).unwrap();
-    assert_eq!(answer["ok"], true, "{answer}");
+    dev.declare(id, interface).await;
     dev
 }
 

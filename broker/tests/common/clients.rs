@@ -86,6 +86,25 @@ impl V4 {
         .await
     }
 
+    /// Declares `interface` for device `id` as a device does (the one declare-a-device
+    /// of the tests over rumqttc): subscribes to `fbbus/diag/<id>`, publishes the
+    /// declaration at QoS 1 and waits for the broker's answer there, which must be ok.
+    pub async fn declare(&mut self, id: &str, interface: &str) {
+        self.subscribe(&format!("fbbus/diag/{id}")).await;
+        self.client
+            .publish(
+                format!("fbbus/declare/{id}"),
+                rumqttc::QoS::AtLeastOnce,
+                false,
+                interface,
+            )
+            .await
+            .unwrap();
+        let answer = self.next_publish(WAIT).await.expect("declaration answer");
+        let answer: serde_json::Value = serde_json::from_slice(&answer.payload).unwrap();
+        assert_eq!(answer["ok"], true, "declaration of {id}: {answer}");
+    }
+
     pub async fn subscribe(&mut self, filter: &str) -> Vec<rumqttc::SubscribeReasonCode> {
         self.client
             .subscribe(filter, rumqttc::QoS::AtLeastOnce)
