@@ -1,0 +1,143 @@
+//! The connection scenarios (`idlemem`, `connrate`, `authstorm`): the harness's own
+//! connection wave and idle-memory measurement ([`loadtest::scenario::connections`]).
+
+use std::time::Duration;
+
+use anyhow::{Context as _, Result};
+
+use loadtest::broker_process::spawn::{Kind, Running};
+use loadtest::scenario::connections::{self, Wave};
+use loadtest::target::Target;
+
+use super::{add_note, mb, Login, Outcome, Params, STORM_USER_PREFIX};
+
+/// The broker as the harness's client stack addresses it, optionally with a login.
+fn target(broker: &Running, login: Option<(&str, &str)>) -> Result<Target> {
+    let mut target = Target::parse(&broker.url())?;
+    if let Some((user, password)) = login {
+        target.username = Some(user.to_owned());
+        target.password = Some(password.to_owned());
+    }
+    Ok(target)
+}
+
+/// Failed connections of a wave, for the scenario's note.
+fn wave_note(wave: &Wave) -> Option<String> {
+    wave.errors
+        .first()
+        .map(|first| format!("{} of {} failed: {first}", wave.errors.len(), wave.n))
+}
+
+/// A wave's clients, dropped without DISCONNECT: the broker is stopped next anyway.
+fn close(wave: Wave) {
+    for c in wave.clients {
+        c.abort();
+    }
+}
+
+pub(super) async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome> {
+    let idle = connections::idle_memory(
+        &target(broker, None)?,
+        Some(broker.pid()),
+        "bench-idle",
+        p.idle_connections,
+        64,
+        Duration::from_secs(1),
+        Duration::from_secs(1),
+        p.deadline,
+    )
+    .await;
+    let before = idle
+        .before_kib
+        .context("cannot read VmRSS of the broker process")?;
+    let after = idle
+        .after_kib
+        .context("cannot read VmRSS of the broker process")?;
+    let n = idle.wave.clients.len();
+    // KB as /proc reports it (kB = 1024 bytes), like the reference figures.
+    let per_conn = idle.kib_per_connection();
+    let note = wave_note(&idle.wave);
+    close(idle.wave);
+    Ok(Outcome {
+        cells: vec![
+            mb(before),
+            mb(after),
+            per_conn
+                .map(|v| format!("{v:.2}"))
+                .unwrap_or_else(|| "-".into()),
+            format!("{n}/{}", p.idle_connections),
+        ],
+        keys: vec![per_conn],
+        note,
+        timed_out: false,
+    })
+}
+
+pub(super) async fn connection_rate(broker: &Running, p: &Params) -> Result<Outcome> {
+    let wave = connections::connect_many(
+        &target(broker, None)?,
+        "bench-rate",
+        p.connrate_connections,
+        p.connrate_inflight,
+        p.deadline,
+    )
+    .await;
+    let n = wave.clients.len();
+    let rate = (n > 0).then(|| wave.rate());
+    let took = wave.took;
+    let note = wave_note(&wave);
+    close(wave);
+    Ok(Outcome {
+        cells: vec![
+            rate.map(|r| format!("{r:.0}"))
+                .unwrap_or_else(|| "-".into()),
+            format!("{n}/{}", p.connrate_connections),
+            format!("{:.3} s", took.as_secs_f64()),
+        ],
+        keys: vec![rate],
+        note,
+        timed_out: false,
+    })
+}
+
+pub(super) async fn auth_storm(broker: &Running, p: &Params, login: &Login) -> Result<Outcome> {
+    let n = p.storm_devices;
+    let user = format!("{STORM_USER_PREFIX}{{i}}");
+    let target = target(broker, Some((&user, &login.password)))?;
+    // Every device at once: as many in flight as there are devices.
+    let wave = connections::connect_many(&target, "bench-storm", n, n, p.deadline).await;
+    let connected = wave.clients.len();
+    let pct = |q: f64| -> Option<Duration> {
+        (connected > 0).then(|| Duration::from_micros(wave.latency.value_at_quantile(q)))
+    };
+    let secs = |d: Option<Duration>| {
+        d.map(|d| format!("{:.3} s", d.as_secs_f64()))
+            .unwrap_or_else(|| "-".into())
+    };
+    let all = (connected > 0).then_some(wave.took);
+    let store = match broker.kind {
+        Kind::Fbbus => "argon2id m=8192 t=1 p=1",
+        Kind::Rumqttd => "plaintext map",
+        Kind::Mosquitto | Kind::MosquittoDefault => "PBKDF2-SHA512 $7$",
+    };
+    let mut note = wave_note(&wave);
+    // "All have CONNACK" is only true when nobody failed.
+    let complete = connected == n;
+    if !complete && note.is_none() {
+        add_note(&mut note, format!("{} not connected", n - connected));
+    }
+    let cells = vec![
+        secs(all),
+        secs(pct(0.50)),
+        secs(pct(0.99)),
+        format!("{connected}/{n}"),
+        store.into(),
+    ];
+    close(wave);
+    Ok(Outcome {
+        cells,
+        keys: vec![all.filter(|_| complete).map(|d| d.as_secs_f64())],
+        note,
+        timed_out: false,
+    })
+}
