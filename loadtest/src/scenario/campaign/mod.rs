@@ -19,6 +19,12 @@
 //! connection number), so `--seed` repeats a campaign packet for packet whatever the
 //! concurrency and timing.
 
+mod conn;
+mod probe;
+
+pub use conn::{Conn, Ctx};
+pub use probe::probe;
+
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -26,16 +32,13 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpSocket, TcpStream};
+use tokio::net::TcpSocket;
 use tokio::task::JoinSet;
 
-use crate::client::{self, Client, ClientConfig};
 use crate::model::Batch;
 use crate::rng::Rng;
 use crate::session::Session;
-use crate::target::{Mqtt, Target};
-use crate::wire::{self, Answer};
+use crate::target::Target;
 use crate::{broker_process, clock, scrape, tally};
 
 /// The parameters both campaigns take.
@@ -237,253 +240,6 @@ impl Tally {
     fn completed(&self) -> u64 {
         self.connections - self.get("result_tcp_failed") - self.get("result_timed_out")
     }
-}
-
-/// What a connection's script knows: where to connect and how long to wait.
-pub struct Ctx {
-    pub target: Target,
-    pub addr: SocketAddr,
-    sources: Vec<IpAddr>,
-    /// Client ids start with this (`lt-a`).
-    pub prefix: String,
-    pub seed: u64,
-    pub read: Duration,
-    pub connack: Duration,
-    /// Bound on a TCP connect and on each write.
-    pub io: Duration,
-}
-
-impl Ctx {
-    /// The harness's --username and password, for valid CONNECTs.
-    pub fn login(&self) -> (Option<Vec<u8>>, Option<Vec<u8>>) {
-        (
-            self.target
-                .username
-                .as_ref()
-                .map(|u| u.replace("{i}", "0").into_bytes()),
-            self.target
-                .password
-                .as_ref()
-                .map(|p| p.clone().into_bytes()),
-        )
-    }
-
-    /// The protocol level the harness's own clients speak (`--mqtt`).
-    pub fn level(&self) -> u8 {
-        match self.target.mqtt {
-            Mqtt::V5 => wire::V5,
-            Mqtt::V311 => wire::V311,
-        }
-    }
-}
-
-/// Received bytes kept for parsing; beyond this they are only counted.
-const KEEP: usize = 64 * 1024;
-
-/// One raw TCP connection to the broker.
-pub struct Conn {
-    stream: TcpStream,
-    pub received: Vec<u8>,
-    /// The broker closed (EOF, reset, a failed write).
-    pub closed: bool,
-    io: Duration,
-}
-
-impl Conn {
-    /// Connects connection `i` (from its source address, when spread).
-    pub async fn open(ctx: &Ctx, i: u64) -> std::io::Result<Conn> {
-        let connect = async {
-            match ctx.sources.get(i as usize % ctx.sources.len().max(1)) {
-                Some(source) => {
-                    let socket = TcpSocket::new_v4()?;
-                    socket.bind(SocketAddr::new(*source, 0))?;
-                    socket.connect(ctx.addr).await
-                }
-                None => TcpStream::connect(ctx.addr).await,
-            }
-        };
-        let stream = tokio::time::timeout(ctx.io, connect)
-            .await
-            .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "connect"))??;
-        let _ = stream.set_nodelay(true);
-        Ok(Conn {
-            stream,
-            received: Vec::new(),
-            closed: false,
-            io: ctx.io,
-        })
-    }
-
-    /// Writes `bytes` whole; false (and `closed`) if the broker closed or stopped reading.
-    pub async fn send(&mut self, o: &mut Outcome, bytes: &[u8]) -> bool {
-        if self.closed {
-            return false;
-        }
-        match tokio::time::timeout(self.io, self.stream.write_all(bytes)).await {
-            Ok(Ok(())) => {
-                o.bytes_sent += bytes.len() as u64;
-                true
-            }
-            _ => {
-                self.closed = true;
-                false
-            }
-        }
-    }
-
-    /// Sends one whole packet, counting it.
-    pub async fn packet(&mut self, o: &mut Outcome, bytes: &[u8], mutated: bool) -> bool {
-        let sent = self.send(o, bytes).await;
-        if sent {
-            o.packets += 1;
-            o.mutated += u64::from(mutated);
-        }
-        sent
-    }
-
-    fn take(&mut self, o: &mut Outcome, buf: &[u8]) {
-        o.bytes_received += buf.len() as u64;
-        let room = KEEP.saturating_sub(self.received.len());
-        self.received.extend_from_slice(&buf[..buf.len().min(room)]);
-    }
-
-    /// Reads until `done(received)`, the broker closes, or `wait` passes.
-    pub async fn read_until(&mut self, o: &mut Outcome, wait: Duration, done: fn(&[u8]) -> bool) {
-        let deadline = tokio::time::Instant::now() + wait;
-        let mut buf = [0u8; 4096];
-        while !self.closed && !done(&self.received) {
-            match tokio::time::timeout_at(deadline, self.stream.read(&mut buf)).await {
-                Ok(Ok(0)) | Ok(Err(_)) => self.closed = true,
-                Ok(Ok(n)) => self.take(o, &buf[..n]),
-                Err(_) => return,
-            }
-        }
-    }
-
-    /// Reads what has already arrived, without waiting.
-    pub fn drain(&mut self, o: &mut Outcome) {
-        let mut buf = [0u8; 4096];
-        while !self.closed {
-            match self.stream.try_read(&mut buf) {
-                Ok(0) => self.closed = true,
-                Ok(n) => self.take(o, &buf[..n]),
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
-                Err(_) => self.closed = true,
-            }
-        }
-    }
-
-    /// Waits (up to `wait`) for the broker's first packet and records how the connection
-    /// began. `sent` is when the CONNECT went out; `awaited` false: the harness does not
-    /// wait (the CONNECT was never completed).
-    pub async fn await_answer(&mut self, o: &mut Outcome, wait: Duration, sent: Instant) {
-        self.read_until(o, wait, |b| wire::first_answer(b).is_some())
-            .await;
-        o.start = match wire::first_answer(&self.received) {
-            Some(Answer::Connack(0)) => {
-                o.connack_us = Some(sent.elapsed().as_micros() as u64);
-                Start::Accepted
-            }
-            Some(Answer::Connack(_)) => Start::Refused,
-            Some(Answer::Other(_)) => Start::OtherAnswer,
-            None if self.closed => Start::ClosedWithoutAnswer,
-            None => Start::NoAnswer,
-        };
-    }
-
-    /// Ends the connection the harness's way (unless the broker already closed it).
-    /// Returns whether the broker closed it (for `Close::Disconnect`: within `read`, as it
-    /// should after a DISCONNECT).
-    pub async fn close(mut self, o: &mut Outcome, how: Close, read: Duration) -> bool {
-        if self.closed {
-            o.closed_by_broker = true;
-            return true;
-        }
-        match how {
-            Close::Disconnect => {
-                // Waits for the broker to close: the DISCONNECT was processed.
-                self.read_until(o, read, |_| false).await;
-            }
-            Close::Drop => {
-                self.drain(o);
-                let _ = self.stream.shutdown().await;
-            }
-            Close::Reset | Close::MidPacket => {
-                let _ = self.stream.set_zero_linger();
-            }
-        }
-        o.close = Some(how);
-        self.closed
-    }
-}
-
-/// The routing probe: a fresh subscriber and a fresh publisher (valid clients, the
-/// harness's login), one QoS 1 message on a topic with multi-byte characters, which must
-/// arrive within `wait`. Returns the round trip.
-pub async fn probe(
-    target: &Target,
-    prefix: &str,
-    n: u64,
-    wait: Duration,
-) -> Result<Duration, String> {
-    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
-    let on_publish: client::OnPublish = Arc::new(move |_topic: &[u8], payload: &[u8]| {
-        let _ = tx.send(payload.to_vec());
-    });
-    let mut config = ClientConfig::new(format!("{prefix}-probe-sub"));
-    config.timeout = wait;
-    let mut sub = Client::connect(target, &config, Some(on_publish))
-        .await
-        .map_err(|e| format!("probe subscriber: {e}"))?;
-    let filters = [
-        "fbbus-loadtest/probe/#".to_owned(),
-        "+/probe/+/Förderband/#".to_owned(),
-    ];
-    if let Err(e) = sub.subscribe(&filters, client::qos(1)).await {
-        sub.abort();
-        return Err(format!("probe subscriber: {e}"));
-    }
-    let mut config = ClientConfig::new(format!("{prefix}-probe-pub"));
-    config.timeout = wait;
-    let publisher = match Client::connect(target, &config, None).await {
-        Ok(p) => p,
-        Err(e) => {
-            sub.abort();
-            return Err(format!("probe publisher: {e}"));
-        }
-    };
-    let nonce = format!("probe {n} {}", clock::now_us()).into_bytes();
-    let topic = format!("fbbus-loadtest/probe/é/Förderband/{n}");
-    let start = Instant::now();
-    let result = match publisher
-        .publish(&topic, client::qos(1), nonce.clone())
-        .await
-    {
-        Err(e) => Err(format!("probe publisher: {e}")),
-        Ok(()) => {
-            let arrived = tokio::time::timeout(wait, async {
-                while let Some(payload) = rx.recv().await {
-                    if payload == nonce {
-                        return true;
-                    }
-                }
-                false
-            })
-            .await;
-            match arrived {
-                Ok(true) => Ok(start.elapsed()),
-                Ok(false) => {
-                    Err("the probe subscriber's connection ended before the probe arrived".into())
-                }
-                Err(_) => Err(format!(
-                    "the probe message on {topic:?} did not arrive within {wait:?}"
-                )),
-            }
-        }
-    };
-    publisher.disconnect().await;
-    sub.disconnect().await;
-    result
 }
 
 /// One reading of the broker's process and metrics.
