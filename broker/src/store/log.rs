@@ -37,7 +37,7 @@
 //! store exactly as it was after the last whole record before the cut: never a mix of
 //! states, never a message that was not written, never one a `Done` before the cut took
 //! away (`every_cut_restores_an_earlier_state_exactly`). What that means for QoS 1 and 2:
-//! docs/persistence.md, "Damage and truncation".
+//! README.md, "Damage and truncation".
 //!
 //! **Versions.** Format 1 (until 2026-12: `length | CRC-32 of the body | body`, no mark,
 //! a 12-byte header) is still read, the old way (stopping at the first bad record), and
@@ -833,6 +833,41 @@ mod tests {
         };
         assert!(replay.records.is_empty() && replay.torn.is_none());
         assert_eq!(std::fs::metadata(&path).unwrap().len(), HEADER as u64);
+    }
+
+    /// The `store_replay` fuzz target's seeds (broker/fuzz/seeds/store_log.py) are what
+    /// their names say: each damaged one loses one record, the cut ones a tail.
+    #[test]
+    fn the_fuzz_seeds_are_whole_damaged_and_cut_logs() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/store_replay");
+        let read = |name: &str| parse(&std::fs::read(dir.join(name)).unwrap());
+        let whole = read("v2-whole.store");
+        assert!(whole.records.len() > 40 && whole.skipped.is_empty());
+        assert_eq!(read("v1-whole.store").records, whole.records);
+        for name in [
+            "v2-damaged-byte.store",
+            "v2-damaged-length.store",
+            "v2-zeroed-block.store",
+        ] {
+            let p = read(name);
+            assert_eq!(p.skipped.len(), 1, "{name}");
+            assert!(p.records.len() < whole.records.len(), "{name}");
+            assert!(p.records.len() + 4 > whole.records.len(), "{name}");
+            assert!(p.records.iter().all(|r| whole.records.contains(r)));
+        }
+        assert_eq!(read("v2-damaged-header-mark.store").records, whole.records);
+        for name in ["v2-cut-in-half.store", "v1-cut-in-half.store"] {
+            let p = read(name);
+            let n = p.records.len();
+            assert!(n > 0 && n < whole.records.len(), "{name}");
+            assert_eq!(p.records, whole.records[..n], "{name}");
+        }
+        let bytes = std::fs::read(dir.join("v2-damaged-and-cut.store")).unwrap();
+        let p = parse(&bytes);
+        assert_eq!(p.skipped.len(), 1);
+        assert!(p.end < bytes.len(), "a torn tail");
+        assert!(p.records.len() + 2 < whole.records.len());
+        assert!(p.records.iter().all(|r| whole.records.contains(r)));
     }
 
     #[test]
