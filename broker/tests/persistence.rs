@@ -382,6 +382,71 @@ fn a_torn_store_is_recovered_up_to_its_last_intact_record() {
     assert_eq!(broker.metric("fbbus_store_retained_messages"), 1.0);
 }
 
+/// Issue 33: a damaged byte in the middle of the store (not a torn tail) loses the record
+/// it is in, not everything after it: the messages queued before and after the damaged
+/// one are delivered, the skip is counted and logged, and the store is rewritten without
+/// it.
+#[test]
+fn a_damaged_byte_in_the_store_loses_its_record_only() {
+    let mut broker = Broker::start();
+    let (mut sub, _) = client(&broker, 4, "dmg", false);
+    subscribe(&mut sub, 4, "dmg/#", 1);
+    sub.send(&raw::DISCONNECT);
+    drop(sub);
+    let (mut p, _) = client(&broker, 4, "pub", true);
+    for i in 1..=30u16 {
+        publish_acked(&mut p, 4, "dmg/x", 1, i, false, &format!("payload-{i:02}"));
+    }
+    drop(p);
+    broker.signal("KILL");
+    common::wait_until(&mut broker.child, Duration::from_secs(10)).unwrap();
+    let log = broker.path("fbbus-store/store.log");
+    let mut bytes = std::fs::read(&log).unwrap();
+    let at = bytes
+        .windows(10)
+        .position(|w| w == b"payload-15")
+        .expect("message 15 in the log");
+    bytes[at + 3] ^= 0x01;
+    std::fs::write(&log, &bytes).unwrap();
+    broker.start_again();
+    let text = broker.log_text();
+    assert!(
+        text.contains("damaged records") && text.contains("offset"),
+        "{text}"
+    );
+    assert!(
+        broker.metric("fbbus_store_skipped_bytes_total{reason=\"damaged\"}") > 0.0,
+        "the skip is counted"
+    );
+    assert_eq!(
+        broker.metric("fbbus_store_skipped_records_total{reason=\"damaged\"}"),
+        1.0
+    );
+    assert_eq!(
+        broker.metric("fbbus_store_skipped_bytes_total{reason=\"torn\"}"),
+        0.0
+    );
+    let (mut sub, present) = client(&broker, 4, "dmg", false);
+    assert!(present);
+    let got: Vec<String> = drain(&mut sub, 4, QUIET)
+        .into_iter()
+        .map(|g| g.payload)
+        .collect();
+    let want: Vec<String> = (1..=30)
+        .filter(|i| *i != 15)
+        .map(|i| format!("payload-{i:02}"))
+        .collect();
+    assert_eq!(got, want, "everything but the damaged record, in order");
+    drop(sub);
+    // Rewritten without the damage: the next start skips nothing.
+    broker.restart("KILL");
+    assert_eq!(
+        broker.metric("fbbus_store_skipped_bytes_total{reason=\"damaged\"}"),
+        0.0
+    );
+    assert_eq!(broker.log_text().matches("damaged records").count(), 1);
+}
+
 #[test]
 fn a_store_from_a_newer_fbbus_is_refused_with_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();

@@ -128,6 +128,8 @@ pub struct StoreMetrics {
     not_stored: IntCounterVec,
     write_errors: IntCounter,
     compactions: IntCounter,
+    skipped_bytes: IntCounterVec,
+    skipped_records: IntCounterVec,
 }
 
 impl StoreMetrics {
@@ -157,6 +159,22 @@ impl StoreMetrics {
         )
         .expect("valid metric");
         metrics.register(Box::new(not_stored.clone()));
+        let by_reason = |name: &str, help: &str| {
+            let c = IntCounterVec::new(Opts::new(name, help), &["reason"]).expect("valid metric");
+            metrics.register(Box::new(c.clone()));
+            c
+        };
+        let skipped_bytes = by_reason(
+            "fbbus_store_skipped_bytes_total",
+            "Bytes of the store's log not restored at start, by reason: damaged (records \
+             that failed their checksum, skipped; what follows them was restored), torn (an \
+             incomplete tail, cut and kept beside the log)",
+        );
+        let skipped_records = by_reason(
+            "fbbus_store_skipped_records_total",
+            "Records of the store's log not restored at start (estimated from the record \
+             marks in the bytes), by reason as fbbus_store_skipped_bytes_total",
+        );
         let counter = |name: &str, help: &str| {
             let c = IntCounter::new(name, help).expect("valid metric");
             metrics.register(Box::new(c.clone()));
@@ -188,6 +206,33 @@ impl StoreMetrics {
                 "Failed writes or syncs of the log (the disk is full or failing)",
             ),
             compactions: counter("fbbus_store_compactions_total", "Compactions of the log"),
+            skipped_bytes,
+            skipped_records,
+        }
+    }
+
+    /// What replay did not restore.
+    fn skipped(&self, skipped: &[log::Skip], torn: Option<&(PathBuf, u64, u64)>) {
+        for s in skipped {
+            self.skipped_bytes
+                .with_label_values(&["damaged"])
+                .inc_by(s.bytes);
+            self.skipped_records
+                .with_label_values(&["damaged"])
+                .inc_by(s.records);
+        }
+        if let Some((_, bytes, records)) = torn {
+            self.skipped_bytes
+                .with_label_values(&["torn"])
+                .inc_by(*bytes);
+            self.skipped_records
+                .with_label_values(&["torn"])
+                .inc_by(*records);
+        }
+        // Both reasons are there from the start, at 0.
+        for reason in ["damaged", "torn"] {
+            self.skipped_bytes.with_label_values(&[reason]);
+            self.skipped_records.with_label_values(&[reason]);
         }
     }
 
@@ -223,13 +268,36 @@ impl Store {
         let started = Instant::now();
         let path = section.dir.join("store.log");
         let (mut log, replay) = log::Log::open(&path)?;
-        if let Some((torn, bytes)) = &replay.torn {
+        if let Some((torn, bytes, _)) = &replay.torn {
             tracing::warn!(
                 store = %path.display(),
                 kept_in = %torn.display(),
                 bytes,
                 "the store's last records were torn or corrupt (a crash or power cut while \
                  writing): recovered up to the last intact record; the rest is kept aside"
+            );
+        }
+        if let Some(first) = replay.skipped.first() {
+            let bytes: u64 = replay.skipped.iter().map(|s| s.bytes).sum();
+            let records: u64 = replay.skipped.iter().map(|s| s.records).sum();
+            let offsets: Vec<String> = replay
+                .skipped
+                .iter()
+                .take(16)
+                .map(|s| format!("{}+{}", s.offset, s.bytes))
+                .collect();
+            tracing::warn!(
+                store = %path.display(),
+                kept_in = %replay.damaged.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
+                offset = first.offset,
+                stretches = replay.skipped.len(),
+                offsets = %offsets.join(" "),
+                bytes,
+                records,
+                "the store has damaged records (a disk or memory error, an edit): they were \
+                 skipped and everything else restored; the records are estimated, their bytes \
+                 kept aside, and the store is rewritten without them; see \
+                 fbbus_store_skipped_bytes_total"
             );
         }
         let limits = Limits {
@@ -240,6 +308,7 @@ impl Store {
         };
         let mut state = State::default();
         let mut drops = Drops::default();
+        let (rewrite, version) = (replay.rewrite(), replay.version);
         for record in replay.records {
             state.apply(record, limits, &mut drops);
         }
@@ -292,10 +361,38 @@ impl Store {
             }
         }
         let store_metrics = Arc::new(StoreMetrics::new(metrics));
-        if !ended.is_empty() {
+        store_metrics.skipped(&replay.skipped, replay.torn.as_ref());
+        let mut rewritten = false;
+        if rewrite {
+            // Format 1 (which this fbbus does not append to) or damage met: the store is
+            // rewritten now, from what was restored.
+            match log.compact(state.snapshot().into_iter()) {
+                Ok(()) => {
+                    store_metrics.compactions.inc();
+                    rewritten = true;
+                    tracing::info!(
+                        store = %path.display(),
+                        format = version,
+                        bytes = log.length(),
+                        "store rewritten in format {}", log::VERSION
+                    );
+                }
+                Err(e) if version < log::VERSION => return Err(e.into()),
+                Err(e) => {
+                    store_metrics.write_errors.inc();
+                    tracing::error!(
+                        error = %e,
+                        "cannot rewrite the store without its damaged records; it goes on \
+                         with them (skipped again at the next start)"
+                    );
+                }
+            }
+        }
+        if !ended.is_empty() && !rewritten {
             let mut bytes = Vec::new();
+            let framer = log.framer();
             for r in &ended {
-                log::frame(r, &mut bytes);
+                framer.frame(r, &mut bytes);
             }
             if let Err(e) = log.append(&bytes) {
                 tracing::error!(store = %path.display(), error = %e, "cannot write to the store");
@@ -527,13 +624,26 @@ fn restored_session(client: &str, s: &StoredSession, now: u64) -> RestoredSessio
 }
 
 /// For the fuzzer (`broker/fuzz`, target `store_replay`): reads `bytes` as a store log
-/// (a 12-byte header, then records) into a state under small limits, checks what the state
-/// promises, and that a compaction of it rebuilds the same state. Returns how many records
-/// were intact. A file on disk is outside input: nothing here may panic on it.
+/// (a header, then records; format 1 or 2) into a state under small limits, checks what
+/// the state promises, and that a compaction of it rebuilds the same state. Returns how
+/// many records were intact. A file on disk is outside input: nothing here may panic on
+/// it, and replay, skipping damage, never reads more than was there.
 #[doc(hidden)]
 pub fn replay_for_fuzzing(bytes: &[u8]) -> usize {
-    let (records, end) = log::parse(bytes);
+    let parsed = log::parse(bytes);
+    let end = parsed.end;
     assert!(end <= bytes.len().max(log::HEADER));
+    // Skipped stretches lie before the end, in order, apart; every record took at least a
+    // frame and a byte of what was not skipped.
+    let mut last = 0;
+    for s in &parsed.skipped {
+        assert!(s.offset >= last && s.bytes > 0 && s.records > 0);
+        last = s.offset + s.bytes;
+    }
+    assert!(last <= end as u64);
+    let skipped: u64 = parsed.skipped.iter().map(|s| s.bytes).sum();
+    assert!(parsed.records.len() as u64 * 9 <= (end as u64).saturating_sub(skipped));
+    let records = parsed.records;
     let limits = Limits {
         max_bytes: 1 << 16,
         max_queued: 16,
@@ -677,6 +787,308 @@ mod tests {
         assert_eq!(restore.queued, 1);
         let backlog: Vec<u64> = store.take_backlog("hmi-1").iter().map(|b| b.seq).collect();
         assert_eq!(backlog, [3]);
+    }
+
+    const WIDE: Limits = Limits {
+        max_bytes: 1 << 30,
+        max_queued: 1 << 20,
+        max_retained: 1 << 20,
+        max_retained_bytes: 1 << 30,
+    };
+
+    /// What a state holds, comparable: each session's queue (number, QoS, QoS 2 step),
+    /// offline time and subscriptions; retained topics and payloads; the counters.
+    type Summary = (
+        Vec<(
+            String,
+            Option<u64>,
+            Vec<String>,
+            Vec<(u64, u8, Option<Qos2>)>,
+        )>,
+        Vec<(Vec<u8>, Vec<u8>)>,
+        (u64, usize, usize),
+    );
+
+    fn summary(s: &State) -> Summary {
+        let mut sessions: Vec<_> = s
+            .sessions
+            .iter()
+            .map(|(c, s)| {
+                (
+                    c.to_string(),
+                    s.offline_at,
+                    s.subscriptions.keys().cloned().collect(),
+                    s.queue
+                        .iter()
+                        .map(|(seq, q)| (seq, q.qos, q.qos2))
+                        .collect(),
+                )
+            })
+            .collect();
+        sessions.sort_by(|a, b| a.0.cmp(&b.0));
+        let retained = s
+            .retained
+            .iter()
+            .map(|(t, m)| (t.clone(), m.payload.to_vec()))
+            .collect();
+        (sessions, retained, (s.last_seq, s.queued, s.bytes))
+    }
+
+    fn replayed(records: Vec<Record>) -> State {
+        let mut state = State::default();
+        let mut drops = Drops::default();
+        for r in records {
+            state.apply(r, WIDE, &mut drops);
+        }
+        state
+    }
+
+    /// Two persistent sessions, QoS 1 and 2 publications (some retained) and every step of
+    /// their deliveries, interleaved as a broker writes them.
+    fn history() -> Vec<Record> {
+        let options = |qos| Options {
+            qos,
+            no_local: false,
+            retain_as_published: false,
+            retain_handling: 0,
+            id: 0,
+        };
+        let session = |c: &str| Record::Session {
+            client: c.into(),
+            owner: String::new(),
+            v5: true,
+            expiry: None,
+            fresh: true,
+        };
+        let mut h = vec![
+            session("q2"),
+            Record::Subscribe {
+                client: "q2".into(),
+                filter: "line/#".into(),
+                options: options(2),
+            },
+            session("q1"),
+            Record::Subscribe {
+                client: "q1".into(),
+                filter: "line/+".into(),
+                options: options(1),
+            },
+        ];
+        for seq in 1..=24u64 {
+            let mut m = message("line/press");
+            m.qos = if seq % 3 == 0 { 1 } else { 2 };
+            m.retain = seq % 5 == 0;
+            m.payload = bytes::Bytes::from(format!("m{seq}"));
+            h.push(Record::Publish { seq, message: m });
+            // The deliveries of the message two before: q2 goes through QoS 2's steps,
+            // q1 acknowledges; one of q2's is left at PUBREC, one at PUBLISH.
+            if seq > 2 {
+                let d = seq - 2;
+                let pkid = d as u16;
+                if d % 3 != 0 {
+                    h.push(Record::Qos2 {
+                        client: "q2".into(),
+                        seq: d,
+                        state: Qos2::Sent(pkid),
+                    });
+                }
+                if d % 3 != 0 && d != 7 {
+                    h.push(Record::Qos2 {
+                        client: "q2".into(),
+                        seq: d,
+                        state: Qos2::Received(pkid),
+                    });
+                }
+                if d != 7 && d != 11 {
+                    h.push(Record::Done {
+                        client: "q2".into(),
+                        seq: d,
+                    });
+                }
+                h.push(Record::Done {
+                    client: "q1".into(),
+                    seq: d,
+                });
+            }
+            if seq == 12 {
+                h.push(Record::Offline {
+                    client: "q1".into(),
+                    at: 1_700_000_000,
+                    expiry: None,
+                });
+            }
+        }
+        h
+    }
+
+    /// Issue 33: a log cut anywhere (a lost tail, a file cut in half) restores the store
+    /// exactly as it was after the last whole record before the cut: a state it had, never
+    /// a mix, never more. So for QoS 2: a delivery whose PUBREC was recorded before the cut
+    /// resumes with PUBREL (never a second PUBLISH); one whose PUBCOMP (`Done`) was, never
+    /// comes back; one at PUBLISH is sent again under its packet id, DUP=1.
+    #[test]
+    fn every_cut_restores_an_earlier_state_exactly() {
+        let records = history();
+        let (bytes, ends) = log::log_of(&records);
+        // The state after each whole record, as the writer had it.
+        let mut states = vec![summary(&State::default())];
+        let mut state = State::default();
+        let mut drops = Drops::default();
+        for r in &records {
+            state.apply(r.clone(), WIDE, &mut drops);
+            states.push(summary(&state));
+        }
+        for cut in 0..=bytes.len() {
+            let parsed = log::parse(&bytes[..cut]);
+            let whole = ends.iter().filter(|e| **e <= cut).count();
+            assert_eq!(parsed.records.len(), whole, "cut at {cut}");
+            let restored = replayed(parsed.records);
+            assert_eq!(summary(&restored), states[whole], "cut at {cut}");
+            // QoS 2, said record by record.
+            let before = &records[..whole];
+            let Some(q2) = restored.sessions.get("q2") else {
+                continue;
+            };
+            for (seq, q) in q2.queue.iter() {
+                let recorded = |want: fn(&Qos2) -> bool| {
+                    before.iter().any(|r| {
+                        matches!(r, Record::Qos2 { client, seq: s, state }
+                            if &**client == "q2" && *s == seq && want(state))
+                    })
+                };
+                let done = before.iter().any(
+                    |r| matches!(r, Record::Done { client, seq: s } if &**client == "q2" && *s == seq),
+                );
+                assert!(!done, "cut at {cut}: message {seq} was done");
+                if recorded(|s| matches!(s, Qos2::Received(_))) {
+                    assert!(matches!(q.qos2, Some(Qos2::Received(p)) if p as u64 == seq));
+                } else if recorded(|s| matches!(s, Qos2::Sent(_))) {
+                    assert!(matches!(q.qos2, Some(Qos2::Sent(p)) if p as u64 == seq));
+                } else {
+                    assert_eq!(q.qos2, None);
+                }
+            }
+        }
+    }
+
+    /// A compacted log cut anywhere restores part of what was live, as it was: nothing
+    /// that was not live, no QoS 2 delivery at an earlier step.
+    #[test]
+    fn a_cut_compacted_log_restores_nothing_that_was_not_live() {
+        let full = replayed(history());
+        let live = summary(&full);
+        let (bytes, _) = log::log_of(&full.snapshot());
+        for cut in 0..=bytes.len() {
+            let restored = summary(&replayed(log::parse(&bytes[..cut]).records));
+            for (client, _, subscriptions, queue) in &restored.0 {
+                let (_, _, all, queued) = live.0.iter().find(|s| &s.0 == client).unwrap();
+                assert!(
+                    subscriptions.iter().all(|f| all.contains(f)),
+                    "cut at {cut}"
+                );
+                assert!(queue.iter().all(|q| queued.contains(q)), "cut at {cut}");
+            }
+            assert!(
+                restored.1.iter().all(|r| live.1.contains(r)),
+                "cut at {cut}"
+            );
+        }
+    }
+
+    /// Issue 33 through the store: a damaged record in the middle of the log is skipped,
+    /// everything after it restored, the skip counted, and the store rewritten without it.
+    #[tokio::test]
+    async fn a_damaged_record_is_skipped_counted_and_rewritten_away() {
+        let dir = tempfile::tempdir().unwrap();
+        let section = PersistenceSection {
+            dir: dir.path().to_path_buf(),
+            ..PersistenceSection::default()
+        };
+        let records = history();
+        let (mut bytes, ends) = log::log_of(&records);
+        // A bit of the Publish of message 1, whose deliveries are all done by the end;
+        // and one of message 24, which nothing acknowledged.
+        let publish = |seq| {
+            records
+                .iter()
+                .position(|r| matches!(r, Record::Publish { seq: s, .. } if *s == seq))
+                .unwrap()
+        };
+        let damaged = [publish(1), publish(24)];
+        for i in damaged {
+            bytes[ends[i] - 3] ^= 0x08;
+        }
+        std::fs::create_dir_all(dir.path()).unwrap();
+        std::fs::write(dir.path().join("store.log"), &bytes).unwrap();
+        let metrics = crate::metrics::Metrics::new();
+        let (store, restore) = Store::open(&section, (1000, 1 << 20), &metrics).unwrap();
+        let kept: Vec<Record> = (0..records.len())
+            .filter(|i| !damaged.contains(i))
+            .map(|i| records[i].clone())
+            .collect();
+        let want = replayed(kept);
+        assert_eq!(restore.queued, want.queued);
+        let q2: Vec<u64> = store.take_backlog("q2").iter().map(|b| b.seq).collect();
+        assert_eq!(q2, [7, 11, 23], "message 24 is lost, the rest as written");
+        let text = metrics.render();
+        let lost: usize = [damaged[0], damaged[1]]
+            .iter()
+            .map(|i| ends[*i] - if *i == 0 { log::HEADER } else { ends[*i - 1] })
+            .sum();
+        assert!(
+            text.contains(&format!(
+                "fbbus_store_skipped_bytes_total{{reason=\"damaged\"}} {lost}"
+            )),
+            "{text}"
+        );
+        assert!(text.contains("fbbus_store_skipped_records_total{reason=\"damaged\"} 2"));
+        assert!(text.contains("fbbus_store_skipped_bytes_total{reason=\"torn\"} 0"));
+        store.close().await;
+        drop(store);
+        // Rewritten: the next start meets no damage.
+        let metrics = crate::metrics::Metrics::new();
+        let (store, restore) = Store::open(&section, (1000, 1 << 20), &metrics).unwrap();
+        assert_eq!(restore.queued, want.queued);
+        assert!(metrics
+            .render()
+            .contains("fbbus_store_skipped_bytes_total{reason=\"damaged\"} 0"));
+        store.close().await;
+    }
+
+    /// A store written in format 1 (before issue 33) restores, and is rewritten in format 2.
+    #[tokio::test]
+    async fn a_format_1_store_restores_and_is_rewritten() {
+        let dir = tempfile::tempdir().unwrap();
+        let section = PersistenceSection {
+            dir: dir.path().to_path_buf(),
+            ..PersistenceSection::default()
+        };
+        let records = history();
+        let mut old = b"FBBUSLOG".to_vec();
+        old.extend_from_slice(&1u32.to_le_bytes());
+        for r in &records {
+            let mut body = Vec::new();
+            r.encode(&mut body);
+            old.extend_from_slice(&(body.len() as u32).to_le_bytes());
+            old.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+            old.extend_from_slice(&body);
+        }
+        let path = dir.path().join("store.log");
+        std::fs::write(&path, &old).unwrap();
+        let want = summary(&replayed(records));
+        let (store, restore) =
+            Store::open(&section, (1000, 1 << 20), &crate::metrics::Metrics::new()).unwrap();
+        assert_eq!(restore.queued, want.2 .1);
+        assert_eq!(restore.retained.len(), want.1.len());
+        let q2: Vec<u64> = store.take_backlog("q2").iter().map(|b| b.seq).collect();
+        assert_eq!(q2, [7, 11, 23, 24]);
+        store.close().await;
+        drop(store);
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[8..12], &log::VERSION.to_le_bytes(), "rewritten");
+        let restored = summary(&replayed(log::parse(&bytes).records));
+        assert_eq!(restored.0, want.0);
+        assert_eq!(restored.1, want.1);
     }
 
     #[test]

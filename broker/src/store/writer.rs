@@ -79,13 +79,14 @@ impl Writer {
             let busy = group.len() > 1;
             buffer.clear();
             let mut sync = self.fsync == Fsync::Always;
+            let framer = self.log.framer();
             for b in &group {
                 for r in &b.records {
-                    log::frame(r, &mut buffer);
+                    framer.frame(r, &mut buffer);
                 }
                 if let Some((client, seqs)) = &b.done {
                     for seq in seqs {
-                        log::frame_done(client, *seq, &mut buffer);
+                        framer.frame_done(client, *seq, &mut buffer);
                     }
                 }
                 sync |= b.sync;
