@@ -108,6 +108,16 @@ impl Identities {
         }
     }
 
+    /// Whose shares a client of `owner` from `ip` spends (issue 33: the store's bytes and
+    /// messages, retained messages): its verified username, or, without one, its address
+    /// (client ids are free to choose, an address is not).
+    pub fn share(&self, owner: &Owner, ip: std::net::IpAddr) -> String {
+        match owner {
+            Owner::User(user) => format!("user:{user}"),
+            Owner::Anonymous => format!("address:{}", ip.to_canonical()),
+        }
+    }
+
     /// Whether `[auth] client_id` lets `username` use `client_id`.
     pub fn bound(&self, client_id: &str, username: Option<&str>) -> bool {
         self.rule.allows(client_id, username)

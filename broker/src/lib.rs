@@ -55,6 +55,7 @@ mod pending;
 mod policy;
 pub mod profiles;
 mod registry;
+mod retained_share;
 mod router;
 mod server;
 mod session;

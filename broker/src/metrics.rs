@@ -293,7 +293,9 @@ impl Metrics {
                 "Requests refused because a configured limit was reached, by limit \
                  (subscriptions_per_client, retained_messages, retained_bytes, \
                  sessions_per_identity, devices, devices_per_identity, declaration_bytes, fbs, \
-                 ports, encoded_size, declaration_rate)",
+                 ports, encoded_size, declaration_rate, stored_publications: a QoS 1/2 \
+                 publication the store did not keep for a persistent session, its store full \
+                 or the publisher's own share spent, answered 0x97 to MQTT 5 publishers)",
                 &["limit"],
             ),
             connection_limit: gauge(

@@ -217,6 +217,11 @@ impl Broker {
                 config.broker.max_connections,
             )),
             store,
+            retained_shares: crate::retained_share::RetainedShares::new(
+                config.broker.max_retained_messages_per_identity.max(1),
+                config.broker.max_retained_bytes_per_identity.max(1),
+                config.broker.max_retained_messages,
+            ),
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -240,6 +245,12 @@ impl Broker {
         crate::session::restore::put_back(&restore, &ctx)
             .await
             .map_err(StartError::Router)?;
+        ctx.retained_shares.restore(
+            restore
+                .retained_shares
+                .iter()
+                .map(|(share, topic, size)| (share.as_str(), topic.as_str(), *size)),
+        );
         let owners = crate::session::restore::owners(&restore);
         ctx.wills.restore(&owners, restore.wills);
 

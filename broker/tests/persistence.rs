@@ -813,3 +813,216 @@ fn a_session_expiry_runs_on_across_a_restart() {
     publish_acked(&mut p, 4, "exp/x", 1, 1, false, "late");
     assert!(drain(&mut c, 5, QUIET).is_empty(), "no subscription left");
 }
+
+/// MQTT 5 client `id` logged in as `user`, clean or with a session that outlives it.
+fn user_client(broker: &Broker, user: &str, id: &str, clean: bool) -> RawClient {
+    let mut c = RawClient::connect(broker.port());
+    let code = c.handshake(&Connect {
+        version: 5,
+        client_id: id,
+        keep_alive: 60,
+        clean,
+        login: Some((user, "pw")),
+        session_expiry: (!clean).then_some(3600),
+        ..Default::default()
+    });
+    assert_eq!(code, 0, "{user} refused as {id}");
+    c
+}
+
+/// The reason code of the MQTT 5 PUBACK for a QoS 1 publication (absent: 0, success).
+fn puback_reason(c: &mut RawClient, topic: &str, pkid: u16, payload: &[u8]) -> u8 {
+    c.send(&publish(5, topic, 1, pkid, false, payload));
+    let (byte1, body) = c.read_packet().expect("PUBACK");
+    assert_eq!(byte1, PUBACK);
+    assert_eq!(u16::from_be_bytes([body[0], body[1]]), pkid);
+    body.get(2).copied().unwrap_or(0)
+}
+
+/// Issue 33, 3: five offline persistent sessions of one user filled the 256 MiB store, and
+/// another user's session then kept 1 of 20 acknowledged orders across a crash. Now each
+/// identity's sessions have a share (`max_bytes_per_identity`): the filler's own
+/// publications are answered 0x97 Quota exceeded once its sessions' share is spent, the
+/// store stays far from full, and the other user's session gets all 20 orders after a
+/// SIGKILL, each of them acknowledged with success.
+#[test]
+fn one_users_sessions_cannot_take_the_store_another_users_session_needs() {
+    const SHARE: usize = 128 * 1024;
+    let mut broker = Broker::start_with(
+        Options {
+            extra: format!(
+                "[auth]\npassword_file = \"passwd\"\n\n[persistence]\nmax_bytes = {}\n\
+                 max_bytes_per_identity = {SHARE}\n",
+                1024 * 1024
+            ),
+            ..Options::default()
+        },
+        |dir| {
+            for user in ["filler", "hmi", "mes"] {
+                common::add_user(&dir.join("passwd"), user, "pw");
+            }
+        },
+    );
+    for id in ["f1", "f2", "f3", "f4", "f5"] {
+        let mut s = user_client(&broker, "filler", id, false);
+        subscribe(&mut s, 5, "fill/#", 1);
+        s.send(&raw::DISCONNECT);
+    }
+    let mut hmi = user_client(&broker, "hmi", "hmi-1", false);
+    subscribe(&mut hmi, 5, "orders/#", 1);
+    hmi.send(&raw::DISCONNECT);
+    drop(hmi);
+
+    // Each 4 KiB publication is queued five times: the share holds six of them.
+    let mut filler = user_client(&broker, "filler", "filler-pub", true);
+    let payload = vec![b'x'; 4096];
+    let reasons: Vec<u8> = (1..=20u16)
+        .map(|pkid| puback_reason(&mut filler, "fill/x", pkid, &payload))
+        .collect();
+    let first_refused = reasons.iter().position(|r| *r != 0);
+    assert!(
+        matches!(first_refused, Some(5..=7)),
+        "the filler's share holds six publications: {reasons:?}"
+    );
+    assert!(
+        reasons[first_refused.unwrap()..].iter().all(|r| *r == 0x97),
+        "past its share every publication is refused 0x97: {reasons:?}"
+    );
+    assert!(
+        broker.wait_metric(
+            "fbbus_limit_refusals_total{limit=\"stored_publications\"}",
+            1.0
+        ) >= 1.0
+    );
+    assert!(broker.metric("fbbus_store_not_stored_total{reason=\"identity_share\"}") >= 1.0);
+    assert_eq!(
+        broker.metric("fbbus_store_not_stored_total{reason=\"store_full\"}"),
+        0.0
+    );
+    assert!(broker.metric("fbbus_store_message_bytes") <= SHARE as f64);
+
+    let mut mes = user_client(&broker, "mes", "mes-1", true);
+    for i in 1..=20u16 {
+        let reason = puback_reason(
+            &mut mes,
+            &format!("orders/{i}"),
+            i,
+            i.to_string().as_bytes(),
+        );
+        assert_eq!(reason, 0, "order {i} refused {reason:#x}");
+    }
+    // The filler's full sessions are the filler's loss, not another publisher's.
+    assert_eq!(puback_reason(&mut mes, "fill/x", 99, b"for the filler"), 0);
+    drop(mes);
+    broker.restart("KILL");
+    let mut hmi = user_client(&broker, "hmi", "hmi-1", false);
+    let got = drain(&mut hmi, 5, QUIET);
+    let orders: Vec<String> = got.iter().map(|g| g.payload.clone()).collect();
+    let want: Vec<String> = (1..=20).map(|i: u32| i.to_string()).collect();
+    assert_eq!(orders, want, "every acknowledged order survives the crash");
+}
+
+/// MQTT 5 client `id` from the loopback address `source`, clean.
+fn client_from(broker: &Broker, source: &str, id: &str) -> RawClient {
+    let mut c = RawClient::connect_from(([127, 0, 0, 1], broker.port()).into(), source);
+    let code = c.handshake(&Connect {
+        version: 5,
+        client_id: id,
+        keep_alive: 60,
+        clean: true,
+        ..Default::default()
+    });
+    assert_eq!(code, 0, "{id} refused");
+    c
+}
+
+/// The reason code of the MQTT 5 PUBACK for a retained QoS 1 publication.
+fn retained_reason(c: &mut RawClient, topic: &str, pkid: u16, payload: &[u8]) -> u8 {
+    c.send(&publish(5, topic, 1, pkid, true, payload));
+    let (byte1, body) = c.read_packet().expect("PUBACK");
+    assert_eq!(byte1, PUBACK);
+    body.get(2).copied().unwrap_or(0)
+}
+
+/// Issue 33, 4: one client retained 101,000 messages and every other client's new
+/// retained topic was refused. Now each identity (here: each address, there is no
+/// password file) has a share (`max_retained_messages_per_identity`): the flood's topics
+/// beyond its share are delivered but not retained, answered 0x97; another address still
+/// retains its own; clearing gives the share back; and a crash does not free the share (the
+/// store remembers whom each retained message is charged to).
+#[test]
+fn one_address_cannot_take_the_retained_messages_others_need() {
+    let mut broker = Broker::start_with(
+        Options {
+            extra: "max_retained_messages_per_identity = 20\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let mut live = client_from(&broker, "127.0.0.3", "live");
+    subscribe(&mut live, 5, "flood/#", 0);
+    let mut flood = client_from(&broker, "127.0.0.9", "flood");
+    let reasons: Vec<u8> = (1..=30u16)
+        .map(|i| retained_reason(&mut flood, &format!("flood/{i}"), i, b"v"))
+        .collect();
+    assert!(reasons[..20].iter().all(|r| *r == 0), "{reasons:?}");
+    assert!(reasons[20..].iter().all(|r| *r == 0x97), "{reasons:?}");
+    // Refused as retained, delivered all the same.
+    let got = drain(&mut live, 5, QUIET);
+    assert_eq!(
+        got.len(),
+        30,
+        "every publication reaches the subscriber of the moment"
+    );
+    assert_eq!(
+        broker.metric("fbbus_limit_refusals_total{limit=\"retained_per_identity\"}"),
+        10.0
+    );
+    // Another address keeps its share; the flood's replacements and clearing work.
+    let mut device = client_from(&broker, "127.0.0.2", "plc-2");
+    assert_eq!(
+        retained_reason(&mut device, "line/plc-2/speed", 1, b"1.5"),
+        0
+    );
+    assert_eq!(
+        retained_reason(&mut flood, "flood/1", 31, b"w"),
+        0,
+        "a replacement"
+    );
+    assert_eq!(
+        retained_reason(&mut flood, "flood/2", 32, b""),
+        0,
+        "clearing"
+    );
+    assert_eq!(
+        retained_reason(&mut flood, "flood/new", 33, b"v"),
+        0,
+        "the share given back"
+    );
+    assert_eq!(retained_reason(&mut flood, "flood/newer", 34, b"v"), 0x97);
+    drop((flood, device, live));
+
+    broker.restart("KILL");
+    let mut flood = client_from(&broker, "127.0.0.9", "flood");
+    assert_eq!(
+        retained_reason(&mut flood, "flood/after", 1, b"v"),
+        0x97,
+        "the share is still spent after a crash"
+    );
+    let mut reader = client_from(&broker, "127.0.0.4", "reader");
+    subscribe(&mut reader, 5, "#", 0);
+    let mut topics: Vec<String> = drain(&mut reader, 5, QUIET)
+        .into_iter()
+        .filter(|p| p.retain)
+        .map(|p| p.topic)
+        .collect();
+    topics.sort();
+    assert_eq!(
+        topics.len(),
+        21,
+        "20 of the flood's and the device's: {topics:?}"
+    );
+    assert!(topics.contains(&"line/plc-2/speed".to_string()));
+    assert!(topics.contains(&"flood/new".to_string()));
+    assert!(!topics.contains(&"flood/2".to_string()));
+}

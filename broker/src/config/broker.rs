@@ -40,6 +40,11 @@ pub struct BrokerSection {
     /// always works. The broker's own `fbbus/` topics are not counted.
     pub max_retained_messages: usize,
     pub max_retained_bytes: usize,
+    /// What one identity (as `max_sessions_per_identity`) holds of them (issue 33: shares,
+    /// not one pool): beyond, its new retained topics are refused the same way, while
+    /// every other identity keeps its own share (`retained_share`).
+    pub max_retained_messages_per_identity: usize,
+    pub max_retained_bytes_per_identity: usize,
     /// Connections and persistent sessions one identity holds at most (the username; the
     /// peer IP address where there is no password file); a CONNECT beyond is refused
     /// (MQTT 5: 0x97 Quota exceeded; 3.1.1: 0x05 Not authorized).
@@ -105,6 +110,10 @@ impl Default for BrokerSection {
             max_subscriptions_per_client: 1000,
             max_retained_messages: 100_000,
             max_retained_bytes: 64 * 1024 * 1024,
+            // A tenth of the messages and an eighth of the bytes: a device's last values
+            // many times over, and ten identities, not one, to fill the router.
+            max_retained_messages_per_identity: 10_000,
+            max_retained_bytes_per_identity: 8 * 1024 * 1024,
             max_sessions_per_identity: 1000,
             connect_timeout_ms: 5_000,
             max_pending_per_address: 512,

@@ -159,8 +159,15 @@ impl Session {
         );
         let (ids, subscriptions) = resume(ctx, &client_id, &linked, lifetime).await;
         let owner = ctx.identity.owner(username.as_deref());
-        let (persistent, journal) =
-            stored_session(ctx, &client_id, &owner, version, lifetime, session_present);
+        let share = ctx.identity.share(&owner, peer.ip());
+        let (persistent, journal) = stored_session(
+            ctx,
+            &client_id,
+            (&owner, share),
+            version,
+            lifetime,
+            session_present,
+        );
         if let Some(will) = &will {
             ctx.wills.arm(&client_id, linked.session, will);
         }
@@ -233,7 +240,7 @@ impl Session {
 fn stored_session(
     ctx: &Context,
     client_id: &str,
-    owner: &Owner,
+    (owner, share): (&Owner, String),
     version: Version,
     lifetime: SessionLifetime,
     session_present: bool,
@@ -255,6 +262,7 @@ fn stored_session(
                 Owner::Anonymous => String::new(),
                 Owner::User(user) => user.to_string(),
             },
+            share,
             v5: version == Version::V5,
             expiry: lifetime
                 .expires_after

@@ -36,6 +36,8 @@ pub struct Context {
     pub redeliveries: Redeliveries,
     /// What survives a restart; None with `[persistence] enabled = false`.
     pub store: Option<Arc<crate::store::Store>>,
+    /// Each identity's share of the retained messages.
+    pub retained_shares: crate::retained_share::RetainedShares,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,

@@ -19,6 +19,7 @@ use super::{Session, HOLD_LIMIT};
 /// (`broker.slow_consumer_max_bytes` must leave room for one batch and a packet).
 pub const WRITE_BATCH: usize = 1024 * 1024;
 use crate::policy::origin;
+use crate::wire::codec::Version;
 
 impl Session {
     /// Writes what the router delivered, draining everything it has queued.
@@ -167,6 +168,7 @@ impl Session {
             Some(packet) => match self.durable.as_mut() {
                 Some(durable) => {
                     if let Some(packet) = durable.pass(packet) {
+                        self.count_refusals();
                         self.answer(packet);
                     }
                 }
@@ -179,7 +181,23 @@ impl Session {
     /// An answer from the router (PUBACK, PUBREC, PUBCOMP, UNSUBACK, PINGRESP) goes to
     /// the client.
     pub(super) fn answer(&mut self, packet: Packet) {
-        if matches!(packet, Packet::PubAck(..) | Packet::PubComp(..)) {
+        let ends = match &packet {
+            Packet::PubAck(..) | Packet::PubComp(..) => true,
+            // An MQTT 5 PUBREC with an error code ends the exchange: no PUBREL follows
+            // (a 3.1.1 client sees no code and goes on to PUBREL and PUBCOMP).
+            Packet::PubRec(rec, _) if self.version == Version::V5 => {
+                let failed = rec.reason != PubRecReason::Success
+                    && rec.reason != PubRecReason::NoMatchingSubscribers;
+                if failed {
+                    if let Some(rare) = self.rare.as_mut() {
+                        rare.qos2_routed.remove(&rec.pkid);
+                    }
+                }
+                failed
+            }
+            _ => false,
+        };
+        if ends {
             self.inflight_in = self.inflight_in.saturating_sub(1);
         }
         self.io.queue(packet)

@@ -211,6 +211,19 @@ impl Session {
         }
         let mut publish = publish;
         let mut properties = properties;
+        if publish.retain {
+            // Charged to the publisher's share as the message subscribers will get: the
+            // canonical encoding of a typed message.
+            let (retained_topic, payload_len) = match routes.as_ref().and_then(|r| r.first()) {
+                Some((t, p)) => (t.as_str(), p.len()),
+                None => (topic.as_str(), publish.payload.len()),
+            };
+            let size = retained_topic.len() + payload_len;
+            let clear = publish.payload.is_empty();
+            if !self.retained_admitted(retained_topic, size, clear, qos, pkid) {
+                publish.retain = false;
+            }
+        }
         if let Some(p) = properties.as_mut().filter(|p| p.topic_alias.is_some()) {
             p.topic_alias = None;
             publish.topic = topic.into();
@@ -238,6 +251,47 @@ impl Session {
             self.rare().qos2_routed.insert(pkid);
         }
         Ok(())
+    }
+
+    /// Whether the publisher's share lets this retained publication be retained
+    /// (`retained_share`). If not, it is routed without RETAIN, its MQTT 5 acknowledgement
+    /// says 0x97, and the refusal is counted and logged once a minute.
+    fn retained_admitted(
+        &mut self,
+        topic: &str,
+        size: usize,
+        clear: bool,
+        qos: u8,
+        pkid: u16,
+    ) -> bool {
+        let share = self.share();
+        if self.ctx.retained_shares.admit(&share, topic, size, clear) {
+            return true;
+        }
+        if qos > 0 {
+            self.durable().refuse_retained(pkid);
+        }
+        self.ctx
+            .metrics
+            .limit_refusals
+            .with_label_values(&["retained_per_identity"])
+            .inc();
+        static LOGGED: std::sync::Mutex<Option<std::time::Instant>> = std::sync::Mutex::new(None);
+        let mut logged = LOGGED
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if logged.is_none_or(|at| at.elapsed() >= std::time::Duration::from_secs(60)) {
+            *logged = Some(std::time::Instant::now());
+            tracing::warn!(
+                client_id = &*self.client_id,
+                share = &*share,
+                "a retained publication was delivered but not retained: its identity holds \
+                 [broker] max_retained_messages_per_identity or max_retained_bytes_per_identity \
+                 (MQTT 5: 0x97 Quota exceeded); see fbbus_limit_refusals_total \
+                 (logged once a minute)"
+            );
+        }
+        false
     }
 
     /// Acknowledges a publication the broker consumed (a declaration).

@@ -63,7 +63,7 @@ impl Session {
                 self.journal.reserve(batch - i);
             }
             if wire_qos > 0 {
-                acknowledged.push(pkid);
+                acknowledged.push((pkid, seq));
             }
             self.journal.push(Record::Publish {
                 seq,
@@ -76,15 +76,76 @@ impl Session {
                     publisher: Arc::clone(&origin.publisher),
                 },
             });
+            // Whom the retained message is charged to, for a restart (`retained_share`);
+            // `on_publish` worked the share out when it admitted the publication.
+            if let (true, false, Some(share)) = (
+                publish.retain,
+                publish.payload.is_empty(),
+                self.durable.as_ref().and_then(|d| d.share.as_deref()),
+            ) {
+                if let Ok(topic) = std::str::from_utf8(&publish.topic) {
+                    self.journal.push(Record::RetainedBy {
+                        topic: topic.to_owned(),
+                        share: share.to_owned(),
+                    });
+                }
+            }
         }
         let wait = !acknowledged.is_empty();
-        if let Some(written) = store.submit(&self.client_id, &mut self.journal, wait).await {
+        let share = wait.then(|| self.share());
+        let answer = store.submit(&self.client_id, share.as_ref(), &mut self.journal, wait);
+        if let Some(written) = answer.await {
             self.durable().submitted(&acknowledged, written);
         }
     }
 
+    /// Counts (and logs, once a minute for the broker) the acknowledgements that said
+    /// 0x97 because the store did not keep their publication ([`Durable`]).
+    pub(super) fn count_refusals(&mut self) {
+        let Some(durable) = self.durable.as_mut() else {
+            return;
+        };
+        let n = std::mem::take(&mut durable.refusals_sent);
+        if n == 0 {
+            return;
+        }
+        self.ctx
+            .metrics
+            .limit_refusals
+            .with_label_values(&["stored_publications"])
+            .inc_by(n.into());
+        static LOGGED: std::sync::Mutex<Option<std::time::Instant>> = std::sync::Mutex::new(None);
+        let mut logged = LOGGED
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if logged.is_none_or(|at| at.elapsed() >= std::time::Duration::from_secs(60)) {
+            *logged = Some(std::time::Instant::now());
+            tracing::warn!(
+                client_id = %self.client_id,
+                share = durable.share.as_deref().unwrap_or_default(),
+                refused = n,
+                "the store did not keep publications for persistent sessions (its \
+                 [persistence] max_bytes, or this identity's max_bytes_per_identity or \
+                 max_messages_per_identity, is reached): MQTT 5 publishers are answered 0x97 \
+                 Quota exceeded, MQTT 3.1.1 ones cannot be told; see \
+                 fbbus_store_not_stored_total (logged once a minute)"
+            );
+        }
+    }
+
+    /// The identity whose store share this session's publications spend, worked out once.
+    pub(super) fn share(&mut self) -> Arc<str> {
+        if let Some(share) = self.durable.as_ref().and_then(|d| d.share.clone()) {
+            return share;
+        }
+        let owner = self.ctx.identity.owner(self.username.as_deref());
+        let share: Arc<str> = self.ctx.identity.share(&owner, self.peer.ip()).into();
+        self.durable().share = Some(Arc::clone(&share));
+        share
+    }
+
     /// The session's store bookkeeping, allocated on first use.
-    fn durable(&mut self) -> &mut Durable {
+    pub(super) fn durable(&mut self) -> &mut Durable {
         self.durable.get_or_insert_with(Box::default)
     }
 
@@ -94,6 +155,7 @@ impl Session {
         if let Some(durable) = self.durable.as_mut() {
             durable.confirmed(&mut released);
         }
+        self.count_refusals();
         for packet in released {
             self.answer(packet);
         }

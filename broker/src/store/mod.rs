@@ -29,8 +29,13 @@
 //! (`Session::release_backlog`, `session/persist.rs`), QoS 2 exchanges at the step they had
 //! reached.
 //!
-//! **Bounded**: `max_queued_messages` per session and `max_bytes` in all; a message over
-//! either is not stored (it is still routed), counted in `fbbus_store_not_stored_total`.
+//! **Bounded**: `max_queued_messages` per session, `max_bytes_per_identity` and
+//! `max_messages_per_identity` for the sessions of one identity (issue 33: shares, not one
+//! pool), and `max_bytes` in all; a message over any of them is not stored (it is still
+//! routed), counted in `fbbus_store_not_stored_total`. The writer answers each batch with
+//! the publications its publisher must hear of ([`Refusals`]: the store was full, or the
+//! sessions were the publisher's own identity's and its share spent), and their MQTT 5
+//! acknowledgement says 0x97 Quota exceeded instead of success (`session/durable.rs`).
 
 mod journal;
 mod log;
@@ -54,6 +59,7 @@ pub use self::log::LogError;
 pub use self::record::{ClientId, Message, Options, Qos2, Record};
 pub use self::settings::{Fsync, PersistenceSection};
 use self::state::{Drops, Limits, State, StoredSession};
+pub use self::writer::Refusals;
 use self::writer::{Batch, Writer};
 
 /// A queued message a restored session's next connection sends first.
@@ -81,6 +87,9 @@ pub struct RestoredSession {
 #[derive(Default)]
 pub struct Restore {
     pub retained: Vec<Arc<Message>>,
+    /// The identity each retained message was charged to, its topic and its size (topic
+    /// and payload bytes), for `retained_share`.
+    pub retained_shares: Vec<(String, String, usize)>,
     pub sessions: Vec<RestoredSession>,
     /// Delayed wills: client id, seconds from now (0: overdue), message.
     pub wills: Vec<(String, Duration, Arc<Message>)>,
@@ -305,6 +314,8 @@ impl Store {
             max_queued: section.max_queued_messages.max(1),
             max_retained: retained.0,
             max_retained_bytes: retained.1,
+            share_bytes: section.max_bytes_per_identity.max(1),
+            share_messages: section.max_messages_per_identity.max(1),
         };
         let mut state = State::default();
         let mut drops = Drops::default();
@@ -351,6 +362,16 @@ impl Store {
             }
         }
         restore.retained = state.retained.values().cloned().collect();
+        restore.retained_shares = state
+            .retained_by
+            .iter()
+            .filter_map(|(topic, share)| {
+                let message = state.retained.get(topic)?;
+                let topic = std::str::from_utf8(topic).ok()?;
+                let size = topic.len() + message.payload.len();
+                Some((share.clone(), topic.to_owned(), size))
+            })
+            .collect();
         for (client, wills) in &state.wills {
             let now_ms = now_ms();
             for (due, message) in wills {
@@ -374,7 +395,7 @@ impl Store {
                         store = %path.display(),
                         format = version,
                         bytes = log.length(),
-                        "store rewritten in format {}", log::VERSION
+                        "store rewritten in format {}", self::log::VERSION
                     );
                 }
                 Err(e) if version < log::VERSION => return Err(e.into()),
@@ -449,30 +470,33 @@ impl Store {
     /// Hands `records` to the writer; with `wait`, returns once they are written (and
     /// synced under `fsync = "always"`).
     pub async fn write(&self, records: Vec<Record>, wait: bool) {
-        if let Some(written) = self.hand_over(records, None, wait).await {
+        if let Some(written) = self.hand_over(records, None, None, wait).await {
             let _ = written.await;
         }
     }
 
     /// Hands what `client`'s session recorded to the writer (waiting only while its queue
     /// is full), leaving `journal` empty; with `wait`, the receiver answers once it is
-    /// written (and synced under `fsync = "always"`), or when the writer is gone.
+    /// written (and synced under `fsync = "always"`) with the [`Refusals`] its publisher
+    /// (of identity `share`) is told of, or when the writer is gone.
     pub async fn submit(
         &self,
         client: &ClientId,
+        share: Option<&Arc<str>>,
         journal: &mut Journal,
         wait: bool,
-    ) -> Option<oneshot::Receiver<()>> {
+    ) -> Option<oneshot::Receiver<Refusals>> {
         let (records, done) = journal.take(client);
-        self.hand_over(records, done, wait).await
+        self.hand_over(records, done, share, wait).await
     }
 
     async fn hand_over(
         &self,
         records: Vec<Record>,
         done: Option<(ClientId, Vec<u64>)>,
+        sender: Option<&Arc<str>>,
         wait: bool,
-    ) -> Option<oneshot::Receiver<()>> {
+    ) -> Option<oneshot::Receiver<Refusals>> {
         if records.is_empty() && done.is_none() {
             return None;
         }
@@ -493,6 +517,7 @@ impl Store {
             records,
             done,
             written,
+            sender: sender.filter(|_| wait).cloned(),
             sync: false,
         };
         // A writer that is gone drops the sender: the receiver answers at once.
@@ -522,6 +547,7 @@ impl Store {
             records,
             done,
             written: None,
+            sender: None,
             sync: false,
         };
         if let Err(flume::TrySendError::Full(batch)) = self.queue.try_send(batch) {
@@ -539,6 +565,7 @@ impl Store {
             records: Vec::new(),
             done: None,
             written: Some(tx),
+            sender: None,
             sync: true,
         };
         if self.queue.send_async(batch).await.is_ok() {
@@ -649,6 +676,8 @@ pub fn replay_for_fuzzing(bytes: &[u8]) -> usize {
         max_queued: 16,
         max_retained: 64,
         max_retained_bytes: 1 << 14,
+        share_bytes: 1 << 15,
+        share_messages: 24,
     };
     let mut state = State::default();
     let mut drops = Drops::default();
@@ -722,7 +751,9 @@ mod tests {
 
     /// Hands `journal` over and waits until it is written.
     async fn written(store: &Store, client: &ClientId, journal: &mut Journal) {
-        let answer = store.submit(client, journal, true).await;
+        let answer = store
+            .submit(client, Some(&"anonymous".into()), journal, true)
+            .await;
         answer
             .expect("a journal with records is handed over")
             .await
@@ -747,6 +778,7 @@ mod tests {
         journal.push(Record::Session {
             client: client.clone(),
             owner: String::new(),
+            share: "anonymous".into(),
             v5: false,
             expiry: None,
             fresh: true,
@@ -794,6 +826,8 @@ mod tests {
         max_queued: 1 << 20,
         max_retained: 1 << 20,
         max_retained_bytes: 1 << 30,
+        share_bytes: 1 << 30,
+        share_messages: 1 << 20,
     };
 
     /// What a state holds, comparable: each session's queue (number, QoS, QoS 2 step),
@@ -856,6 +890,7 @@ mod tests {
         let session = |c: &str| Record::Session {
             client: c.into(),
             owner: String::new(),
+            share: "anonymous".into(),
             v5: true,
             expiry: None,
             fresh: true,

@@ -66,6 +66,10 @@ pub enum Record {
     Session {
         client: ClientId,
         owner: String,
+        /// The identity whose store share its queue spends (`user:<name>`, or
+        /// `address:<ip>` for a client without a verified username). Written last, so a
+        /// record of an fbbus before it reads as the owner's (`share_of_owner`).
+        share: String,
         v5: bool,
         expiry: Option<u32>,
         fresh: bool,
@@ -122,6 +126,12 @@ pub enum Record {
     WillDone {
         client: ClientId,
     },
+    /// The retained message on `topic` (the `Publish` before it) is charged to `share`
+    /// (`retained_share`), so a restart charges it to the same identity.
+    RetainedBy {
+        topic: String,
+        share: String,
+    },
 }
 
 /// One session a `Queued` message waits for.
@@ -148,6 +158,7 @@ const DONE: u8 = 8;
 const QOS2: u8 = 9;
 const WILL: u8 = 10;
 const WILL_DONE: u8 = 11;
+const RETAINED_BY: u8 = 12;
 
 /// The largest stored message: MQTT's own packet limit.
 const MAX_MESSAGE: usize = 268_435_455 + 5;
@@ -160,6 +171,7 @@ impl Record {
             Record::Session {
                 client,
                 owner,
+                share,
                 v5,
                 expiry,
                 fresh,
@@ -169,6 +181,7 @@ impl Record {
                 w.str(owner);
                 w.u8(*v5 as u8 | (*fresh as u8) << 1);
                 w.expiry(*expiry);
+                w.str(share);
             }
             Record::Offline { client, at, expiry } => {
                 w.u8(OFFLINE);
@@ -240,6 +253,11 @@ impl Record {
                 w.u8(WILL_DONE);
                 w.str(client);
             }
+            Record::RetainedBy { topic, share } => {
+                w.u8(RETAINED_BY);
+                w.str(topic);
+                w.str(share);
+            }
         }
     }
 
@@ -251,12 +269,18 @@ impl Record {
                 let client: ClientId = r.str()?.into();
                 let owner = r.str()?;
                 let flags = r.u8()?;
+                let expiry = r.expiry()?;
+                let share = match r.0.is_empty() {
+                    true => share_of_owner(&owner),
+                    false => r.str()?,
+                };
                 Record::Session {
                     client,
                     owner,
+                    share,
                     v5: flags & 1 != 0,
                     fresh: flags & 2 != 0,
-                    expiry: r.expiry()?,
+                    expiry,
                 }
             }
             OFFLINE => Record::Offline {
@@ -332,12 +356,25 @@ impl Record {
             WILL_DONE => Record::WillDone {
                 client: r.str()?.into(),
             },
+            RETAINED_BY => Record::RetainedBy {
+                topic: r.str()?,
+                share: r.str()?,
+            },
             _ => return Err(Corrupt("unknown record type")),
         };
         if !r.0.is_empty() {
             return Err(Corrupt("bytes after the record"));
         }
         Ok(record)
+    }
+}
+
+/// The share of a session recorded before shares were (issue 33): its owner's, and one
+/// for every anonymous session.
+pub fn share_of_owner(owner: &str) -> String {
+    match owner {
+        "" => "anonymous".to_owned(),
+        user => format!("user:{user}"),
     }
 }
 
@@ -605,6 +642,7 @@ mod tests {
             Record::Session {
                 client: "plc-1".into(),
                 owner: "alice".into(),
+                share: "user:alice".into(),
                 v5: true,
                 expiry: Some(300),
                 fresh: true,
@@ -671,13 +709,28 @@ mod tests {
                 message: message(),
             },
             Record::WillDone { client: "a".into() },
+            Record::RetainedBy {
+                topic: "fb/plc-1/CONV/Geschwindigkeit/é".into(),
+                share: "user:plc-1".into(),
+            },
         ];
         for record in records {
             let mut bytes = Vec::new();
             record.encode(&mut bytes);
             assert_eq!(Record::decode(&bytes).unwrap(), record);
-            // Every strict prefix is corrupt, never a panic.
+            // Every strict prefix is corrupt, never a panic; except a session record cut
+            // before its share, which is how fbbus wrote it before shares.
             for cut in 0..bytes.len() {
+                if let Record::Session { owner, share, .. } = &record {
+                    if cut == bytes.len() - 2 - share.len() {
+                        let Ok(Record::Session { share: read, .. }) = Record::decode(&bytes[..cut])
+                        else {
+                            panic!("a session record without its share does not read");
+                        };
+                        assert_eq!(read, share_of_owner(owner));
+                        continue;
+                    }
+                }
                 assert!(
                     Record::decode(&bytes[..cut]).is_err(),
                     "{record:?} cut at {cut}"

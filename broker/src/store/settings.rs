@@ -19,6 +19,10 @@ pub struct PersistenceSection {
     pub max_bytes: usize,
     /// Messages queued for one session at most.
     pub max_queued_messages: usize,
+    /// Bytes and messages queued for the persistent sessions of one identity at most
+    /// (issue 33): one user's sessions cannot take the store another user's need.
+    pub max_bytes_per_identity: usize,
+    pub max_messages_per_identity: usize,
     /// The log is compacted once it is this large and four times what is live.
     pub compact_min_bytes: u64,
 }
@@ -31,6 +35,10 @@ impl Default for PersistenceSection {
             fsync: Fsync::Every(Duration::from_millis(100)),
             max_bytes: 256 * 1024 * 1024,
             max_queued_messages: 1000,
+            // An eighth of the store: eight identities, not one, to fill it.
+            max_bytes_per_identity: 32 * 1024 * 1024,
+            // A hundred sessions' full queues.
+            max_messages_per_identity: 100_000,
             compact_min_bytes: 64 * 1024 * 1024,
         }
     }

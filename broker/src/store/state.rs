@@ -8,9 +8,12 @@
 //! (min of the publication's and the best matching subscription's), unless every matching
 //! subscription is No Local and the session published it. A `Done` takes it off again.
 //!
-//! Bounded: at most `max_queued` messages per session and `max_bytes` of messages in all
-//! (a message queued for n sessions counts n times); beyond either, a message is not
-//! stored for that session (or, for a retained message, not stored), and counted.
+//! Bounded: at most `max_queued` messages per session, `share_bytes` and `share_messages`
+//! queued for the sessions of one identity (issue 33: shares, not one pool), and
+//! `max_bytes` of messages in all (a message queued for n sessions counts n times); beyond
+//! any of them, a message is not stored for that session (or, for a retained message, not
+//! stored), and counted. What a publisher must hear of ([`Refused`]) is listed by message
+//! number in [`Drops::refused`].
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -30,11 +33,24 @@ pub struct Limits {
     /// own topics are not counted.
     pub max_retained: usize,
     pub max_retained_bytes: usize,
+    /// Bytes and messages queued for the persistent sessions of one identity at most
+    /// (`[persistence] max_bytes_per_identity`, `max_messages_per_identity`).
+    pub share_bytes: usize,
+    pub share_messages: usize,
+}
+
+/// What the persistent sessions of one identity hold in the store.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Usage {
+    pub bytes: usize,
+    pub messages: usize,
 }
 
 #[derive(Debug, Clone)]
 pub struct StoredSession {
     pub owner: String,
+    /// The identity whose share its queue spends (`Record::Session`'s `share`).
+    pub share: Arc<str>,
     pub v5: bool,
     pub expiry: Option<u32>,
     /// Unix seconds since it is offline; None while connected.
@@ -43,12 +59,37 @@ pub struct StoredSession {
     pub queue: Queue,
 }
 
+impl StoredSession {
+    /// What its queue spends of its identity's share.
+    fn usage(&self) -> Usage {
+        Usage {
+            bytes: self.queue.iter().map(|(_, q)| q.message.size()).sum(),
+            messages: self.queue.len(),
+        }
+    }
+}
+
 /// Why a message was not stored.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub struct Drops {
     pub session_queue_full: u64,
     pub store_full: u64,
+    pub identity_share: u64,
     pub retained_limit: u64,
+    /// Stored publications not kept for some session, by message number, in the order
+    /// met: what the writer tells their publishers (`writer`).
+    pub refused: Vec<(u64, Refused)>,
+}
+
+/// Why a publication was not kept where a publisher may have to hear of it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Refused {
+    /// `max_bytes`: the store is full. Every publisher hears of it.
+    StoreFull,
+    /// The share of this identity, whose session it was for, is spent. Only a publisher
+    /// of that identity hears of it: another identity's full sessions are their loss, as
+    /// a session over `max_queued` is, not the publisher's.
+    Share(Arc<str>),
 }
 
 /// Which persistent sessions subscribe to what, as a tree of topic levels, so that finding
@@ -185,6 +226,11 @@ pub struct State {
     pub last_seq: u64,
     /// Queued messages in all sessions.
     pub queued: usize,
+    /// What each identity's sessions hold (entries with nothing queued are removed).
+    pub shares: HashMap<Arc<str>, Usage>,
+    /// The identity each retained message is charged to (`Record::RetainedBy`); only
+    /// topics in `retained`, so bounded as it is.
+    pub retained_by: HashMap<Vec<u8>, String>,
     /// Retained messages under the router's bounds, and their topic and payload bytes.
     retained_counted: usize,
     retained_counted_bytes: usize,
@@ -200,6 +246,7 @@ impl State {
             Record::Session {
                 client,
                 owner,
+                share,
                 v5,
                 expiry,
                 fresh,
@@ -207,11 +254,23 @@ impl State {
                 if fresh {
                     self.end(&client);
                 }
+                // A kept session that comes back under another identity (the ownership
+                // rule allows it only for the same owner) moves its queue along.
+                if let Some(s) = self.sessions.get(&*client) {
+                    if *s.share != *share {
+                        let usage = s.usage();
+                        let old = Arc::clone(&s.share);
+                        self.unspend(&old, usage);
+                        self.spend(&share, usage);
+                    }
+                }
+                let share = self.share_key(&share);
                 let s = self
                     .sessions
                     .entry(client)
                     .or_insert_with(|| StoredSession {
                         owner: String::new(),
+                        share: Arc::clone(&share),
                         v5,
                         expiry,
                         offline_at: None,
@@ -219,6 +278,7 @@ impl State {
                         queue: Queue::default(),
                     });
                 s.owner = owner;
+                s.share = share;
                 s.v5 = v5;
                 s.expiry = expiry;
                 s.offline_at = None;
@@ -265,7 +325,7 @@ impl State {
                 self.last_seq = self.last_seq.max(seq);
                 let message = Arc::new(message);
                 if message.retain {
-                    self.retain(&message, limits, drops);
+                    self.retain(seq, &message, limits, drops);
                 }
                 if message.qos > 0 {
                     self.queue_for_subscribers(seq, &message, limits, drops);
@@ -279,7 +339,7 @@ impl State {
                 self.last_seq = self.last_seq.max(seq);
                 let message = Arc::new(message);
                 if message.retain && targets.is_empty() {
-                    self.retain(&message, limits, drops);
+                    self.retain(0, &message, limits, drops);
                 }
                 for t in targets {
                     self.enqueue(&t.client, seq, &message, t.qos, t.qos2, limits, drops);
@@ -308,6 +368,11 @@ impl State {
             Record::WillDone { client } => {
                 self.wills.remove(&*client);
             }
+            Record::RetainedBy { topic, share } => {
+                if self.retained.contains_key(topic.as_bytes()) {
+                    self.retained_by.insert(topic.into_bytes(), share);
+                }
+            }
         }
     }
 
@@ -325,6 +390,42 @@ impl State {
         }
         self.bytes = self.bytes.saturating_sub(bytes);
         self.queued = self.queued.saturating_sub(count);
+        let share = Arc::clone(&s.share);
+        self.unspend(
+            &share,
+            Usage {
+                bytes,
+                messages: count,
+            },
+        );
+    }
+
+    /// The state's own copy of a share's name, shared by its sessions.
+    fn share_key(&self, share: &str) -> Arc<str> {
+        match self.shares.get_key_value(share) {
+            Some((k, _)) => Arc::clone(k),
+            None => share.into(),
+        }
+    }
+
+    fn spend(&mut self, share: &str, usage: Usage) {
+        if usage == Usage::default() {
+            return;
+        }
+        let key = self.share_key(share);
+        let u = self.shares.entry(key).or_default();
+        u.bytes += usage.bytes;
+        u.messages += usage.messages;
+    }
+
+    fn unspend(&mut self, share: &str, usage: Usage) {
+        if let Some(u) = self.shares.get_mut(share) {
+            u.bytes = u.bytes.saturating_sub(usage.bytes);
+            u.messages = u.messages.saturating_sub(usage.messages);
+            if u.messages == 0 {
+                self.shares.remove(share);
+            }
+        }
     }
 
     fn end(&mut self, client: &str) {
@@ -333,19 +434,21 @@ impl State {
             for f in s.subscriptions.keys() {
                 self.subscribers.remove(f, client);
             }
-            for (_, q) in s.queue.iter() {
-                self.bytes = self.bytes.saturating_sub(q.message.size());
-            }
-            self.queued = self.queued.saturating_sub(s.queue.len());
+            let usage = s.usage();
+            self.bytes = self.bytes.saturating_sub(usage.bytes);
+            self.queued = self.queued.saturating_sub(usage.messages);
+            self.unspend(&s.share, usage);
         }
     }
 
-    fn retain(&mut self, message: &Arc<Message>, limits: Limits, drops: &mut Drops) {
+    /// `seq`: the publication's number (0: restored from a snapshot, nobody to tell).
+    fn retain(&mut self, seq: u64, message: &Arc<Message>, limits: Limits, drops: &mut Drops) {
         let counted = !crate::router::RETAINED_UNCOUNTED
             .iter()
             .any(|prefix| message.topic.starts_with(prefix.as_bytes()));
         let router_size = |m: &Message| m.topic.len() + m.payload.len();
         let old = self.retained.remove(message.topic.as_ref());
+        self.retained_by.remove(message.topic.as_ref());
         if let Some(old) = &old {
             self.bytes = self.bytes.saturating_sub(old.size());
             if counted {
@@ -371,6 +474,9 @@ impl State {
         }
         if self.bytes + message.size() > limits.max_bytes {
             drops.store_full += 1;
+            if seq > 0 {
+                drops.refused.push((seq, Refused::StoreFull));
+            }
             return;
         }
         self.bytes += message.size();
@@ -424,8 +530,18 @@ impl State {
             drops.session_queue_full += 1;
             return;
         }
-        if self.bytes + message.size() > limits.max_bytes {
+        let size = message.size();
+        let spent = self.shares.get(&*s.share).copied().unwrap_or_default();
+        if spent.bytes + size > limits.share_bytes || spent.messages >= limits.share_messages {
+            drops.identity_share += 1;
+            drops
+                .refused
+                .push((seq, Refused::Share(Arc::clone(&s.share))));
+            return;
+        }
+        if self.bytes + size > limits.max_bytes {
             drops.store_full += 1;
+            drops.refused.push((seq, Refused::StoreFull));
             return;
         }
         let queued = Queued {
@@ -434,8 +550,16 @@ impl State {
             qos2,
         };
         if s.queue.insert(seq, queued) {
-            self.bytes += message.size();
+            self.bytes += size;
             self.queued += 1;
+            let share = Arc::clone(&s.share);
+            self.spend(
+                &share,
+                Usage {
+                    bytes: size,
+                    messages: 1,
+                },
+            );
         }
     }
 
@@ -446,6 +570,7 @@ impl State {
             out.push(Record::Session {
                 client: client.clone(),
                 owner: s.owner.clone(),
+                share: s.share.to_string(),
                 v5: s.v5,
                 expiry: s.expiry,
                 fresh: true,
@@ -471,6 +596,15 @@ impl State {
                 message: (**m).clone(),
                 targets: Vec::new(),
             });
+            if let (Some(share), Ok(topic)) = (
+                self.retained_by.get(m.topic.as_ref()),
+                std::str::from_utf8(&m.topic),
+            ) {
+                out.push(Record::RetainedBy {
+                    topic: topic.to_owned(),
+                    share: share.clone(),
+                });
+            }
         }
         let mut by_seq: BTreeMap<u64, (Arc<Message>, Vec<Target>)> = BTreeMap::new();
         for (client, s) in &self.sessions {
@@ -520,12 +654,15 @@ mod tests {
         max_queued: 3,
         max_retained: 4,
         max_retained_bytes: 1 << 20,
+        share_bytes: 1 << 20,
+        share_messages: 1 << 20,
     };
 
     fn session(client: &str) -> Record {
         Record::Session {
             client: client.into(),
             owner: String::new(),
+            share: "anonymous".into(),
             v5: false,
             expiry: None,
             fresh: true,
@@ -628,6 +765,119 @@ mod tests {
         assert!(s.retained.is_empty());
         assert!(queue(&s, "a").is_empty());
         assert_eq!((s.bytes, s.queued), (0, 0));
+    }
+
+    fn session_of(client: &str, share: &str) -> Record {
+        Record::Session {
+            client: client.into(),
+            owner: String::new(),
+            share: share.into(),
+            v5: true,
+            expiry: None,
+            fresh: true,
+        }
+    }
+
+    /// Issue 33, 3: one identity's sessions stop at its share; another identity's session
+    /// is still queued for; the refusals name the share; acknowledging and ending give the
+    /// share back; the store's own cap refuses everyone.
+    #[test]
+    fn each_identity_has_a_share_of_the_store() {
+        // 16 + "t" + "pub" + 4-byte payloads: 24 bytes a message.
+        let limits = Limits {
+            share_bytes: 24 * 4,
+            share_messages: 3,
+            max_queued: 100,
+            ..LIMITS
+        };
+        let mut s = State::default();
+        let mut d = Drops::default();
+        for r in [
+            session_of("a1", "user:a"),
+            subscribe("a1", "#", 1, false),
+            session_of("a2", "user:a"),
+            subscribe("a2", "#", 1, false),
+            session_of("b", "user:b"),
+            subscribe("b", "#", 1, false),
+        ] {
+            s.apply(r, limits, &mut d);
+        }
+        for seq in 1..=3 {
+            s.apply(publish(seq, "t", 1, false, "1234"), limits, &mut d);
+        }
+        // a1 and a2 share three messages; b has its own.
+        assert_eq!(queue(&s, "a1").len() + queue(&s, "a2").len(), 3);
+        assert_eq!(queue(&s, "b").len(), 3);
+        assert_eq!(d.identity_share, 3);
+        assert_eq!(
+            s.shares.get("user:a").copied(),
+            Some(Usage {
+                bytes: 72,
+                messages: 3
+            })
+        );
+        let a: Arc<str> = "user:a".into();
+        assert_eq!(
+            d.refused,
+            vec![
+                (2, Refused::Share(a.clone())),
+                (3, Refused::Share(a.clone())),
+                (3, Refused::Share(a))
+            ]
+        );
+        // Acknowledged: room again for the next one.
+        s.done("a1", &[1]);
+        d = Drops::default();
+        s.apply(publish(4, "t", 1, false, "1234"), limits, &mut d);
+        // One of a1 and a2 gets it; b's share (three messages) is spent.
+        assert_eq!(d.identity_share, 2);
+        assert_eq!(s.shares["user:a"].messages, 3);
+        // Ended: the share is free; nothing is left of it.
+        s.apply(
+            Record::Ended {
+                client: "a1".into(),
+            },
+            limits,
+            &mut d,
+        );
+        s.apply(
+            Record::Ended {
+                client: "a2".into(),
+            },
+            limits,
+            &mut d,
+        );
+        assert!(!s.shares.contains_key("user:a"));
+        // The store's own cap: everyone is refused, and told.
+        let tight = Limits {
+            max_bytes: s.bytes + 10,
+            ..limits
+        };
+        d = Drops::default();
+        s.apply(session_of("c", "user:c"), tight, &mut d);
+        s.apply(subscribe("c", "#", 1, false), tight, &mut d);
+        s.apply(publish(5, "t", 1, false, "1234"), tight, &mut d);
+        assert_eq!(d.store_full, 1, "b's share is spent first, then the store");
+        assert!(d.refused.contains(&(5, Refused::StoreFull)));
+    }
+
+    /// A kept session that comes back under another share moves its queue's usage along.
+    #[test]
+    fn a_session_resumed_under_another_share_moves_its_usage() {
+        let (mut s, mut d) = state(vec![
+            session_of("a", "address:127.0.0.2"),
+            subscribe("a", "#", 1, false),
+            publish(1, "t", 1, false, "1234"),
+        ]);
+        let mut resumed = session_of("a", "user:alice");
+        if let Record::Session { fresh, .. } = &mut resumed {
+            *fresh = false;
+        }
+        s.apply(resumed, LIMITS, &mut d);
+        assert!(!s.shares.contains_key("address:127.0.0.2"));
+        assert_eq!(s.shares["user:alice"].messages, 1);
+        s.done("a", &[1]);
+        assert!(s.shares.is_empty());
     }
 
     #[test]

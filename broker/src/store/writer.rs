@@ -12,15 +12,23 @@ use tokio::sync::oneshot;
 use super::log;
 use super::record::{ClientId, Record};
 use super::settings::Fsync;
-use super::state::{Drops, Limits, State};
+use super::state::{Drops, Limits, Refused, State};
 use super::StoreMetrics;
+
+/// The message numbers of a batch's publications that were not kept and whose publisher
+/// is told so (MQTT 5 0x97): the store is full, or the publisher's own identity's share
+/// is spent ([`Refused`]). Empty (no allocation) in the common case.
+pub type Refusals = Vec<u64>;
 
 /// One record batch for the writer, and who waits for it.
 pub(super) struct Batch {
     pub(super) records: Vec<Record>,
     /// A session's `Done` records by message number ([`Journal`]), written after `records`.
     pub(super) done: Option<(ClientId, Vec<u64>)>,
-    pub(super) written: Option<oneshot::Sender<()>>,
+    /// Answered once the batch is written and applied, with its [`Refusals`].
+    pub(super) written: Option<oneshot::Sender<Refusals>>,
+    /// The share (identity) of the session that publishes the batch's publications.
+    pub(super) sender: Option<Arc<str>>,
     /// Force the log to the disk after this batch, whatever the policy (shutdown).
     pub(super) sync: bool,
 }
@@ -46,6 +54,25 @@ const GROUP: usize = 1024;
 /// turn writes them together. Adds at most this much to an acknowledgement's wait, only
 /// under load, and nothing to routing, which never waits for the store.
 const GATHER: Duration = Duration::from_micros(100);
+
+/// The numbers in `refused` (emptied) that `sender` is told of: every one the store had
+/// no room for, and those its own identity's share had no room for; in order, once each.
+fn refusals(refused: &mut Vec<(u64, Refused)>, sender: Option<&str>) -> Refusals {
+    let mut out = Refusals::new();
+    for (seq, why) in refused.drain(..) {
+        let told = match why {
+            Refused::StoreFull => true,
+            Refused::Share(share) => sender == Some(&*share),
+        };
+        if told {
+            out.push(seq);
+        }
+    }
+    // Sorted for the session's lookups; a publication refused for several sessions once.
+    out.sort_unstable();
+    out.dedup();
+    out
+}
 
 impl Writer {
     pub(super) fn run(mut self, batches: flume::Receiver<Batch>) {
@@ -114,15 +141,17 @@ impl Writer {
             let mut drops = Drops::default();
             let mut subscribes = 0;
             for b in group {
-                if let Some(w) = b.written {
-                    let _ = w.send(());
-                }
                 for r in b.records {
                     subscribes += matches!(r, Record::Subscribe { .. }) as usize;
                     self.state.apply(r, self.limits, &mut drops);
                 }
                 if let Some((client, seqs)) = &b.done {
                     self.state.done(client, seqs);
+                }
+                // Applied before answering, so the answer says what was not kept.
+                let refusals = refusals(&mut drops.refused, b.sender.as_deref());
+                if let Some(w) = b.written {
+                    let _ = w.send(refusals);
                 }
             }
             self.subscribed
@@ -169,6 +198,7 @@ impl Writer {
         for (reason, n) in [
             ("session_queue_full", drops.session_queue_full),
             ("store_full", drops.store_full),
+            ("identity_share", drops.identity_share),
             ("retained_limit", drops.retained_limit),
         ] {
             if n > 0 {
@@ -211,5 +241,28 @@ impl Writer {
                 tracing::error!(error = %e, "store compaction failed; the log is kept as it was");
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A publisher hears of a full store, and of its own identity's spent share, not of
+    /// another identity's; each number once, sorted.
+    #[test]
+    fn a_publisher_is_told_of_the_store_and_of_its_own_share_only() {
+        let own: Arc<str> = "user:filler".into();
+        let other: Arc<str> = "user:hmi".into();
+        let mut refused = vec![
+            (7, Refused::Share(Arc::clone(&own))),
+            (5, Refused::Share(Arc::clone(&other))),
+            (6, Refused::StoreFull),
+            (7, Refused::Share(Arc::clone(&own))),
+        ];
+        assert_eq!(refusals(&mut refused.clone(), Some("user:filler")), [6, 7]);
+        assert_eq!(refusals(&mut refused.clone(), Some("user:hmi")), [5, 6]);
+        assert_eq!(refusals(&mut refused, None), [6]);
+        assert!(refused.is_empty());
     }
 }
