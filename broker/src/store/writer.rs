@@ -17,7 +17,7 @@ use super::StoreMetrics;
 
 /// The message numbers of a batch's publications that were not kept and whose publisher
 /// is told so (MQTT 5 0x97): the store is full, or the publisher's own identity's share
-/// is spent ([`Refused`]). Empty (no allocation) in the common case.
+/// is spent (`state::Refused`). Empty (no allocation) in the common case.
 pub type Refusals = Vec<u64>;
 
 /// One record batch for the writer, and who waits for it.
