@@ -19,6 +19,10 @@ use crate::supervisor::Tasks;
 /// The client id of the broker's own router link; clients may not use it.
 pub const INTERNAL_CLIENT_ID: &str = "fbbus:internal";
 
+/// The publisher of what came from the bus (the bridge's import link): the exporter never
+/// puts a message of this publisher back on the bus.
+pub const BUS_CLIENT_ID: &str = "fbbus:bridge-in";
+
 /// Client ids starting with this are the broker's own router links (its publisher, the
 /// readiness probe, the bus bridge's links): a client may not take one.
 pub const RESERVED_CLIENT_ID_PREFIX: &str = "fbbus:";

@@ -275,7 +275,7 @@ impl Metrics {
             ),
             bridge_liveliness: counter_vec(
                 "fbbus_bridge_liveliness_changes_total",
-                "Liveliness changes seen on the bus, by kind (line_up, line_down, device_up, device_down)",
+                "Liveliness changes seen on the bus, by kind (line_up, line_down, device_up, device_down; forgotten: another line forgot its device, and so did this line)",
                 &["kind"],
             ),
             bridge_record_queries: counter_vec(

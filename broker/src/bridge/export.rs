@@ -143,11 +143,18 @@ impl Exports {
         let from_bus = origin
             .as_ref()
             .is_some_and(|o| &*o.publisher == IMPORT_CLIENT_ID);
+        // A forgotten device's values, cleared by its registry: every line forgets the
+        // device and clears them itself when it hears of it (`federation`).
+        let forgotten_clear = publish.payload.is_empty()
+            && origin
+                .as_ref()
+                .is_some_and(|o| o.retain && &*o.publisher == broker_publisher::INTERNAL_CLIENT_ID);
         let topic = String::from_utf8_lossy(&publish.topic).into_owned();
         // rumqttd replays retained messages on every subscribe (it ignores Retain
         // Handling): those reach other lines by query, not here.
         let replay = publish.retain;
         let wanted = !from_bus
+            && !forgotten_clear
             && !replay
             && BusConfig::allows(&self.export, &topic)
             && self.interest.keys().any(|f| filter::matches(f, &topic));

@@ -18,18 +18,25 @@ use std::time::Duration;
 use fb_bridge::bus::link::{DeviceToken, Event, Inbox, Link};
 use tokio::sync::mpsc;
 
-use crate::registry::{Record, RecordRefused, Status};
+use super::Interest;
+use crate::registry::{LocalChange, Record, RecordRefused, Status};
 use crate::session::Context;
 
 /// Liveliness and records of the other lines: the registry, and the exporter's interest.
 pub(super) async fn bus_events(
     link: Arc<Link>,
     events: Inbox<Event>,
-    remote_interest: mpsc::UnboundedSender<(bool, String, String)>,
+    (remote_interest, imports): (
+        mpsc::UnboundedSender<(bool, String, String)>,
+        mpsc::UnboundedSender<Interest>,
+    ),
     ctx: Arc<Context>,
 ) {
     let registry = &ctx.fb.registry;
-    let asks = Asks::default();
+    let asks = Asks {
+        pending: Arc::default(),
+        imports,
+    };
     let liveliness = |kind: &str| {
         ctx.metrics
             .bridge_liveliness
@@ -77,6 +84,11 @@ pub(super) async fn bus_events(
                 }
             }
             Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json, None),
+            Event::Forgotten { line, device } => {
+                if registry.remote_forgotten(&line, &device) {
+                    liveliness("forgotten");
+                }
+            }
         }
     }
 }
@@ -89,16 +101,20 @@ const COLLECT: Duration = Duration::from_millis(100);
 /// whole line instead.
 const ASK_ONE_BY_ONE: usize = 16;
 
-/// What is to be asked of each line: some devices, or (None) all of them.
-#[derive(Clone, Default)]
-struct Asks(Arc<Mutex<HashMap<String, Option<Vec<String>>>>>);
+/// What is to be asked of each line: some devices, or (None) all of them. After a whole
+/// line's records, its retained messages are asked for again (`Interest::Requery`).
+#[derive(Clone)]
+struct Asks {
+    pending: Arc<Mutex<HashMap<String, Option<Vec<String>>>>>,
+    imports: mpsc::UnboundedSender<Interest>,
+}
 
 impl Asks {
     /// Asks line `line` for the record of `device`, or (None) of every device, together
     /// with whatever else is asked of it within [`COLLECT`].
     fn ask(&self, link: &Arc<Link>, ctx: &Arc<Context>, line: &str, device: Option<String>) {
         let first = {
-            let mut asks = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+            let mut asks = self.pending.lock().unwrap_or_else(PoisonError::into_inner);
             let first = !asks.contains_key(line);
             let entry = asks
                 .entry(line.to_owned())
@@ -117,12 +133,13 @@ impl Asks {
             tokio::spawn(async move {
                 tokio::time::sleep(COLLECT).await;
                 let asked = asks
-                    .0
+                    .pending
                     .lock()
                     .unwrap_or_else(PoisonError::into_inner)
                     .remove(&line);
                 let Some(asked) = asked else { return };
                 let registry = &ctx.fb.registry;
+                let whole_line = asked.is_none();
                 let queries: Vec<Option<String>> = match asked {
                     None => vec![None],
                     // Those whose records came meanwhile are not asked for.
@@ -149,6 +166,10 @@ impl Asks {
                         }
                         Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
                     }
+                }
+                // Its devices known, its retained messages can be taken.
+                if whole_line {
+                    let _ = asks.imports.send(Interest::Requery(line));
                 }
             });
         }
@@ -194,14 +215,22 @@ pub(super) fn apply_record(
 pub(super) async fn announce_local(
     link: Arc<Link>,
     now: Vec<Record>,
-    mut changes: mpsc::UnboundedReceiver<Record>,
+    mut changes: mpsc::UnboundedReceiver<LocalChange>,
 ) {
     let mut tokens: HashMap<String, DeviceToken> = HashMap::new();
     for record in now {
         announce(&link, &mut tokens, record).await;
     }
-    while let Some(record) = changes.recv().await {
-        announce(&link, &mut tokens, record).await;
+    while let Some(change) = changes.recv().await {
+        match change {
+            LocalChange::Record(record) => announce(&link, &mut tokens, record).await,
+            LocalChange::Forgotten(device) => {
+                tokens.remove(&device);
+                if let Err(e) = link.forget_record(&device).await {
+                    tracing::warn!(device, error = %e, "forgetting not put on the bus");
+                }
+            }
+        }
     }
 }
 

@@ -59,6 +59,11 @@ pub(super) async fn imports(
                     }
                 }
             }
+            Interest::Requery(line) => {
+                for filter in active.keys() {
+                    requery(&link, &ctx, &line, filter).await;
+                }
+            }
             Interest::Remove(filter) => {
                 if let Some((count, _)) = active.get_mut(&filter) {
                     *count -= 1;
@@ -68,6 +73,28 @@ pub(super) async fn imports(
                     }
                 }
             }
+        }
+    }
+}
+
+/// Asks `line` again for its retained messages matching `filter` and requeues those this
+/// line's router does not hold as they are: a value it missed, not a repeat of one its
+/// subscribers have.
+async fn requery(link: &Link, ctx: &Context, line: &str, filter: &str) {
+    let answer = match link.query_retained_of(Some(line), filter).await {
+        Ok(answer) => answer,
+        Err(e) => {
+            return tracing::warn!(line, filter, error = %e, "retained messages of a returning line not fetched")
+        }
+    };
+    if answer.is_empty() {
+        return;
+    }
+    let held = super::retained::held(ctx, filter).await;
+    for message in answer {
+        if held.get(&message.topic) != Some(&message.payload) {
+            ctx.metrics.bridge_retained_replayed.inc();
+            link.requeue(message).await;
         }
     }
 }
@@ -98,6 +125,16 @@ pub(super) async fn inject_loop(
         injector.take(&ctx, first);
         for message in inbox.try_iter().take(INJECT_BATCH) {
             injector.take(&ctx, message);
+        }
+        // QoS 1 and retained messages from the bus are stored like local ones: a
+        // persistent session offline now gets them when it returns (issue 32).
+        if let Some(store) = &ctx.store {
+            let mut journal = crate::store::Journal::default();
+            store.record_publications(&mut injector.packets, &mut journal, |_, _, _, _, _| {});
+            // Nobody waits for it: the other line's exporter has its answer from zenoh.
+            let _ = store
+                .submit(&injector.publisher, None, &mut journal, false)
+                .await;
         }
         if let Some(last) = injector.packets.pop() {
             tx.buffer().extend(injector.packets.drain(..));

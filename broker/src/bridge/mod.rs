@@ -50,7 +50,11 @@
 //!
 //! **Registry federation.** The line announces itself and each online local device with
 //! liveliness tokens and puts every local record change on the bus; the other lines'
-//! records arrive the same way. A device whose token disappears without its line saying
+//! records arrive the same way. A device this line forgets (by hand or by age) is deleted
+//! from the bus, and every other line forgets it too, with the retained values it held of
+//! it. A line that comes (back) is asked for its records, then for its retained messages
+//! on every imported filter: those this line does not hold yet enter the router, so a
+//! subscriber that subscribed while it was away gets them (issue 32). A device whose token disappears without its line saying
 //! it went offline, and every device of a line whose token disappears, is marked
 //! unreachable (within the zenoh lease, `bridge.lease_ms`); they are online again when
 //! their tokens come back.
@@ -77,7 +81,7 @@ use tokio::task::JoinHandle;
 use crate::session::Context;
 
 /// The router link messages from the bus enter through.
-pub const IMPORT_CLIENT_ID: &str = "fbbus:bridge-in";
+pub const IMPORT_CLIENT_ID: &str = crate::broker_publisher::BUS_CLIENT_ID;
 
 /// The router link the exporter subscribes with.
 pub const EXPORT_CLIENT_ID: &str = "fbbus:bridge-out";
@@ -94,10 +98,14 @@ pub enum BridgeError {
     Router(String),
 }
 
-/// What connections tell the bridge.
+/// What connections (and the federation) tell the import task.
 enum Interest {
     Add(String),
     Remove(String),
+    /// Line `0` came (back): its retained messages on every imported filter are asked
+    /// for again, and those this line does not hold yet enter the router (issue 32: a
+    /// subscriber that subscribed while it was away gets them).
+    Requery(String),
 }
 
 /// The handle connections hold: local subscriptions become imports.
@@ -339,7 +347,7 @@ async fn run(
         tokio::spawn(federation::bus_events(
             Arc::clone(&link),
             events,
-            remote_interest,
+            (remote_interest, bridge.interest.clone()),
             Arc::clone(&ctx),
         )),
         tokio::spawn(federation::announce_local(

@@ -1,5 +1,6 @@
 //! Retained state across lines: other lines' queries for this line's retained messages.
 
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -29,11 +30,34 @@ pub(super) async fn serve_retained(
     }
 }
 
+/// This line's own retained messages matching `filter` that `export` lets leave, as
+/// (topic, payload): what another line's query is answered with.
 pub(super) async fn retained(
     ctx: &Context,
     filter: &str,
     export: &[String],
 ) -> Vec<(String, Vec<u8>)> {
+    replay(ctx, filter)
+        .await
+        .into_iter()
+        .filter(|(from_bus, topic, _)| !from_bus && BusConfig::allows(export, topic))
+        .map(|(_, topic, payload)| (topic, payload))
+        .collect()
+}
+
+/// Every retained message the router holds on topics matching `filter`, this line's and
+/// those imported from the bus: topic -> payload.
+pub(super) async fn held(ctx: &Context, filter: &str) -> HashMap<String, Vec<u8>> {
+    replay(ctx, filter)
+        .await
+        .into_iter()
+        .map(|(_, topic, payload)| (topic, payload))
+        .collect()
+}
+
+/// What the router replays as retained to a short-lived link subscribing to `filter`:
+/// (from the bus, topic, payload).
+async fn replay(ctx: &Context, filter: &str) -> Vec<(bool, String, Vec<u8>)> {
     let id = format!(
         "fbbus:bridge-retained-{}",
         RETAINED_LINKS.fetch_add(1, Ordering::Relaxed)
@@ -65,10 +89,11 @@ pub(super) async fn retained(
                     quiet = Duration::from_millis(50);
                     let mut publish = forward.publish;
                     let origin = origin::take(&mut publish);
-                    let own = origin.is_none_or(|o| o.retain && &*o.publisher != IMPORT_CLIENT_ID);
-                    let topic = String::from_utf8_lossy(&publish.topic).into_owned();
-                    if own && BusConfig::allows(export, &topic) {
-                        out.push((topic, publish.payload.to_vec()));
+                    // Retained (not a live message that happened to arrive meanwhile).
+                    if origin.as_ref().is_none_or(|o| o.retain) {
+                        let from_bus = origin.is_some_and(|o| &*o.publisher == IMPORT_CLIENT_ID);
+                        let topic = String::from_utf8_lossy(&publish.topic).into_owned();
+                        out.push((from_bus, topic, publish.payload.to_vec()));
                     }
                 }
                 Some(Notification::Unschedule) => {

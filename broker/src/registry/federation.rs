@@ -100,6 +100,22 @@ impl Registry {
         self.take_remote(from, record, None)
     }
 
+    /// Line `from` forgot its device `id` (by hand or by age): forgotten here too, with
+    /// its record and the retained values this line holds of it, if it is `from`'s
+    /// device here. False if it is not (unknown, local, another line's).
+    pub fn remote_forgotten(&self, from: &str, id: &str) -> bool {
+        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
+        if devices
+            .get(id)
+            .is_none_or(|r| r.line != from || from == self.line)
+        {
+            return false;
+        }
+        let removed = self.remove(&mut devices, id, super::ForgetReason::Bus);
+        self.announce_count(&devices);
+        removed.is_some()
+    }
+
     /// Where live records stand now: pass it to [`Registry::queried_record`] for the
     /// answers of a query sent after this.
     pub fn live_mark(&self) -> u64 {

@@ -16,6 +16,15 @@ use crate::broker_publisher::Message;
 /// each slot is an `Arc` and the record's JSON, shared by every receiver.
 pub const CHANGES_CAPACITY: usize = 4096;
 
+/// One change of a local device, as the bridge announces it to the other lines.
+#[derive(Debug, Clone)]
+pub enum LocalChange {
+    /// Its record as it is now.
+    Record(Record),
+    /// It was forgotten (by hand or by age): the other lines forget it too.
+    Forgotten(String),
+}
+
 /// One change of the registry, as the console's live feed sends it.
 #[derive(Debug, Clone)]
 pub enum Change {
@@ -30,7 +39,10 @@ impl Registry {
     /// Every change of a local device's record from now on is sent to `observer`.
     /// Returns the local records as they are now.
     #[cfg_attr(not(feature = "bridge"), allow(dead_code))]
-    pub fn observe(&self, observer: tokio::sync::mpsc::UnboundedSender<Record>) -> Vec<Record> {
+    pub fn observe(
+        &self,
+        observer: tokio::sync::mpsc::UnboundedSender<LocalChange>,
+    ) -> Vec<Record> {
         let devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
         let _ = self.observer.set(observer);
         devices
@@ -50,7 +62,7 @@ impl Registry {
     pub(super) fn announce(&self, record: &Record) {
         if record.line == self.line {
             if let Some(observer) = self.observer.get() {
-                let _ = observer.send(record.clone());
+                let _ = observer.send(LocalChange::Record(record.clone()));
             }
         }
         let payload = bytes::Bytes::from(serde_json::to_vec(record).expect("a record serializes"));

@@ -93,6 +93,8 @@ pub enum ForgetReason {
     Expired,
     /// `DELETE /api/v1/devices/{id}` (`fbbus devices forget`).
     Admin,
+    /// Another line's device, forgotten by its own line (the bus).
+    Bus,
 }
 
 impl ForgetReason {
@@ -100,6 +102,7 @@ impl ForgetReason {
         match self {
             ForgetReason::Expired => "expired",
             ForgetReason::Admin => "admin",
+            ForgetReason::Bus => "bus",
         }
     }
 }
@@ -228,9 +231,20 @@ impl Registry {
     ) -> Option<Record> {
         let record = devices.remove(id)?;
         let _ = self.changes.send(Change::Removed(id.into()));
+        if record.line == self.line {
+            if let Some(observer) = self.observer.get() {
+                let _ = observer.send(super::feed::LocalChange::Forgotten(id.to_owned()));
+            }
+        }
         // The values first, the record last: one ordered queue, so whoever sees the
         // record cleared knows the values are cleared too (a new subscriber gets none).
-        for clear in retained_clears(id, record.interface.outputs()) {
+        // Another line's device: its values here came from the bus, and so do their
+        // clears, which are not put back on it (its own line cleared them there).
+        let remote = record.line != self.line;
+        for mut clear in retained_clears(id, record.interface.outputs()) {
+            if remote {
+                clear.publisher = crate::broker_publisher::BUS_CLIENT_ID.to_owned();
+            }
             self.publisher.publish(clear);
         }
         self.publisher

@@ -91,7 +91,7 @@ use crate::silence::{Activity, Bound};
 pub use self::federation::LineState;
 #[cfg(any(feature = "bridge", test))]
 pub use self::federation::RecordRefused;
-pub use self::feed::{Change, CHANGES_CAPACITY};
+pub use self::feed::{Change, LocalChange, CHANGES_CAPACITY};
 pub use self::journal::LoadError;
 pub use self::limits::{ForgetError, ForgetReason, Full, Limits};
 pub use self::records::{Record, Status};
@@ -111,7 +111,7 @@ pub struct Registry {
     /// shutdown never overlap.
     journal: Mutex<Journal>,
     /// Receives every change of a local device's record (the bridge announces them).
-    observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<Record>>,
+    observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<LocalChange>>,
     /// Every change of any record, for the console ([`Registry::changes`]).
     changes: tokio::sync::broadcast::Sender<Change>,
     /// The other lines on the bus and whether they are reachable, as the bridge last

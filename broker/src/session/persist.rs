@@ -26,7 +26,7 @@ use rumqttd::protocol::{
 use super::durable::Durable;
 use super::Session;
 use crate::broker_publisher::publish_packet;
-use crate::store::{Backlogged, Message, Options, Qos2, Record};
+use crate::store::{Backlogged, Options, Qos2, Record};
 
 impl Session {
     /// Hands the batch's stored publications and the session's waiting records to the
@@ -39,58 +39,31 @@ impl Session {
         // The client's packet ids of the stored QoS 1/2 publications: their PUBACK/PUBREC
         // waits for this write.
         let mut acknowledged = Vec::new();
-        let batch = self.to_router.len();
-        for (i, packet) in self.to_router.iter_mut().enumerate() {
-            let Packet::Publish(publish, properties) = packet else {
-                continue;
-            };
-            // The publication's QoS, from its origin: a typed message's re-encodings travel
-            // as QoS 0 copies and are delivered at the publication's QoS.
-            let (wire_qos, pkid) = publish.qos_and_pkid();
-            let Some(origin) = publish.origin.as_mut() else {
-                continue;
-            };
-            let qos = origin.qos;
-            if !store.stores(qos, publish.retain) {
-                continue;
-            }
-            let seq = store.number();
-            origin.stored = seq;
-            // Room for the rest of the batch at the first stored publication: one
-            // allocation, none for a batch that stores nothing.
-            if acknowledged.capacity() == 0 {
-                acknowledged.reserve(batch - i);
-                self.journal.reserve(batch - i);
-            }
-            if wire_qos > 0 {
-                acknowledged.push((pkid, seq));
-            }
-            self.journal.push(Record::Publish {
-                seq,
-                message: Message {
-                    topic: publish.topic.clone(),
-                    payload: publish.payload.clone(),
-                    qos,
-                    retain: publish.retain,
-                    properties: properties.clone().map(Box::new),
-                    publisher: Arc::clone(&origin.publisher),
-                },
-            });
-            // Whom the retained message is charged to, for a restart (`retained_share`);
-            // `on_publish` worked the share out when it admitted the publication.
-            if let (true, false, Some(share)) = (
-                publish.retain,
-                publish.payload.is_empty(),
-                self.durable.as_ref().and_then(|d| d.share.as_deref()),
-            ) {
-                if let Ok(topic) = std::str::from_utf8(&publish.topic) {
-                    self.journal.push(Record::RetainedBy {
-                        topic: topic.to_owned(),
-                        share: share.to_owned(),
-                    });
+        // `on_publish` worked the share out when it admitted a retained publication.
+        let share = self.durable.as_ref().and_then(|d| d.share.as_deref());
+        store.record_publications(
+            &mut self.to_router,
+            &mut self.journal,
+            |journal, publish, pkid, seq, rest| {
+                if let Some(pkid) = pkid {
+                    if acknowledged.capacity() == 0 {
+                        acknowledged.reserve(rest);
+                    }
+                    acknowledged.push((pkid, seq));
                 }
-            }
-        }
+                // Whom the retained message is charged to, for a restart (`retained_share`).
+                if let (true, false, Some(share)) =
+                    (publish.retain, publish.payload.is_empty(), share)
+                {
+                    if let Ok(topic) = std::str::from_utf8(&publish.topic) {
+                        journal.push(Record::RetainedBy {
+                            topic: topic.to_owned(),
+                            share: share.to_owned(),
+                        });
+                    }
+                }
+            },
+        );
         let wait = !acknowledged.is_empty();
         let share = wait.then(|| self.share());
         let answer = store.submit(&self.client_id, share.as_ref(), &mut self.journal, wait);

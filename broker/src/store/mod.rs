@@ -467,6 +467,63 @@ impl Store {
         self.next_seq.fetch_add(1, Ordering::Relaxed)
     }
 
+    /// Numbers the publications among `packets` the store keeps (retained ones and, while
+    /// a persistent session subscribes to anything, QoS 1/2 ones: `Origin::stored`) and
+    /// records each in `journal`, before the packets go to the router. `recorded` is
+    /// called after each record with the journal, the publication, its packet id if it is
+    /// QoS 1/2 on the wire, its number, and how many packets are left from it on (room to
+    /// reserve). Used by a client's session and by the bus's import alike.
+    pub fn record_publications(
+        &self,
+        packets: &mut [rumqttd::protocol::Packet],
+        journal: &mut Journal,
+        mut recorded: impl FnMut(&mut Journal, &rumqttd::protocol::Publish, Option<u16>, u64, usize),
+    ) {
+        let batch = packets.len();
+        let mut reserved = false;
+        for (i, packet) in packets.iter_mut().enumerate() {
+            let rumqttd::protocol::Packet::Publish(publish, properties) = packet else {
+                continue;
+            };
+            // The publication's QoS, from its origin: a typed message's re-encodings
+            // travel as QoS 0 copies and are delivered at the publication's QoS.
+            let (wire_qos, pkid) = publish.qos_and_pkid();
+            let Some(origin) = publish.origin.as_mut() else {
+                continue;
+            };
+            let qos = origin.qos;
+            if !self.stores(qos, publish.retain) {
+                continue;
+            }
+            let seq = self.number();
+            origin.stored = seq;
+            // Room for the rest of the batch at the first stored publication: one
+            // allocation, none for a batch that stores nothing.
+            if !reserved {
+                journal.reserve(batch - i);
+                reserved = true;
+            }
+            journal.push(Record::Publish {
+                seq,
+                message: Message {
+                    topic: publish.topic.clone(),
+                    payload: publish.payload.clone(),
+                    qos,
+                    retain: publish.retain,
+                    properties: properties.clone().map(Box::new),
+                    publisher: Arc::clone(&origin.publisher),
+                },
+            });
+            recorded(
+                journal,
+                publish,
+                (wire_qos > 0).then_some(pkid),
+                seq,
+                batch - i,
+            );
+        }
+    }
+
     /// Hands `records` to the writer; with `wait`, returns once they are written (and
     /// synced under `fsync = "always"`).
     pub async fn write(&self, records: Vec<Record>, wait: bool) {

@@ -7,7 +7,7 @@
 //! | peer | may send us (ingress) |
 //! |---|---|
 //! | every peer | subscribe to and query `fbbus/**` and `fbbus/@/**` (reading is what the bus is for) |
-//! | line `L` | put under `fbbus/L/fb/**` and `fbbus/@/record/L/**`; liveliness tokens `fbbus/@/line/L`, `fbbus/@/device/L/**`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
+//! | line `L` | put under `fbbus/L/fb/**` and `fbbus/@/record/L/**` (delete there too: a forgotten device); liveliness tokens `fbbus/@/line/L`, `fbbus/@/device/L/**`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
 //! | router | everything under `fbbus/**` and `fbbus/@/**`: it forwards the other lines' traffic, each checked at the router's own ingress |
 //! | reader | nothing else |
 //!
@@ -88,7 +88,7 @@ pub fn access_control(peers: &BusPeers) -> Value {
         rules.push(json!({
             "id": format!("speak-as-{line}"),
             "flows": ["ingress"],
-            "messages": ["put", "liveliness_token", "declare_queryable", "reply"],
+            "messages": ["put", "delete", "liveliness_token", "declare_queryable", "reply"],
             "key_exprs": line_keys(line),
             "permission": "allow",
         }));

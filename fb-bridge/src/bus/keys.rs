@@ -88,9 +88,24 @@ pub fn import_key(filter: &str) -> Option<String> {
     Some(format!("{ROOT}/*/{}", levels.join("/")))
 }
 
-/// The key expression of one line's retained messages matching `filter`.
+/// The key expression of every line's retained messages matching `filter`.
 pub fn retained_query(filter: &str) -> Option<String> {
-    import_key(filter).map(|k| format!("{CONTROL}/retained/{}", &k["fbbus/".len()..]))
+    retained_query_of(None, filter)
+}
+
+/// The key expression of `line`'s retained messages matching `filter` (None: every
+/// line's).
+pub fn retained_query_of(line: Option<&str>, filter: &str) -> Option<String> {
+    if line.is_some_and(|l| !valid_line(l)) {
+        return None;
+    }
+    let k = import_key(filter)?;
+    // `fbbus/*/<filter>`: the line's chunk after the root.
+    let levels = k.strip_prefix("fbbus/*/")?;
+    Some(format!(
+        "{CONTROL}/retained/{}/{levels}",
+        line.unwrap_or("*")
+    ))
 }
 
 /// The (line, topic filter) of a retained-message query, from its key expression.
@@ -204,6 +219,14 @@ mod tests {
             retained_query("fb/conv/+/P").as_deref(),
             Some("fbbus/@/retained/*/fb/conv/*/P")
         );
+        // One line's only (a line that came back, issue 32); a line name that is not one
+        // chunk asks nothing.
+        assert_eq!(
+            retained_query_of(Some("line-b"), "fb/conv/+/P").as_deref(),
+            Some("fbbus/@/retained/line-b/fb/conv/*/P")
+        );
+        assert_eq!(retained_query_of(Some("a/b"), "fb/#"), None);
+        assert_eq!(retained_query_of(Some("**"), "fb/#"), None);
         let reply = retained_reply("line-a", "fb/conv/CONV/ID").unwrap();
         assert_eq!(reply, "fbbus/@/retained/line-a/fb/conv/CONV/ID");
         assert_eq!(

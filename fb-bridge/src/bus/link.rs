@@ -92,6 +92,11 @@ pub enum Event {
         device: String,
         json: Vec<u8>,
     },
+    /// Another line forgot its device (a zenoh delete of the device's record key).
+    Forgotten {
+        line: String,
+        device: String,
+    },
 }
 
 /// Samples and events, in arrival order, bounded: a full inbox blocks zenoh's receive
@@ -385,10 +390,16 @@ impl Link {
                     return;
                 };
                 if l != own {
-                    let _ = tx.send(Event::Record {
-                        line: l.to_owned(),
-                        device: device.to_owned(),
-                        json: sample.payload().to_bytes().into_owned(),
+                    let _ = tx.send(match sample.kind() {
+                        SampleKind::Put => Event::Record {
+                            line: l.to_owned(),
+                            device: device.to_owned(),
+                            json: sample.payload().to_bytes().into_owned(),
+                        },
+                        SampleKind::Delete => Event::Forgotten {
+                            line: l.to_owned(),
+                            device: device.to_owned(),
+                        },
                     });
                 }
             })
@@ -519,6 +530,15 @@ impl Link {
             .map_err(zerr)
     }
 
+    /// Tells the other lines this line forgot its device (`fbbus devices forget`, or
+    /// `[fb] forget_offline_after_s`): a delete of the device's record key.
+    pub async fn forget_record(&self, device: &str) -> Result<(), LinkError> {
+        self.session
+            .delete(keys::record_key(&self.line, device))
+            .await
+            .map_err(zerr)
+    }
+
     /// Answers registry queries (`fbbus/@/record/<line>/<device or *>`) with `records`'
     /// answer: (device id, record JSON) of the one local device a query names
     /// (`records(Some(id))`), or of every local device (`records(None)`, a wildcard): a
@@ -595,7 +615,16 @@ impl Link {
 
     /// Retained messages of other lines matching `filter`.
     pub async fn query_retained(&self, filter: &str) -> Result<Vec<Inbound>, LinkError> {
-        let Some(key) = keys::retained_query(filter) else {
+        self.query_retained_of(None, filter).await
+    }
+
+    /// [`Link::query_retained`] of one line only (`Some`), or of every line.
+    pub async fn query_retained_of(
+        &self,
+        line: Option<&str>,
+        filter: &str,
+    ) -> Result<Vec<Inbound>, LinkError> {
+        let Some(key) = keys::retained_query_of(line, filter) else {
             return Ok(Vec::new());
         };
         let replies = self
