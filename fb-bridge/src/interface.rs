@@ -13,7 +13,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::types::DataType;
+use crate::types::{DataType, ElementaryType};
 
 /// An interface as sent by a device: types still as text.
 pub type Declaration = Interface<String>;
@@ -332,20 +332,79 @@ impl OutputPort<'_> {
     }
 
     /// Whether `payload`, valid JSON accepted on this port and free of whitespace, is
-    /// canonical already, so it can be routed as it came: a port whose values have one
-    /// JSON form, or a BOOL data port (or BOOL array) whose payload has no digit (`true`,
-    /// `[true,false]`; not `1`, which BOOL reads too). An event carrying a BOOL is not
-    /// told apart (its `seq`, `ts` and other values have digits): it is re-encoded.
+    /// canonical already, so it can be routed as it came: every value has one JSON form,
+    /// but for BOOLs, which must be written `true`/`false`, not `1`/`0` (which BOOL reads
+    /// too). A BOOL data port's payload (or a BOOL array's) has no digit; an event's BOOL
+    /// values are found by their keys in one pass ([`bools_written_as_literals`]). Until
+    /// 2026-11-28 every event carrying a BOOL was re-encoded, and the conveyor's typed
+    /// burst lost a quarter of its throughput (`compare fb`, docs/performance.md).
     pub fn json_is_canonical(&self, payload: &[u8]) -> bool {
-        use crate::types::ElementaryType;
         match self {
-            OutputPort::Data(DataType::Elementary(ElementaryType::Bool))
-            | OutputPort::Data(DataType::Array(ElementaryType::Bool, _)) => {
+            OutputPort::Data(t) if t.element() == ElementaryType::Bool => {
                 !payload.iter().any(u8::is_ascii_digit)
             }
-            _ => self.has_one_json_form(),
+            OutputPort::Data(t) => t.has_one_json_form(),
+            OutputPort::Event(with) => {
+                let bools = with
+                    .iter()
+                    .filter(|(_, t)| t.element() == ElementaryType::Bool);
+                match bools.clone().next() {
+                    None => self.has_one_json_form(),
+                    Some(_) => {
+                        with.iter().all(|(_, t)| {
+                            t.element() == ElementaryType::Bool || t.has_one_json_form()
+                        }) && bools_written_as_literals(payload, |key| {
+                            bools.clone().any(|(name, _)| name.as_bytes() == key)
+                        })
+                    }
+                }
+            }
         }
     }
+}
+
+/// Whether, in `payload` (an event's JSON, valid and without whitespace), no value of a
+/// key `is_bool` names is written with a digit (`1`, `[0,true]`): one pass, no
+/// allocation. A quote inside a string is escaped, so the strings are found exactly; only
+/// an object key is followed by `:`. A key written with an escape cannot be told apart:
+/// the payload is then taken as not canonical (re-encoded), never the other way.
+fn bools_written_as_literals(payload: &[u8], is_bool: impl Fn(&[u8]) -> bool) -> bool {
+    let mut i = 0;
+    let mut last: Option<(usize, usize)> = None;
+    while i < payload.len() {
+        match payload[i] {
+            b'"' => {
+                let start = i + 1;
+                i += 1;
+                while i < payload.len() && payload[i] != b'"' {
+                    i += if payload[i] == b'\\' { 2 } else { 1 };
+                }
+                last = Some((start, i.min(payload.len())));
+            }
+            b':' => {
+                if let Some((start, end)) = last.take() {
+                    let key = &payload[start..end];
+                    if key.contains(&b'\\') {
+                        return false;
+                    }
+                    if is_bool(key) {
+                        let value = &payload[i + 1..];
+                        let len = match value.first() {
+                            Some(b'[') => value.iter().position(|b| *b == b']'),
+                            _ => value.iter().position(|b| matches!(b, b',' | b'}')),
+                        }
+                        .unwrap_or(value.len());
+                        if value[..len].iter().any(|b| b.is_ascii_digit()) {
+                            return false;
+                        }
+                    }
+                }
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    true
 }
 
 impl Interface {
@@ -412,8 +471,26 @@ mod tests {
         assert!(!flags.json_is_canonical(b"[1,false]"));
         let int_port = OutputPort::Data(DataType::Elementary(T::Int));
         assert!(int_port.json_is_canonical(b"1"));
-        let event = OutputPort::Event(vec![("ON", DataType::Elementary(T::Bool))]);
-        assert!(!event.json_is_canonical(br#"{"data":{"ON":true}}"#));
+        let event = OutputPort::Event(vec![
+            ("ON", DataType::Elementary(T::Bool)),
+            ("N", DataType::Elementary(T::Int)),
+            ("FLAGS", DataType::Array(T::Bool, 2)),
+        ]);
+        assert!(
+            event.json_is_canonical(br#"{"seq":1,"data":{"ON":true,"N":5,"FLAGS":[false,true]}}"#)
+        );
+        assert!(
+            !event.json_is_canonical(br#"{"seq":1,"data":{"ON":1,"N":5,"FLAGS":[false,true]}}"#)
+        );
+        assert!(!event.json_is_canonical(br#"{"seq":1,"data":{"N":5,"ON":true,"FLAGS":[0,true]}}"#));
+        // A key written with an escape: re-encoded.
+        assert!(!event.json_is_canonical(br#"{"data":{"\u004fN":true,"N":5,"FLAGS":[true,true]}}"#));
+        // The name inside a string value is not the key.
+        let text = OutputPort::Event(vec![
+            ("S", DataType::Elementary(T::String)),
+            ("ON", DataType::Elementary(T::Bool)),
+        ]);
+        assert!(text.json_is_canonical(br#"{"data":{"S":"\"ON\":1","ON":false}}"#));
     }
 
     #[test]

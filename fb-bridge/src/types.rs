@@ -163,6 +163,13 @@ pub enum DataType {
 }
 
 impl DataType {
+    /// The elementary type of the value, or of each element of an array.
+    pub fn element(self) -> ElementaryType {
+        match self {
+            DataType::Elementary(t) | DataType::Array(t, _) => t,
+        }
+    }
+
     /// See [`ElementaryType::has_one_json_form`].
     pub fn has_one_json_form(self) -> bool {
         match self {
