@@ -147,6 +147,15 @@ impl Running {
         self.dir.path()
     }
 
+    /// Kills the broker now (SIGKILL), as a crash or a power cut ends it, and reaps it.
+    pub fn kill(&mut self) -> Result<(), Error> {
+        if self.child.try_wait()?.is_none() {
+            self.child.kill()?;
+            self.child.wait()?;
+        }
+        Ok(())
+    }
+
     /// Stops the broker with SIGTERM, as systemd does, and waits up to `within` for it to
     /// exit (then kills it). Its directory (config, store, log) stays, for
     /// [`Running::respawn`]. Returns how long it took to exit.

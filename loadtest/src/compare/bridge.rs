@@ -682,7 +682,7 @@ async fn bridge_counters(admin: SocketAddr) -> String {
 }
 
 /// user + system CPU ticks of `pid` so far (`/proc/<pid>/stat` fields 14 and 15).
-fn cpu_ticks(pid: u32) -> Option<u64> {
+pub(super) fn cpu_ticks(pid: u32) -> Option<u64> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
     // The command name (field 2) is in parentheses and may contain spaces.
     let rest = stat.rsplit_once(')')?.1;

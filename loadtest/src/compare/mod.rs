@@ -15,6 +15,7 @@ mod auth;
 mod bridge;
 mod fb;
 mod persistence;
+mod plant;
 mod scenarios;
 mod table;
 
@@ -103,6 +104,31 @@ enum FbbusOnly {
         /// Messages in each burst (default 40000; --quick 2000).
         #[arg(long, value_name = "N")]
         burst: Option<usize>,
+    },
+    /// fbbus only (issue 32): a plant on one machine: N lines x M devices on one zenoh
+    /// bus, two router lines and clients of both (`routers`) or a mesh of peers
+    /// (`peers`): registry convergence, a line's local delivery while the bus federates,
+    /// a traffic matrix (neighbour, all-to-one, one-to-all: delivered, lost, latency, CPU
+    /// per line), and line 1 killed. Writes plant.txt.
+    Plant {
+        /// Small sizes (5 lines x 20 devices, 2 s of traffic): a smoke test.
+        #[arg(long)]
+        quick: bool,
+        /// The fbbus binary. Default: `fbbus` next to this binary.
+        #[arg(long, value_name = "PATH")]
+        fbbus: Option<PathBuf>,
+        /// Lines (default 8; --quick 5; at least 3).
+        #[arg(long, value_name = "N")]
+        lines: Option<usize>,
+        /// Devices per line (default 1000; --quick 20).
+        #[arg(long, value_name = "M")]
+        devices: Option<usize>,
+        /// Topologies, comma-separated: routers, peers. Default: both.
+        #[arg(long, value_delimiter = ',', value_name = "LIST")]
+        topology: Vec<String>,
+        /// Seconds of traffic per pattern (default 6; --quick 2).
+        #[arg(long, value_name = "SECONDS")]
+        traffic_secs: Option<u64>,
     },
     /// fbbus's store (issue 17) beside Mosquitto's persistence: QoS 1 burst throughput and
     /// steady latency into a persistent subscriber with fbbus's persistence off and with
@@ -309,6 +335,32 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
                 params.burst = n.max(1);
             }
             bridge::run(&fbbus, &params, out).await
+        }
+        Some(FbbusOnly::Plant {
+            quick,
+            fbbus,
+            lines,
+            devices,
+            topology,
+            traffic_secs,
+        }) => {
+            let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
+            let mut params = if quick {
+                plant::PlantParams::quick()
+            } else {
+                plant::PlantParams::full()
+            };
+            params.topologies = plant::Topology::parse_list(&topology)?;
+            if let Some(n) = lines {
+                params.lines = n;
+            }
+            if let Some(m) = devices {
+                params.devices = m.max(1);
+            }
+            if let Some(s) = traffic_secs {
+                params.traffic = Duration::from_secs(s.max(1));
+            }
+            plant::run(&fbbus, &params, out).await
         }
         Some(FbbusOnly::Persistence {
             quick,

@@ -1,0 +1,661 @@
+//! `fbbus-loadtest compare plant`: a plant on one machine (issue 32). N fbbus lines on
+//! one zenoh bus, M devices on each, in one of two topologies:
+//!
+//! - **routers**: lines 1 and 2 are zenoh routers (`mode = "router"`), line 2 linked to
+//!   line 1; lines 3..N are zenoh clients of both (a client uses one router at a time and
+//!   moves to the other when it goes), as a plant with two redundant routers runs;
+//! - **peers**: every line a zenoh peer listening on its own endpoint and connecting to
+//!   lines 1 and 2 (zenoh's gossip makes the mesh).
+//!
+//! Each device is a raw MQTT 3.1.1 client that connects with its id, declares one LINT
+//! output (`fb/<id>/FB/OUT`) and stays connected, as the issue's own attempt did. Measured,
+//! every loop bounded by a count and a deadline:
+//!
+//! 1. **convergence**: from the last device's declaration until every line's registry
+//!    lists all N x M devices online (`fbbus_registry_devices{status="online"}`);
+//! 2. **local delivery while the bus federates**: a device of line 3 publishes every
+//!    `period` to a subscriber on line 3 from before the devices connect until
+//!    convergence, then as long again on the quiet plant: p50/p99 of each phase (the
+//!    goal: during within 2x idle);
+//! 3. **traffic matrix**, each pattern for `traffic` seconds, a message every `period` per
+//!    publisher, its LINT value the send time (µs): *neighbour* (line i -> line i+1),
+//!    *all-to-one* (every other line -> line N), *one-to-all* (line 3 -> every other
+//!    line); per pattern sent, delivered, lost, duplicated, latency p50/p99/max, and the CPU
+//!    each line's process spent meanwhile;
+//! 4. **a router dies**: line 1 is SIGKILLed; the time until every other line lists the
+//!    (N-1) x M devices of the living lines online again, and the lowest count seen
+//!    meanwhile.
+//!
+//! Everything on 127.0.0.1, plain `tcp/` bus (no TLS: the hop's cost over mutual TLS is
+//! `compare bridge --bus tcp,mtls`).
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _, Result};
+use hdrhistogram::Histogram;
+use tokio::io::AsyncWriteExt;
+use tokio::net::TcpStream;
+use tokio::sync::Mutex;
+
+use super::{metric, start_fbbus, Transcript};
+use loadtest::broker_process::spawn::{self, Running};
+use loadtest::raw_client::{self as mqtt, PacketReader};
+
+pub struct PlantParams {
+    pub lines: usize,
+    pub devices: usize,
+    pub topologies: Vec<Topology>,
+    pub traffic: Duration,
+    pub period: Duration,
+    /// How long convergence may take before the run says it did not converge.
+    pub converge_within: Duration,
+}
+
+impl PlantParams {
+    pub fn full() -> PlantParams {
+        PlantParams {
+            lines: 8,
+            devices: 1000,
+            topologies: vec![Topology::Routers, Topology::Peers],
+            traffic: Duration::from_secs(6),
+            period: Duration::from_millis(20),
+            converge_within: Duration::from_secs(120),
+        }
+    }
+
+    pub fn quick() -> PlantParams {
+        PlantParams {
+            lines: 5,
+            devices: 20,
+            traffic: Duration::from_secs(2),
+            converge_within: Duration::from_secs(30),
+            ..PlantParams::full()
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Topology {
+    Routers,
+    Peers,
+}
+
+impl Topology {
+    pub const ALL: [Topology; 2] = [Topology::Routers, Topology::Peers];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Topology::Routers => "routers",
+            Topology::Peers => "peers",
+        }
+    }
+
+    pub fn parse_list(names: &[String]) -> Result<Vec<Topology>> {
+        let mut out = Vec::new();
+        for name in names {
+            let t = Topology::ALL
+                .into_iter()
+                .find(|t| t.name() == name.trim())
+                .with_context(|| format!("unknown topology `{name}` (known: routers, peers)"))?;
+            if !out.contains(&t) {
+                out.push(t);
+            }
+        }
+        if out.is_empty() {
+            out = Topology::ALL.to_vec();
+        }
+        Ok(out)
+    }
+
+    /// Line `n`'s (1-based) `[bridge]` section, `endpoints[i]` being line i+1's.
+    fn bridge(self, n: usize, endpoints: &[String]) -> String {
+        let (first, second) = (&endpoints[0], &endpoints[1]);
+        let (mode, listen, connect): (&str, Vec<&String>, Vec<&String>) = match (self, n) {
+            (Topology::Routers, 1) => ("router", vec![first], vec![]),
+            (Topology::Routers, 2) => ("router", vec![second], vec![first]),
+            (Topology::Routers, _) => ("client", vec![], vec![first, second]),
+            (Topology::Peers, 1) => ("peer", vec![first], vec![]),
+            (Topology::Peers, 2) => ("peer", vec![second], vec![first]),
+            (Topology::Peers, n) => ("peer", vec![&endpoints[n - 1]], vec![first, second]),
+        };
+        format!("\n[bridge]\nmode = \"{mode}\"\nlisten = {listen:?}\nconnect = {connect:?}\n")
+    }
+}
+
+const INTERFACE: &str = r#"{"fbs": {"FB": {"type": "PLANT_DEVICE", "data_out": {"OUT": "LINT"}}}}"#;
+
+fn device_id(line: usize, device: usize) -> String {
+    format!("l{line}-d{device:04}")
+}
+
+fn topic(line: usize, device: usize) -> String {
+    format!("fb/{}/FB/OUT", device_id(line, device))
+}
+
+/// Microseconds since `epoch`, the value every measured message carries.
+fn micros(epoch: Instant) -> i64 {
+    epoch.elapsed().as_micros() as i64
+}
+
+pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
+    if p.lines < 3 {
+        bail!("a plant needs at least 3 lines (two routers and a client)");
+    }
+    let mut t = Transcript::default();
+    t.machine_lines("plant");
+    t.line(format!(
+        "plant:     {} lines x {} devices (raw MQTT 3.1.1 clients, one LINT output each), \
+         topologies {}; traffic {} s per pattern, one message per {} ms per publisher",
+        p.lines,
+        p.devices,
+        p.topologies
+            .iter()
+            .map(|t| t.name())
+            .collect::<Vec<_>>()
+            .join(", "),
+        p.traffic.as_secs(),
+        p.period.as_millis()
+    ));
+    t.line(format!("fbbus:     {}", fbbus.display()));
+    let mut failed = 0;
+    for &topology in &p.topologies {
+        t.line(String::new());
+        t.line(format!("== topology {} ==", topology.name()));
+        if let Err(e) = plant(fbbus, topology, p, &mut t).await {
+            failed += 1;
+            t.line(format!("FAILED: {e:#}"));
+        }
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating --out {}", out.display()))?;
+    let file = out.join("plant.txt");
+    std::fs::write(&file, &t.0).with_context(|| format!("writing {}", file.display()))?;
+    eprintln!("wrote {}", file.display());
+    if failed > 0 {
+        bail!("{failed} topologies failed (see plant.txt)");
+    }
+    Ok(())
+}
+
+/// One topology, from its lines' start to the router's death.
+async fn plant(
+    fbbus: &Path,
+    topology: Topology,
+    p: &PlantParams,
+    t: &mut Transcript,
+) -> Result<()> {
+    let endpoints: Vec<String> = (0..p.lines)
+        .map(|_| spawn::free_port().map(|port| format!("tcp/127.0.0.1:{port}")))
+        .collect::<std::result::Result<_, _>>()?;
+    let mut lines = Vec::with_capacity(p.lines);
+    for n in 1..=p.lines {
+        let tables = format!(
+            "\n[fb]\nmax_devices_per_identity = {}\n{}",
+            p.devices * 2,
+            topology.bridge(n, &endpoints)
+        );
+        let line = start_fbbus(fbbus, &[format!("line = \"line-{n}\"")], &tables)
+            .await
+            .with_context(|| format!("line-{n}"))?;
+        lines.push(line);
+    }
+    let admins: Vec<SocketAddr> = lines
+        .iter()
+        .map(|l| l.admin.context("fbbus has an admin endpoint"))
+        .collect::<Result<_>>()?;
+    let epoch = Instant::now();
+
+    // Local delivery on line 3, through everything that follows until convergence.
+    let local = Probe::start(&lines[2], (3, p.devices), &[&lines[2]], epoch, p.period).await?;
+    // The devices, every line at once.
+    let connecting = Instant::now();
+    let mut joins = Vec::new();
+    for (i, line) in lines.iter().enumerate() {
+        let (addr, m) = (line.addr, p.devices);
+        joins.push(tokio::spawn(async move { devices(addr, i + 1, m).await }));
+    }
+    let mut held: HashMap<String, TcpStream> = HashMap::new();
+    for j in joins {
+        held.extend(j.await.context("device task")??);
+    }
+    let declared = Instant::now();
+    t.line(format!(
+        "devices:   {} connected and declared in {:.1} s",
+        held.len(),
+        (declared - connecting).as_secs_f64()
+    ));
+    let held = Arc::new(Mutex::new(held));
+    let pings = keep_alive(Arc::clone(&held));
+    // And the local probe's device.
+    let everyone = (p.lines * p.devices + 1) as f64;
+    let mut per_line = Vec::new();
+    for (i, admin) in admins.iter().enumerate() {
+        let took = until(*admin, everyone, declared, p.converge_within).await;
+        per_line.push(match took {
+            Some(d) => format!("line-{}: {:.2} s", i + 1, d.as_secs_f64()),
+            None => format!(
+                "line-{}: NOT CONVERGED ({} of {everyone} online)",
+                i + 1,
+                metric(*admin, ONLINE).await
+            ),
+        });
+    }
+    t.line(format!(
+        "converged: every line lists all {everyone} devices online, after the last declaration: {}",
+        per_line.join(", ")
+    ));
+    let during = local.phase().await;
+    tokio::time::sleep(declared.elapsed().min(Duration::from_secs(10))).await;
+    let idle = local.phase().await;
+    local.stop().await;
+    t.line(format!(
+        "local:     line 3 -> line 3 while the bus federated: {}; quiet plant: {}; p99 ratio {}",
+        during.describe(),
+        idle.describe(),
+        ratio(during.p99(), idle.p99())
+    ));
+
+    // The traffic matrix.
+    t.line(format!(
+        "{:<12} {:>8} {:>9} {:>6} {:>5} {:>9} {:>9} {:>9}  cpu ms per line",
+        "pattern", "sent", "delivered", "lost", "dup", "p50 ms", "p99 ms", "max ms"
+    ));
+    let n = p.lines;
+    let patterns: Vec<(&str, Vec<Flow>)> = vec![
+        (
+            "neighbour",
+            (1..=n).map(|i| ((i, 0), vec![i % n + 1])).collect(),
+        ),
+        ("all-to-one", (1..n).map(|i| ((i, 1), vec![n])).collect()),
+        (
+            "one-to-all",
+            vec![((3, 2), (1..=n).filter(|&j| j != 3).collect())],
+        ),
+    ];
+    for (name, flows) in patterns {
+        let before = cpu(&lines);
+        let figures = matrix(&lines, &held, &flows, epoch, p).await?;
+        let after = cpu(&lines);
+        let cpu_ms: Vec<String> = before
+            .iter()
+            .zip(&after)
+            .map(|(b, a)| format!("{}", a.saturating_sub(*b) * 1000 / ticks_per_second()))
+            .collect();
+        t.line(format!(
+            "{:<12} {:>8} {:>9} {:>6} {:>5} {:>9} {:>9} {:>9}  {}",
+            name,
+            figures.sent,
+            figures.delivered,
+            figures.sent.saturating_sub(figures.delivered),
+            figures.duplicated,
+            ms(figures.latency.value_at_quantile(0.5)),
+            ms(figures.latency.value_at_quantile(0.99)),
+            ms(figures.latency.max()),
+            cpu_ms.join(" ")
+        ));
+    }
+
+    // A router (or the first peer) dies.
+    let living = ((p.lines - 1) * p.devices) as f64;
+    let killed = Instant::now();
+    lines[0].kill().context("killing line 1")?;
+    let mut lowest = f64::MAX;
+    let mut back = Vec::new();
+    for (i, admin) in admins.iter().enumerate().skip(1) {
+        let (took, low) = reconverged(*admin, living, killed, p.converge_within).await;
+        lowest = lowest.min(low);
+        back.push(match took {
+            Some(d) => format!("line-{}: {:.2} s", i + 1, d.as_secs_f64()),
+            None => format!("line-{}: NOT BACK", i + 1),
+        });
+    }
+    t.line(format!(
+        "line 1 killed: every other line lists the {living} devices of the living lines \
+         online (and line 1's not) after: {}; lowest count seen meanwhile {lowest}",
+        back.join(", ")
+    ));
+    pings.abort();
+    Ok(())
+}
+
+const ONLINE: &str = "fbbus_registry_devices{status=\"online\"}";
+
+/// Connects and declares `m` devices of line `line`; their connections by id, held open.
+async fn devices(addr: SocketAddr, line: usize, m: usize) -> Result<Vec<(String, TcpStream)>> {
+    let mut out = Vec::with_capacity(m);
+    for d in 0..m {
+        let id = device_id(line, d);
+        let mut s = tokio::time::timeout(Duration::from_secs(10), mqtt::connect(addr, &id, None))
+            .await
+            .with_context(|| format!("{id}: CONNECT timed out"))??;
+        s.write_all(&mqtt::publish_packet(
+            &format!("fbbus/declare/{id}"),
+            INTERFACE.as_bytes(),
+        ))
+        .await?;
+        out.push((id, s));
+    }
+    Ok(out)
+}
+
+type Held = Arc<Mutex<HashMap<String, TcpStream>>>;
+
+/// PINGREQ on every held connection every 20 s (their keep-alive is 60 s), until
+/// aborted. (The PINGRESPs are never read: 2 bytes each in a socket's buffer.)
+fn keep_alive(held: Held) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(Duration::from_secs(20)).await;
+            for s in held.lock().await.values_mut() {
+                let _ = s.write_all(&[0xC0, 0x00]).await;
+            }
+        }
+    })
+}
+
+/// How long after `from` the line's online count reached `want`, or None by `within`.
+async fn until(admin: SocketAddr, want: f64, from: Instant, within: Duration) -> Option<Duration> {
+    while from.elapsed() < within {
+        if metric(admin, ONLINE).await >= want {
+            return Some(from.elapsed());
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    None
+}
+
+/// After a line died: how long until the online count is `want` again (it drops when
+/// the dead line's devices go unreachable, and whatever else was cut off with it), and
+/// the lowest count seen on the way.
+async fn reconverged(
+    admin: SocketAddr,
+    want: f64,
+    from: Instant,
+    within: Duration,
+) -> (Option<Duration>, f64) {
+    let mut lowest = f64::MAX;
+    while from.elapsed() < within {
+        let now = metric(admin, ONLINE).await;
+        lowest = lowest.min(now);
+        if now == want {
+            return (Some(from.elapsed()), lowest);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    (None, lowest)
+}
+
+struct Figures {
+    sent: u64,
+    delivered: u64,
+    duplicated: u64,
+    latency: Histogram<u64>,
+}
+
+/// A publisher (line, device) and the lines whose subscribers read it.
+type Flow = ((usize, usize), Vec<usize>);
+
+/// One pattern: each publisher (line, device) sends to subscribers on the listed lines.
+async fn matrix(
+    lines: &[Running],
+    held: &Held,
+    flows: &[Flow],
+    epoch: Instant,
+    p: &PlantParams,
+) -> Result<Figures> {
+    let figures = Arc::new(Mutex::new(Figures {
+        sent: 0,
+        delivered: 0,
+        duplicated: 0,
+        latency: Histogram::new_with_bounds(1, 60_000_000, 3)?,
+    }));
+    // One subscriber per (flow, receiving line), each counting what it gets once.
+    let mut readers = Vec::new();
+    let stop = Arc::new(tokio::sync::Notify::new());
+    for (f, ((line, device), to)) in flows.iter().enumerate() {
+        for &j in to {
+            let mut s =
+                mqtt::connect(lines[j - 1].addr, &format!("plant-sub-{f}-{j}"), None).await?;
+            mqtt::subscribe(&mut s, &topic(*line, *device)).await?;
+            readers.push(tokio::spawn(receive(
+                PacketReader::new(s),
+                epoch,
+                Arc::clone(&figures),
+                Arc::clone(&stop),
+            )));
+        }
+    }
+    // The interests cross the bus before the first message.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let mut publishers = Vec::new();
+    for ((line, device), to) in flows {
+        // The device publishes on its own connection, taken from the plant for the
+        // pattern and given back after.
+        let id = device_id(*line, *device);
+        let mut s = held
+            .lock()
+            .await
+            .remove(&id)
+            .with_context(|| format!("device {id} is not connected"))?;
+        let (period, traffic, topic) = (p.period, p.traffic, topic(*line, *device));
+        let copies = to.len() as u64;
+        let figures = Arc::clone(&figures);
+        publishers.push(tokio::spawn(async move {
+            let started = Instant::now();
+            let mut tick = tokio::time::interval(period);
+            let mut sent = 0u64;
+            while started.elapsed() < traffic {
+                tick.tick().await;
+                let value = micros(epoch).to_string();
+                if s.write_all(&mqtt::publish_packet(&topic, value.as_bytes()))
+                    .await
+                    .is_err()
+                {
+                    break;
+                }
+                sent += copies;
+            }
+            figures.lock().await.sent += sent;
+            (id, s)
+        }));
+    }
+    for pub_task in publishers {
+        let (id, s) = pub_task.await.context("publisher task")?;
+        held.lock().await.insert(id, s);
+    }
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    stop.notify_waiters();
+    for r in readers {
+        let _ = r.await;
+    }
+    let figures = Arc::try_unwrap(figures)
+        .map_err(|_| anyhow::anyhow!("a reader still holds the figures"))?
+        .into_inner();
+    Ok(figures)
+}
+
+/// Reads PUBLISHes until `stop`, counting each value once (a second copy is a duplicate).
+async fn receive(
+    mut reader: PacketReader,
+    epoch: Instant,
+    figures: Arc<Mutex<Figures>>,
+    stop: Arc<tokio::sync::Notify>,
+) {
+    let mut seen = std::collections::HashSet::new();
+    let (mut delivered, mut duplicated) = (0u64, 0u64);
+    let mut latencies = Vec::new();
+    let stopped = stop.notified();
+    tokio::pin!(stopped);
+    loop {
+        tokio::select! {
+            _ = &mut stopped => break,
+            read = reader.read_more() => {
+                match read {
+                    Ok(0) | Err(_) => break,
+                    Ok(_) => {}
+                }
+                while let Ok(Some((header, body))) = reader.next_packet() {
+                    let Some(value) = mqtt::publish_payload(header, body)
+                        .and_then(|v| std::str::from_utf8(v).ok())
+                        .and_then(|v| v.trim().parse::<i64>().ok())
+                    else {
+                        continue;
+                    };
+                    if seen.insert(value) {
+                        delivered += 1;
+                        latencies.push((micros(epoch) - value).max(1) as u64);
+                    } else {
+                        duplicated += 1;
+                    }
+                }
+            }
+        }
+    }
+    let mut f = figures.lock().await;
+    f.delivered += delivered;
+    f.duplicated += duplicated;
+    for l in latencies {
+        let _ = f.latency.record(l);
+    }
+}
+
+/// A device publishing to subscribers, whose latency is read phase by phase.
+struct Probe {
+    latency: Arc<Mutex<Histogram<u64>>>,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+    stop: Arc<tokio::sync::Notify>,
+}
+
+struct Phase(Histogram<u64>);
+
+impl Phase {
+    fn p99(&self) -> u64 {
+        self.0.value_at_quantile(0.99)
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "{} messages, p50 {} ms, p99 {} ms, max {} ms",
+            self.0.len(),
+            ms(self.0.value_at_quantile(0.5)),
+            ms(self.p99()),
+            ms(self.0.max())
+        )
+    }
+}
+
+impl Probe {
+    async fn start(
+        on: &Running,
+        (line, device): (usize, usize),
+        to: &[&Running],
+        epoch: Instant,
+        period: Duration,
+    ) -> Result<Probe> {
+        let latency = Arc::new(Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3)?));
+        let stop = Arc::new(tokio::sync::Notify::new());
+        let id = device_id(line, device);
+        let mut dev = mqtt::connect(on.addr, &id, None).await?;
+        dev.write_all(&mqtt::publish_packet(
+            &format!("fbbus/declare/{id}"),
+            INTERFACE.as_bytes(),
+        ))
+        .await?;
+        let mut tasks = Vec::new();
+        for (k, sub) in to.iter().enumerate() {
+            let mut s = mqtt::connect(sub.addr, &format!("plant-probe-{k}"), None).await?;
+            mqtt::subscribe(&mut s, &topic(line, device)).await?;
+            let (latency, stop) = (Arc::clone(&latency), Arc::clone(&stop));
+            tasks.push(tokio::spawn(async move {
+                let mut reader = PacketReader::new(s);
+                let stopped = stop.notified();
+                tokio::pin!(stopped);
+                loop {
+                    tokio::select! {
+                        _ = &mut stopped => break,
+                        read = reader.read_more() => {
+                            if !matches!(read, Ok(n) if n > 0) {
+                                break;
+                            }
+                            while let Ok(Some((header, body))) = reader.next_packet() {
+                                if let Some(value) = mqtt::publish_payload(header, body)
+                                    .and_then(|v| std::str::from_utf8(v).ok())
+                                    .and_then(|v| v.trim().parse::<i64>().ok())
+                                {
+                                    let _ = latency.lock().await.record((micros(epoch) - value).max(1) as u64);
+                                }
+                            }
+                        }
+                    }
+                }
+            }));
+        }
+        let topic = topic(line, device);
+        let stop_pub = Arc::clone(&stop);
+        tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            let stopped = stop_pub.notified();
+            tokio::pin!(stopped);
+            // Bounded: at most ten minutes of messages whatever happens.
+            for _ in 0..(600_000 / period.as_millis().max(1)) {
+                tokio::select! {
+                    _ = &mut stopped => break,
+                    _ = tick.tick() => {
+                        let value = micros(epoch).to_string();
+                        if dev.write_all(&mqtt::publish_packet(&topic, value.as_bytes())).await.is_err() {
+                            break;
+                        }
+                    }
+                }
+            }
+        }));
+        Ok(Probe {
+            latency,
+            tasks,
+            stop,
+        })
+    }
+
+    /// The latencies since the last phase, and a fresh start.
+    async fn phase(&self) -> Phase {
+        let mut h = self.latency.lock().await;
+        let taken = h.clone();
+        h.reset();
+        Phase(taken)
+    }
+
+    async fn stop(self) {
+        self.stop.notify_waiters();
+        for t in self.tasks {
+            let _ = t.await;
+        }
+    }
+}
+
+fn ms(us: u64) -> String {
+    format!("{:.2}", us as f64 / 1000.0)
+}
+
+fn ratio(a: u64, b: u64) -> String {
+    if b == 0 {
+        return "-".into();
+    }
+    format!("{:.2}x", a as f64 / b as f64)
+}
+
+/// user + system CPU ticks of each line's process so far.
+fn cpu(lines: &[Running]) -> Vec<u64> {
+    lines
+        .iter()
+        .map(|l| super::bridge::cpu_ticks(l.pid()).unwrap_or(0))
+        .collect()
+}
+
+fn ticks_per_second() -> u64 {
+    // SAFETY: sysconf has no preconditions.
+    let ticks = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    u64::try_from(ticks).ok().filter(|t| *t > 0).unwrap_or(100)
+}
