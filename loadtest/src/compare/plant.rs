@@ -248,7 +248,13 @@ async fn plant(
         per_line.join(", ")
     ));
     let during = local.phase().await;
-    tokio::time::sleep(declared.elapsed().min(Duration::from_secs(10))).await;
+    // The quiet plant, as long as the federation took (3 to 10 s).
+    tokio::time::sleep(
+        declared
+            .elapsed()
+            .clamp(Duration::from_secs(3), Duration::from_secs(10)),
+    )
+    .await;
     let idle = local.phase().await;
     local.stop().await;
     t.line(format!(
