@@ -335,7 +335,7 @@ impl OutputPort<'_> {
     /// canonical already, so it can be routed as it came: every value has one JSON form,
     /// but for BOOLs, which must be written `true`/`false`, not `1`/`0` (which BOOL reads
     /// too). A BOOL data port's payload (or a BOOL array's) has no digit; an event's BOOL
-    /// values are found by their keys in one pass ([`bools_written_as_literals`]). Until
+    /// values are found by their keys in one pass (`bools_written_as_literals`). Until
     /// 2026-11-28 every event carrying a BOOL was re-encoded, and the conveyor's typed
     /// burst lost a quarter of its throughput (`compare fb`, docs/performance.md).
     pub fn json_is_canonical(&self, payload: &[u8]) -> bool {
