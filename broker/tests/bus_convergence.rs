@@ -101,12 +101,16 @@ async fn a_forgotten_device_is_gone_from_every_line() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_returning_line_brings_its_retained_values_to_subscribers_of_meanwhile() {
+    // A listens and B dials it: B links again as soon as it is back, without waiting for
+    // zenoh's backoff between A's attempts to reach a dead peer.
     let endpoint = tcp_endpoint();
-    let mut b = Line::start_on("line-b", &endpoint, &[], "", None);
-    let a = Line::plain("line-a", &[&endpoint], "");
+    let a = Line::start_on("line-a", &endpoint, &[], "", None);
+    let mut b = Line::plain("line-b", &[&endpoint], "");
     let dev = device(&b, "press-1").await;
     publish(&dev, "fb/press-1/CONV/POSITION", "42".into(), true).await;
     a.wait_record("press-1", "online", PROPAGATION);
+    // In B's store before B dies (written before its acknowledgement).
+    b.wait_metric("fbbus_store_retained_messages", 1.0);
     drop(dev);
 
     b.broker.kill_now();
@@ -117,10 +121,16 @@ async fn a_returning_line_brings_its_retained_values_to_subscribers_of_meanwhile
     assert!(hmi.next_publish(Duration::from_millis(500)).await.is_none());
 
     b.broker.start_again();
-    let got = hmi
-        .next_publish(PROPAGATION)
-        .await
-        .expect("B's retained value once B is back");
+    // B starts again (its store, its bridge), links, A asks for its records, then for its
+    // retained values: on a loaded 2-core machine this takes seconds.
+    let Some(got) = hmi.next_publish(3 * PROPAGATION).await else {
+        panic!(
+            "B's retained value once B is back\n--- line A\n{}\n--- line B\n{}\n{}",
+            a.broker.log_text(),
+            b.broker.log_text(),
+            a.broker.metrics()
+        );
+    };
     assert_eq!(got.topic, "fb/press-1/CONV/POSITION");
     assert_eq!(&got.payload[..], b"42");
     // Once, not again with every later requery.
