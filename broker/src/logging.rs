@@ -49,3 +49,27 @@ pub fn init(log: &LogSection) -> Result<(), String> {
     };
     result.map_err(|e| e.to_string())
 }
+
+/// A warning logged at most once a minute for the whole broker, however often its cause
+/// recurs (the count is in a metric): `static LOGGED: OnceAMinute = OnceAMinute::new();`
+/// and `if LOGGED.due() { tracing::warn!(...) }`.
+pub struct OnceAMinute(std::sync::Mutex<Option<std::time::Instant>>);
+
+impl OnceAMinute {
+    pub const fn new() -> OnceAMinute {
+        OnceAMinute(std::sync::Mutex::new(None))
+    }
+
+    /// Whether a minute passed since the last time this said yes (yes the first time).
+    pub fn due(&self) -> bool {
+        let mut last = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let due = last.is_none_or(|at| at.elapsed() >= std::time::Duration::from_secs(60));
+        if due {
+            *last = Some(std::time::Instant::now());
+        }
+        due
+    }
+}

@@ -276,12 +276,8 @@ impl Session {
             .limit_refusals
             .with_label_values(&["retained_per_identity"])
             .inc();
-        static LOGGED: std::sync::Mutex<Option<std::time::Instant>> = std::sync::Mutex::new(None);
-        let mut logged = LOGGED
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if logged.is_none_or(|at| at.elapsed() >= std::time::Duration::from_secs(60)) {
-            *logged = Some(std::time::Instant::now());
+        static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
+        if LOGGED.due() {
             tracing::warn!(
                 client_id = &*self.client_id,
                 share = &*share,

@@ -504,10 +504,7 @@ async fn receive(
                     Ok(_) => {}
                 }
                 while let Ok(Some((header, body))) = reader.next_packet() {
-                    let Some(value) = mqtt::publish_payload(header, body)
-                        .and_then(|v| std::str::from_utf8(v).ok())
-                        .and_then(|v| v.trim().parse::<i64>().ok())
-                    else {
+                    let Some(value) = sent_at(header, body) else {
                         continue;
                     };
                     if seen.insert(value) {
@@ -587,10 +584,7 @@ impl Probe {
                                 break;
                             }
                             while let Ok(Some((header, body))) = reader.next_packet() {
-                                if let Some(value) = mqtt::publish_payload(header, body)
-                                    .and_then(|v| std::str::from_utf8(v).ok())
-                                    .and_then(|v| v.trim().parse::<i64>().ok())
-                                {
+                                if let Some(value) = sent_at(header, body) {
                                     let _ = latency.lock().await.record((micros(epoch) - value).max(1) as u64);
                                 }
                             }
@@ -639,6 +633,14 @@ impl Probe {
             let _ = t.await;
         }
     }
+}
+
+/// The send time a measured PUBLISH carries as its LINT value (µs since the run's
+/// epoch); None for any other packet.
+fn sent_at(header: u8, body: &[u8]) -> Option<i64> {
+    mqtt::publish_payload(header, body)
+        .and_then(|v| std::str::from_utf8(v).ok())
+        .and_then(|v| v.trim().parse::<i64>().ok())
 }
 
 fn ms(us: u64) -> String {
