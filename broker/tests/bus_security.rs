@@ -59,17 +59,6 @@ fn liveliness(line: &Line, kind: &str) -> f64 {
     ))
 }
 
-/// Device tokens `line` saw come and go beyond those of the line tokens: (ups, downs).
-/// Line A has one device; were its link to line B lost and found again (a slow machine
-/// missing the lease), its line token and its device token would go and come together.
-/// What a stranger's device token would add is not explained by a line token.
-fn device_tokens_beyond_lines(line: &Line) -> (f64, f64) {
-    (
-        liveliness(line, "device_up") - liveliness(line, "line_up"),
-        liveliness(line, "device_down") - liveliness(line, "line_down"),
-    )
-}
-
 /// The stranger program: a zenoh peer connected to `endpoints` with `identity` (its TLS
 /// arguments: none, `--ca` alone, or [`identity`]).
 fn stranger(endpoints: &[&str], identity: &[String]) -> Python {
@@ -284,16 +273,12 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
     let dir = tempfile::tempdir().unwrap();
     let ca = pki::bus().write(dir.path(), "line-c").ca;
     let endpoints = [a.zenoh.as_str(), b.zenoh.as_str()];
-    // Line A puts press-8's record before it declares its token, so line B may show it
-    // online (and take its values) before it counted line A's tokens: the baseline waits
-    // for them.
-    for kind in ["line_up", "device_up"] {
-        b.wait_metric(
-            &format!("fbbus_bridge_liveliness_changes_total{{kind=\"{kind}\"}}"),
-            1.0,
-        );
-    }
-    let before = device_tokens_beyond_lines(&b);
+    // Line A's record may reach line B (and its values cross) before B counted line A's
+    // token: the baseline waits for it.
+    b.wait_metric(
+        "fbbus_bridge_liveliness_changes_total{kind=\"line_up\"}",
+        1.0,
+    );
     let line_downs = liveliness(&b, "line_down");
 
     // 1. No certificate, or a certificate (named line-c) of another CA: no session, so
@@ -338,7 +323,9 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
         None,
         "line B took line C's record claiming a device of line A"
     );
-    // The tokens go: line B saw neither them come nor go.
+    // The tokens go: line B's view of line A and press-8 did not waver (a device has no
+    // token of its own any more, its state is in its record: the forged device token
+    // is refused by zenoh's access control like any key no line speaks for).
     for key in [
         "fbbus/@/line/line-a",
         "fbbus/@/device/line-a/press-7",
@@ -347,12 +334,6 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
         c.ask(&format!("untoken {key}"));
     }
     tokio::time::sleep(QUIET).await;
-    assert_eq!(
-        device_tokens_beyond_lines(&b),
-        before,
-        "line B saw device tokens of line A come or go\n{}",
-        b.broker.log_text()
-    );
     if liveliness(&b, "line_down") > line_downs {
         eprintln!("(line B lost its link to line A meanwhile: a slow machine?)");
     }
@@ -551,9 +532,9 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
         assert_eq!(refused_any(line, "line-a"), 0.0, "line {}", line.name);
     }
     assert_eq!(
-        device_tokens_beyond_lines(&b),
-        before,
-        "line B saw device tokens of line A come or go"
+        b.record("press-8").map(|r| r["status"].clone()),
+        Some(json!("online")),
+        "line B's view of press-8 wavered"
     );
     nobody.send("quit");
     forger.send("quit");

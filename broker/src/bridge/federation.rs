@@ -1,25 +1,24 @@
 //! Registry federation: this line's devices announced on the bus, the other lines'
 //! records and liveliness taken into the registry.
 //!
-//! A line puts a device's record on every change, before its liveliness token, so a
-//! device usually comes up here with its record already taken. Only a record missed (a
-//! line that joined later, a partition) is asked for, and asking is coalesced per line
-//! ([`Asks`]): the devices of one line seen without a record within [`COLLECT`] are asked
-//! for one by one when they are few, with one query for the whole line when they are more
-//! than [`ASK_ONE_BY_ONE`] or the line itself came up. Before (issue 32), each unknown
-//! device's token made this line ask for every record of its line: a line of 1,000
-//! devices coming up cost each other line 1,000 queries of 1,000 records, zenoh's queues
-//! filled and it closed the transports.
+//! A device's state crosses the bus in its record, put on every change; the only
+//! liveliness tokens are one per line (is its bridge there) and one per imported filter.
+//! A line's records are asked for once, all together, when the line comes up or back
+//! ([`Asks`]). Before issue 32, each online device had a liveliness token of its own and
+//! a token without a record made this line ask for every record of its line: at 8 lines
+//! of 1,000 devices, zenoh's routers spent most of their CPU matching each new token
+//! against all the others (`Resource::matches` in a profile), the registries took 20 s
+//! to converge and a router's death cost 18 s.
 
-use std::collections::HashMap;
+use std::collections::HashSet;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-use fb_bridge::bus::link::{DeviceToken, Event, Inbox, Link};
+use fb_bridge::bus::link::{Event, Inbox, Link};
 use tokio::sync::mpsc;
 
 use super::Interest;
-use crate::registry::{LocalChange, Record, RecordRefused, Status};
+use crate::registry::{LocalChange, Record, RecordRefused};
 use crate::session::Context;
 
 /// Liveliness and records of the other lines: the registry, and the exporter's interest.
@@ -57,31 +56,12 @@ pub(super) async fn bus_events(
                 registry.line_reachable(&line);
                 // Every record of the line, online or not, in the background: the
                 // events keep flowing meanwhile.
-                asks.ask(&link, &ctx, &line, None);
+                asks.ask(&link, &ctx, &line);
             }
             Event::LineDown(line) => {
                 liveliness("line_down");
                 tracing::warn!(line, "line unreachable: its devices are marked unreachable");
                 registry.line_unreachable(&line);
-            }
-            Event::DeviceUp { line, device } => {
-                liveliness("device_up");
-                if registry.get(&device).is_some_and(|r| r.line == line) {
-                    registry.remote_status(&line, &device, Status::Online);
-                } else {
-                    asks.ask(&link, &ctx, &line, Some(device));
-                }
-            }
-            Event::DeviceDown { line, device } => {
-                liveliness("device_down");
-                // Gone offline (its line put the record first) or cut off: a record that
-                // still says online means this line lost sight of it.
-                if registry
-                    .get(&device)
-                    .is_some_and(|r| r.line == line && r.status == Status::Online)
-                {
-                    registry.remote_status(&line, &device, Status::Unreachable);
-                }
             }
             Event::Record { line, device, json } => apply_record(&ctx, &line, &device, &json, None),
             Event::Forgotten { line, device } => {
@@ -93,86 +73,54 @@ pub(super) async fn bus_events(
     }
 }
 
-/// How long the devices of a line seen without a record are collected before they are
-/// asked for together.
+/// How long a line's coming up is left to settle before its records are asked for: a
+/// line that flaps (a router failing over) is asked once.
 const COLLECT: Duration = Duration::from_millis(100);
 
-/// More unknown devices of one line than this within [`COLLECT`]: one query for the
-/// whole line instead.
-const ASK_ONE_BY_ONE: usize = 16;
-
-/// What is to be asked of each line: some devices, or (None) all of them. After a whole
-/// line's records, its retained messages are asked for again (`Interest::Requery`).
+/// The lines whose records are to be asked for. After a line's records, its retained
+/// messages are asked for again (`Interest::Requery`).
 #[derive(Clone)]
 struct Asks {
-    pending: Arc<Mutex<HashMap<String, Option<Vec<String>>>>>,
+    pending: Arc<Mutex<HashSet<String>>>,
     imports: mpsc::UnboundedSender<Interest>,
 }
 
 impl Asks {
-    /// Asks line `line` for the record of `device`, or (None) of every device, together
-    /// with whatever else is asked of it within [`COLLECT`].
-    fn ask(&self, link: &Arc<Link>, ctx: &Arc<Context>, line: &str, device: Option<String>) {
-        let first = {
-            let mut asks = self.pending.lock().unwrap_or_else(PoisonError::into_inner);
-            let first = !asks.contains_key(line);
-            let entry = asks
-                .entry(line.to_owned())
-                .or_insert_with(|| Some(Vec::new()));
-            match (entry.as_mut(), device) {
-                (Some(devices), Some(device)) if devices.len() < ASK_ONE_BY_ONE => {
-                    devices.push(device)
-                }
-                _ => *entry = None,
-            }
-            first
-        };
-        if first {
-            let (asks, link, ctx) = (self.clone(), Arc::clone(link), Arc::clone(ctx));
-            let line = line.to_owned();
-            tokio::spawn(async move {
-                tokio::time::sleep(COLLECT).await;
-                let asked = asks
-                    .pending
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .remove(&line);
-                let Some(asked) = asked else { return };
-                let registry = &ctx.fb.registry;
-                let whole_line = asked.is_none();
-                let queries: Vec<Option<String>> = match asked {
-                    None => vec![None],
-                    // Those whose records came meanwhile are not asked for.
-                    Some(devices) => devices
-                        .into_iter()
-                        .filter(|d| registry.get(d).is_none_or(|r| r.line != line))
-                        .map(Some)
-                        .collect(),
-                };
-                for device in queries {
-                    let kind = if device.is_some() { "device" } else { "line" };
-                    ctx.metrics
-                        .bridge_record_queries
-                        .with_label_values(&[kind])
-                        .inc();
-                    let mark = Some(registry.live_mark());
-                    match link.query_records(&line, device.as_deref()).await {
-                        Ok(records) => {
-                            for (from, d, json) in records {
-                                if device.as_deref().is_none_or(|wanted| wanted == d) {
-                                    apply_record(&ctx, &from, &d, &json, mark);
-                                }
-                            }
-                        }
-                        Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
+    /// Asks line `line` for every record it holds, in the background (the events keep
+    /// flowing meanwhile), unless that is asked already.
+    fn ask(&self, link: &Arc<Link>, ctx: &Arc<Context>, line: &str) {
+        let first = self
+            .pending
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(line.to_owned());
+        if !first {
+            return;
+        }
+        let (asks, link, ctx) = (self.clone(), Arc::clone(link), Arc::clone(ctx));
+        let line = line.to_owned();
+        tokio::spawn(async move {
+            tokio::time::sleep(COLLECT).await;
+            asks.pending
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .remove(&line);
+            ctx.metrics
+                .bridge_record_queries
+                .with_label_values(&["line"])
+                .inc();
+            let mark = Some(ctx.fb.registry.live_mark());
+            match link.query_records(&line, None).await {
+                Ok(records) => {
+                    for (from, device, json) in records {
+                        apply_record(&ctx, &from, &device, &json, mark);
                     }
                 }
-                // Its devices known, its retained messages can be taken.
-                if whole_line {
-                    let _ = asks.imports.send(Interest::Requery(line));
-                }
-            });
-        }
+                Err(e) => tracing::warn!(line, error = %e, "registry query failed"),
+            }
+            // Its devices known, its retained messages can be taken.
+            let _ = asks.imports.send(Interest::Requery(line));
+        });
     }
 }
 
@@ -210,22 +158,19 @@ pub(super) fn apply_record(
     }
 }
 
-/// Puts each local record change on the bus and keeps a liveliness token per online
-/// local device.
+/// Puts each local record change on the bus: the devices there now, then every change.
 pub(super) async fn announce_local(
     link: Arc<Link>,
     now: Vec<Record>,
     mut changes: mpsc::UnboundedReceiver<LocalChange>,
 ) {
-    let mut tokens: HashMap<String, DeviceToken> = HashMap::new();
     for record in now {
-        announce(&link, &mut tokens, record).await;
+        announce(&link, &record).await;
     }
     while let Some(change) = changes.recv().await {
         match change {
-            LocalChange::Record(record) => announce(&link, &mut tokens, record).await,
+            LocalChange::Record(record) => announce(&link, &record).await,
             LocalChange::Forgotten(device) => {
-                tokens.remove(&device);
                 if let Err(e) = link.forget_record(&device).await {
                     tracing::warn!(device, error = %e, "forgetting not put on the bus");
                 }
@@ -234,32 +179,9 @@ pub(super) async fn announce_local(
     }
 }
 
-pub(super) async fn announce(
-    link: &Link,
-    tokens: &mut HashMap<String, DeviceToken>,
-    record: Record,
-) {
-    {
-        let json = serde_json::to_vec(&record).expect("records serialize");
-        // The record first: a line that sees the token go finds the device offline already.
-        if let Err(e) = link.put_record(&record.id, json).await {
-            tracing::warn!(device = record.id, error = %e, "record not put on the bus");
-        }
-        match record.status {
-            Status::Online if !tokens.contains_key(&record.id) => {
-                match link.device_online(&record.id).await {
-                    Ok(token) => {
-                        tokens.insert(record.id.clone(), token);
-                    }
-                    Err(e) => {
-                        tracing::warn!(device = record.id, error = %e, "liveliness token not declared")
-                    }
-                }
-            }
-            Status::Online => {}
-            _ => {
-                tokens.remove(&record.id);
-            }
-        }
+async fn announce(link: &Link, record: &Record) {
+    let json = serde_json::to_vec(record).expect("records serialize");
+    if let Err(e) = link.put_record(&record.id, json).await {
+        tracing::warn!(device = record.id, error = %e, "record not put on the bus");
     }
 }

@@ -48,16 +48,16 @@
 //! `open` waits for its router, opens in the background (`start`), serves its own devices
 //! meanwhile, and imports the subscriptions its clients made once it is linked.
 //!
-//! **Registry federation.** The line announces itself and each online local device with
-//! liveliness tokens and puts every local record change on the bus; the other lines'
-//! records arrive the same way. A device this line forgets (by hand or by age) is deleted
-//! from the bus, and every other line forgets it too, with the retained values it held of
-//! it. A line that comes (back) is asked for its records, then for its retained messages
-//! on every imported filter: those this line does not hold yet enter the router, so a
-//! subscriber that subscribed while it was away gets them (issue 32). A device whose token disappears without its line saying
-//! it went offline, and every device of a line whose token disappears, is marked
-//! unreachable (within the zenoh lease, `bridge.lease_ms`); they are online again when
-//! their tokens come back.
+//! **Registry federation.** The line announces itself with a liveliness token and puts
+//! every local record change on the bus (a device's status is in its record: no token
+//! per device, issue 32); the other lines' records arrive the same way. A device this
+//! line forgets (by hand or by age) is deleted from the bus, and every other line forgets
+//! it too, with the retained values it held of it. A line that comes (back) is asked for
+//! its records, then for its retained messages on every imported filter: those this line
+//! does not hold yet enter the router, so a subscriber that subscribed while it was away
+//! gets them. Every device of a line whose token disappears is marked unreachable (within
+//! the zenoh lease, `bridge.lease_ms`); the records its line serves when its token comes
+//! back say what they are then.
 //!
 //! The files: [`import`] (local subscriptions become zenoh imports; what arrives passes
 //! the publish policy and enters the router), [`export`] (what other lines want leaves

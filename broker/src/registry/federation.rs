@@ -209,25 +209,6 @@ impl Registry {
         Ok(())
     }
 
-    /// A remote device's status changed as seen from here (`Unreachable`, or back `Online`
-    /// when its liveliness token reappears).
-    pub fn remote_status(&self, line: &str, id: &str, status: Status) {
-        let mut devices = self.devices.lock().unwrap_or_else(PoisonError::into_inner);
-        let changed = devices.update(
-            id,
-            |r| r.line == line && r.status != status,
-            |record| {
-                record.status = status;
-                record.since = now();
-            },
-        );
-        let Some(record) = changed else {
-            return;
-        };
-        self.announce(record);
-        self.announce_count(&devices);
-    }
-
     /// This line's online devices now (O(1): the counts follow every change).
     pub fn line_online(&self) -> i64 {
         self.devices

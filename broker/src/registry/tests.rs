@@ -279,9 +279,8 @@ fn announced_counts_follow_every_change() {
         Err(RecordRefused::HeldByAnotherLine)
     );
     check("remote records");
-    registry.remote_status("b", "r1", Status::Unreachable);
-    check("r1 unreachable");
-    registry.remote_status("b", "r1", Status::Online);
+    registry.line_unreachable("b");
+    check("line b unreachable");
     assert_eq!(
         registry.remote_record("b", remote("r1", "b", Status::Offline)),
         Ok(())

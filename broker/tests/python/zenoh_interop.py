@@ -6,8 +6,8 @@ Usage: zenoh_interop.py <endpoint> [<bus CA> <certificate> <key>]: with the thre
 over mutual TLS (`tls/` endpoint) as line `line-py` (the certificate's common name).
 
 It joins the bus as a line of its own, `line-py`, with one device `pydev`:
-  1. announces the line and the device (liveliness tokens) and serves the device's
-     registry record (queryable), so fbbus lines know its declared types;
+  1. announces the line (a liveliness token) and serves the device's registry record
+     (queryable), so fbbus lines know the device, online, and its declared types;
   2. declares interest in everything (`fbbus/@/interest/line-py/fb/%23`) and subscribes
      to `fbbus/*/fb/**`: prints the first fbbus message it sees, with its stamp;
   3. on "put" from stdin, puts pydev's POSITION values 1, 2, "bad", 3 (stamped) on
@@ -90,7 +90,6 @@ def answer(query):
 records = session.declare_queryable(f"fbbus/@/record/{LINE}/*", answer)
 tokens = [
     session.liveliness().declare_token(f"fbbus/@/line/{LINE}"),
-    session.liveliness().declare_token(f"fbbus/@/device/{LINE}/{DEVICE}"),
     session.liveliness().declare_token(f"fbbus/@/interest/{LINE}/fb/%23"),
 ]
 

@@ -7,7 +7,7 @@
 //! | peer | may send us (ingress) |
 //! |---|---|
 //! | every peer | subscribe to and query `fbbus/**` and `fbbus/@/**` (reading is what the bus is for) |
-//! | line `L` | put under `fbbus/L/fb/**` and `fbbus/@/record/L/**` (delete there too: a forgotten device); liveliness tokens `fbbus/@/line/L`, `fbbus/@/device/L/**`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
+//! | line `L` | put under `fbbus/L/fb/**` and `fbbus/@/record/L/**` (delete there too: a forgotten device); liveliness tokens `fbbus/@/line/L`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
 //! | router | everything under `fbbus/**` and `fbbus/@/**`: it forwards the other lines' traffic, each checked at the router's own ingress |
 //! | reader | nothing else |
 //!
@@ -50,7 +50,6 @@ pub fn line_keys(line: &str) -> Vec<String> {
         format!("fbbus/{line}/fb/**"),
         format!("fbbus/@/record/{line}/**"),
         format!("fbbus/@/line/{line}"),
-        format!("fbbus/@/device/{line}/**"),
         format!("fbbus/@/interest/{line}/**"),
         format!("fbbus/@/retained/{line}/fb/**"),
     ]

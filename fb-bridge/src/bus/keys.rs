@@ -4,8 +4,7 @@
 //! |---|---|
 //! | `fbbus/<line>/fb/<device>/<fb>/<port>` | a typed message of `<device>` on `<line>`, canonical JSON |
 //! | `fbbus/@/line/<line>` | liveliness token: the line's bridge is up |
-//! | `fbbus/@/device/<line>/<device>` | liveliness token: the device is online on its line |
-//! | `fbbus/@/record/<line>/<device>` | the device's registry record (put on change; queryable) |
+//! | `fbbus/@/record/<line>/<device>` | the device's registry record, its state included (put on change; queryable) |
 //! | `fbbus/@/interest/<line>/<filter>` | liveliness token: a client of `<line>` subscribed to `<filter>` (escaped) |
 //! | `fbbus/@/retained/<line>/...` | queryable: retained messages of `<line>` matching a filter |
 //!
@@ -144,10 +143,6 @@ pub fn line_token(line: &str) -> String {
     format!("{CONTROL}/line/{line}")
 }
 
-pub fn device_token(line: &str, device: &str) -> String {
-    format!("{CONTROL}/device/{line}/{device}")
-}
-
 pub fn record_key(line: &str, device: &str) -> String {
     format!("{CONTROL}/record/{line}/{device}")
 }
@@ -245,7 +240,7 @@ mod tests {
         assert_eq!(key, "fbbus/@/interest/line-b/fb/%2B/CONV/%23");
         assert_eq!(parse_interest(&key), Some(("line-b", "fb/+/CONV/#".into())));
         assert_eq!(
-            parse_line_item("device", "fbbus/@/device/line-a/conv-1"),
+            parse_line_item("record", "fbbus/@/record/line-a/conv-1"),
             Some(("line-a", "conv-1"))
         );
         assert_eq!(parse_line_token("fbbus/@/line/line-a"), Some("line-a"));

@@ -9,8 +9,11 @@
 //! - [`Link::import`]: declare interest in an MQTT filter: a zenoh subscriber whose
 //!   samples arrive on the inbox, and a liveliness token that tells the exporting lines to
 //!   subscribe locally to the filter (nothing leaves a line nobody asked for);
-//! - liveliness of lines and devices ([`Event`]), registry records (put, queried) and
-//!   retained messages (queried when a line starts importing a filter).
+//! - liveliness of lines ([`Event`]), registry records (put on every change, queried
+//!   when a line comes up) and retained messages (queried when a line starts importing a
+//!   filter). A device's state travels in its record, not as a liveliness token of its
+//!   own: zenoh's routing tables match every new token against all the others, and 8,000
+//!   device tokens made each router spend tens of seconds of CPU doing so (issue 32).
 //!
 //! No zenoh or flume type appears in this module's public API: the broker sees fbbus
 //! types ([`Inbox`], [`RetainedQueries`], [`LinkError`]), so it does not depend on zenoh's
@@ -70,14 +73,6 @@ pub struct Inbound {
 pub enum Event {
     LineUp(String),
     LineDown(String),
-    DeviceUp {
-        line: String,
-        device: String,
-    },
-    DeviceDown {
-        line: String,
-        device: String,
-    },
     InterestAdded {
         line: String,
         filter: String,
@@ -169,9 +164,6 @@ pub struct Import {
     _subscriber: Subscriber<()>,
     _token: LivelinessToken,
 }
-
-/// A device announced online on the bus; dropping it announces it gone.
-pub struct DeviceToken(#[allow(dead_code)] LivelinessToken);
 
 /// Checks that the `[bridge]` section makes a zenoh configuration, and that the line's
 /// certificate names `line`, without opening anything: a bad section fails the broker's
@@ -339,29 +331,6 @@ impl Link {
         let tx = events.clone();
         session
             .liveliness()
-            .declare_subscriber(format!("{}/device/**", keys::CONTROL))
-            .history(true)
-            .callback(move |sample| {
-                let Some((l, device)) = keys::parse_line_item("device", sample.key_expr().as_str())
-                else {
-                    return;
-                };
-                if l == own {
-                    return;
-                }
-                let (line, device) = (l.to_owned(), device.to_owned());
-                let _ = tx.send(match sample.kind() {
-                    SampleKind::Put => Event::DeviceUp { line, device },
-                    SampleKind::Delete => Event::DeviceDown { line, device },
-                });
-            })
-            .background()
-            .await
-            .map_err(zerr)?;
-        let own = line.to_owned();
-        let tx = events.clone();
-        session
-            .liveliness()
             .declare_subscriber(format!("{}/interest/**", keys::CONTROL))
             .history(true)
             .callback(move |sample| {
@@ -509,16 +478,6 @@ impl Link {
             _subscriber: subscriber,
             _token: token,
         })
-    }
-
-    /// Announces a local device online until the token is dropped.
-    pub async fn device_online(&self, device: &str) -> Result<DeviceToken, LinkError> {
-        self.session
-            .liveliness()
-            .declare_token(keys::device_token(&self.line, device))
-            .await
-            .map(DeviceToken)
-            .map_err(zerr)
     }
 
     /// Publishes a local device's registry record to the other lines.
