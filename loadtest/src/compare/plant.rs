@@ -60,7 +60,7 @@ impl PlantParams {
         PlantParams {
             lines: 8,
             devices: 1000,
-            topologies: vec![Topology::Routers, Topology::Peers],
+            topologies: Topology::ALL.to_vec(),
             traffic: Duration::from_secs(6),
             period: Duration::from_millis(20),
             converge_within: Duration::from_secs(120),
@@ -80,15 +80,20 @@ impl PlantParams {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Topology {
+    /// The control: the same lines and device storm without a bus, so that what the
+    /// storm itself costs local delivery on a shared machine is not laid at the bus's
+    /// door.
+    Alone,
     Routers,
     Peers,
 }
 
 impl Topology {
-    pub const ALL: [Topology; 2] = [Topology::Routers, Topology::Peers];
+    pub const ALL: [Topology; 3] = [Topology::Alone, Topology::Routers, Topology::Peers];
 
     pub fn name(self) -> &'static str {
         match self {
+            Topology::Alone => "alone",
             Topology::Routers => "routers",
             Topology::Peers => "peers",
         }
@@ -100,7 +105,9 @@ impl Topology {
             let t = Topology::ALL
                 .into_iter()
                 .find(|t| t.name() == name.trim())
-                .with_context(|| format!("unknown topology `{name}` (known: routers, peers)"))?;
+                .with_context(|| {
+                    format!("unknown topology `{name}` (known: alone, routers, peers)")
+                })?;
             if !out.contains(&t) {
                 out.push(t);
             }
@@ -115,6 +122,7 @@ impl Topology {
     fn bridge(self, n: usize, endpoints: &[String]) -> String {
         let (first, second) = (&endpoints[0], &endpoints[1]);
         let (mode, listen, connect): (&str, Vec<&String>, Vec<&String>) = match (self, n) {
+            (Topology::Alone, _) => return String::new(),
             (Topology::Routers, 1) => ("router", vec![first], vec![]),
             (Topology::Routers, 2) => ("router", vec![second], vec![first]),
             (Topology::Routers, _) => ("client", vec![], vec![first, second]),
@@ -162,12 +170,18 @@ pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
     ));
     t.line(format!("fbbus:     {}", fbbus.display()));
     let mut failed = 0;
+    // The control's local p99 during the storm, once `alone` ran.
+    let mut alone = None;
     for &topology in &p.topologies {
         t.line(String::new());
         t.line(format!("== topology {} ==", topology.name()));
-        if let Err(e) = plant(fbbus, topology, p, &mut t).await {
-            failed += 1;
-            t.line(format!("FAILED: {e:#}"));
+        match plant(fbbus, topology, p, alone, &mut t).await {
+            Ok(p99) if topology == Topology::Alone => alone = Some(p99),
+            Ok(_) => {}
+            Err(e) => {
+                failed += 1;
+                t.line(format!("FAILED: {e:#}"));
+            }
         }
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating --out {}", out.display()))?;
@@ -180,13 +194,15 @@ pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// One topology, from its lines' start to the router's death.
+/// One topology, from its lines' start to the router's death (`alone`: to the quiet
+/// plant). Returns line 3's local p99 during the storm; `alone` is the control's.
 async fn plant(
     fbbus: &Path,
     topology: Topology,
     p: &PlantParams,
+    alone: Option<u64>,
     t: &mut Transcript,
-) -> Result<()> {
+) -> Result<u64> {
     let endpoints: Vec<String> = (0..p.lines)
         .map(|_| spawn::free_port().map(|port| format!("tcp/127.0.0.1:{port}")))
         .collect::<std::result::Result<_, _>>()?;
@@ -229,24 +245,28 @@ async fn plant(
     ));
     let held = Arc::new(Mutex::new(held));
     let pings = keep_alive(Arc::clone(&held));
-    // And the local probe's device.
-    let everyone = (p.lines * p.devices + 1) as f64;
-    let mut per_line = Vec::new();
-    for (i, admin) in admins.iter().enumerate() {
-        let took = until(*admin, everyone, declared, p.converge_within).await;
-        per_line.push(match took {
-            Some(d) => format!("line-{}: {:.2} s", i + 1, d.as_secs_f64()),
-            None => format!(
-                "line-{}: NOT CONVERGED ({} of {everyone} online)",
-                i + 1,
-                metric(*admin, ONLINE).await
-            ),
-        });
+    if topology == Topology::Alone {
+        t.line("converged: no bus (the control: the same storm, each line on its own)");
+    } else {
+        // And the local probe's device.
+        let everyone = (p.lines * p.devices + 1) as f64;
+        let mut per_line = Vec::new();
+        for (i, admin) in admins.iter().enumerate() {
+            let took = until(*admin, everyone, declared, p.converge_within).await;
+            per_line.push(match took {
+                Some(d) => format!("line-{}: {:.2} s", i + 1, d.as_secs_f64()),
+                None => format!(
+                    "line-{}: NOT CONVERGED ({} of {everyone} online)",
+                    i + 1,
+                    metric(*admin, ONLINE).await
+                ),
+            });
+        }
+        t.line(format!(
+            "converged: every line lists all {everyone} devices online, after the last declaration: {}",
+            per_line.join(", ")
+        ));
     }
-    t.line(format!(
-        "converged: every line lists all {everyone} devices online, after the last declaration: {}",
-        per_line.join(", ")
-    ));
     let during = local.phase().await;
     // The quiet plant, as long as the federation took (3 to 10 s).
     tokio::time::sleep(
@@ -263,6 +283,18 @@ async fn plant(
         idle.describe(),
         ratio(during.p99(), idle.p99())
     ));
+    if topology == Topology::Alone {
+        pings.abort();
+        return Ok(during.p99());
+    }
+    if let Some(alone) = alone {
+        t.line(format!(
+            "           p99 during the storm against the same storm with no bus (topology alone, \
+             {} ms): {}",
+            ms(alone),
+            ratio(during.p99(), alone)
+        ));
+    }
 
     // The traffic matrix.
     t.line(format!(
@@ -324,7 +356,7 @@ async fn plant(
         back.join(", ")
     ));
     pings.abort();
-    Ok(())
+    Ok(during.p99())
 }
 
 const ONLINE: &str = "fbbus_registry_devices{status=\"online\"}";
