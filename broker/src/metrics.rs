@@ -295,7 +295,9 @@ impl Metrics {
                  sessions_per_identity, devices, devices_per_identity, declaration_bytes, fbs, \
                  ports, encoded_size, declaration_rate, stored_publications: a QoS 1/2 \
                  publication the store did not keep for a persistent session, its store full \
-                 or the publisher's own share spent, answered 0x97 to MQTT 5 publishers)",
+                 or the publisher's own share spent, answered 0x97 to MQTT 5 publishers; \
+                 remote_subscriptions_per_line, remote_subscriptions: another line's \
+                 subscription not honoured)",
                 &["limit"],
             ),
             connection_limit: gauge(

@@ -596,3 +596,85 @@ async fn on_the_plain_loopback_bus_nobody_speaks_for_a_local_or_unannounced_devi
     );
     s.send("quit");
 }
+
+/// Issue 32, bounded: another line's subscriptions (its interest tokens) are held up to
+/// `[bridge] max_remote_filters_per_line` per line and `max_remote_filters` in all; what
+/// is beyond is counted and not honoured, a real line's subscription keeps working, and a
+/// share given back can be taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn another_lines_subscriptions_are_bounded_per_line_and_in_all() {
+    if !python_zenoh() {
+        return;
+    }
+    let endpoint = tcp_endpoint();
+    let a = Line::start_on(
+        "line-a",
+        &endpoint,
+        &[],
+        "max_remote_filters_per_line = 5\nmax_remote_filters = 8\n",
+        None,
+    );
+    let b = Line::plain("line-b", &[&endpoint], "");
+    let press = device_with(&a, "press-8", PRESS).await;
+    // Line B's client subscribes: line B holds one filter at line A.
+    let mut obs_b = V4::connect(b.port(), "watch-b", None).await.unwrap();
+    obs_b.subscribe("fb/press-8/#").await;
+    let held = "fbbus_bridge_remote_subscriptions";
+    assert_eq!(a.broker.wait_metric(held, 1.0), 1.0);
+
+    let mut s = stranger(&[&a.zenoh], &[]);
+    assert_eq!(s.ask("peers 1 10")["peers"], 1);
+    let interest = |line: &str, i: usize| format!("fbbus/@/interest/{line}/fb/x{i}/%23");
+    // line-s: 7 filters, 5 held (its share), 2 refused.
+    for i in 0..7 {
+        s.ask(&format!("token {}", interest("line-s", i)));
+    }
+    assert_eq!(a.broker.wait_metric(held, 6.0), 6.0);
+    let refusals = |limit: &str| {
+        a.broker
+            .metric(&format!("fbbus_limit_refusals_total{{limit=\"{limit}\"}}"))
+    };
+    let per_line = a.broker.wait_metric(
+        "fbbus_limit_refusals_total{limit=\"remote_subscriptions_per_line\"}",
+        2.0,
+    );
+    assert_eq!(per_line, 2.0);
+    // line-t: 5 filters, 2 held (8 in all), 3 refused.
+    for i in 0..5 {
+        s.ask(&format!("token {}", interest("line-t", i)));
+    }
+    let all = a.broker.wait_metric(
+        "fbbus_limit_refusals_total{limit=\"remote_subscriptions\"}",
+        3.0,
+    );
+    assert_eq!(all, 3.0);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(a.broker.metric(held), 8.0);
+    assert_eq!(refusals("remote_subscriptions_per_line"), 2.0);
+
+    // Line B's subscription still works.
+    drain(&mut obs_b, Duration::from_millis(200)).await;
+    publish(&press, "fb/press-8/PRESS/FORCE", "2.5".into(), false).await;
+    let mut got = None;
+    for _ in 0..25 {
+        if let Some(p) = obs_b.next_publish(Duration::from_millis(200)).await {
+            got = Some(p.topic);
+            break;
+        }
+    }
+    assert_eq!(got.as_deref(), Some("fb/press-8/PRESS/FORCE"));
+
+    // line-s gives three back: a new filter of line-t is held again.
+    for i in 0..3 {
+        s.ask(&format!("untoken {}", interest("line-s", i)));
+    }
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while a.broker.metric(held) > 5.0 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(a.broker.metric(held), 5.0);
+    s.ask(&format!("token {}", interest("line-t", 9)));
+    assert_eq!(a.broker.wait_metric(held, 6.0), 6.0);
+    assert_eq!(refusals("remote_subscriptions"), 3.0);
+    s.send("quit");
+}

@@ -1,5 +1,13 @@
 //! Export: what other lines are interested in leaves this line through the router's
 //! export link, stamped, one hop only.
+//!
+//! Another line's interest is a filter it subscribed to (its liveliness token). Each
+//! exported message is matched against every filter held, so how many are held is the
+//! export path's cost and a peer's way to grow this line: one line holds at most
+//! `[bridge] max_remote_filters_per_line` here, all lines together `max_remote_filters`
+//! ([`Shares`]). A filter beyond them is not honoured (that line's clients do not get this
+//! line's messages through it) until the line declares it again, counted in
+//! `fbbus_limit_refusals_total{limit="remote_subscriptions_per_line"|"remote_subscriptions"}`.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -16,6 +24,7 @@ use tokio::sync::mpsc;
 use super::{EXPORT_FILTER, IMPORT_CLIENT_ID};
 use crate::broker_publisher;
 use crate::link;
+use crate::logging::OnceAMinute;
 use crate::policy::origin;
 use crate::session::Context;
 
@@ -25,13 +34,15 @@ pub(super) async fn export_loop(
     (mut tx, mut rx): (LinkTx, LinkRx),
     mut remote: mpsc::UnboundedReceiver<(bool, String, String)>,
     ctx: Arc<Context>,
-    export: Vec<String>,
+    shares: Shares,
 ) {
     let mut exports = Exports {
         exporter,
         interest: HashMap::new(),
+        per_line: HashMap::new(),
+        held: 0,
         is_event: HashMap::new(),
-        export,
+        shares,
         ctx,
     };
     let mut forwards = Vec::new();
@@ -69,13 +80,26 @@ pub(super) async fn export_loop(
     }
 }
 
+/// What may leave (`[bridge] export`), and how many filters the other lines may hold.
+pub(super) struct Shares {
+    pub export: Vec<String>,
+    /// `[bridge] max_remote_filters_per_line`
+    pub per_line: usize,
+    /// `[bridge] max_remote_filters`
+    pub all: usize,
+}
+
 /// The exporting side's state: what the other lines want, and which topics are events.
 struct Exports {
     exporter: fb_bridge::bus::link::Exporter,
     /// filter -> lines interested in it
     interest: HashMap<String, std::collections::HashSet<String>>,
+    /// line -> how many filters it holds (only lines holding some)
+    per_line: HashMap<String, usize>,
+    /// (line, filter) pairs held
+    held: usize,
     is_event: HashMap<String, bool>,
-    export: Vec<String>,
+    shares: Shares,
     ctx: Arc<Context>,
 }
 
@@ -86,22 +110,38 @@ impl Exports {
         if !keys::bridgeable_filter(&filter) {
             return None;
         }
+        let held = self
+            .interest
+            .get(&filter)
+            .is_some_and(|lines| lines.contains(&line));
+        if added == held {
+            return None;
+        }
+        if added && !self.within_shares(&line, &filter) {
+            return None;
+        }
         let was_empty = self.interest.is_empty();
         let lines = self.interest.entry(filter.clone()).or_default();
-        let changed = if added {
-            lines.insert(line)
+        let of_line = self.per_line.entry(line.clone()).or_default();
+        if added {
+            lines.insert(line);
+            *of_line += 1;
+            self.held += 1;
         } else {
-            lines.remove(&line)
-        };
+            lines.remove(&line);
+            *of_line -= 1;
+            self.held -= 1;
+            if *of_line == 0 {
+                self.per_line.remove(&line);
+            }
+        }
         if lines.is_empty() {
             self.interest.remove(&filter);
         }
-        if changed {
-            self.ctx
-                .metrics
-                .bridge_remote_subscriptions
-                .add(if added { 1 } else { -1 });
-        }
+        self.ctx
+            .metrics
+            .bridge_remote_subscriptions
+            .add(if added { 1 } else { -1 });
         // One router subscription to the whole typed namespace while anyone is
         // interested: one filter cannot deliver a message twice, which overlapping
         // per-interest filters would. What leaves is decided per message against the
@@ -134,6 +174,36 @@ impl Exports {
         }
     }
 
+    /// Whether `line` may hold one more filter here; counts and logs a refusal.
+    fn within_shares(&self, line: &str, filter: &str) -> bool {
+        static LOGGED: OnceAMinute = OnceAMinute::new();
+        let of_line = self.per_line.get(line).copied().unwrap_or(0);
+        let (limit, value) = if of_line >= self.shares.per_line {
+            ("remote_subscriptions_per_line", self.shares.per_line)
+        } else if self.held >= self.shares.all {
+            ("remote_subscriptions", self.shares.all)
+        } else {
+            return true;
+        };
+        self.ctx
+            .metrics
+            .limit_refusals
+            .with_label_values(&[limit])
+            .inc();
+        if LOGGED.due() {
+            tracing::warn!(
+                line,
+                filter,
+                limit,
+                "another line's subscription not honoured: [bridge] max_{} = {value} \
+                 reached; its clients do not get this line's messages through it \
+                 (logged at most once a minute; fbbus_limit_refusals_total)",
+                limit.replace("subscriptions", "filters")
+            );
+        }
+        false
+    }
+
     /// Puts one delivery of the router on the bus if another line wants it; returns the
     /// acknowledgement the router expects (a QoS 1 delivery), sent once zenoh took it.
     async fn forward(&mut self, forward: rumqttd::Forward) -> Option<Packet> {
@@ -156,7 +226,7 @@ impl Exports {
         let wanted = !from_bus
             && !forgotten_clear
             && !replay
-            && BusConfig::allows(&self.export, &topic)
+            && BusConfig::allows(&self.shares.export, &topic)
             && self.interest.keys().any(|f| filter::matches(f, &topic));
         if wanted {
             let ctx = &self.ctx;

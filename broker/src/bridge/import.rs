@@ -171,14 +171,6 @@ impl Injector {
                 .with_label_values(&[reason])
                 .inc()
         };
-        // Only a stamp naming the line whose key the message came on counts in that line's
-        // window of sequence numbers; a forged one (refused below, `forged_origin`) would
-        // move another line's window ahead and have all its messages dropped as old
-        // (issue 22: line C silencing line A on line B with one message).
-        let forged = message.stamp.line != message.line;
-        if !forged && !self.dedup.first_time(&message.stamp) {
-            return dropped("duplicate");
-        }
         self.route_keys.note(&message.line, &message.topic);
         if !BusConfig::allows(&self.import, &message.topic) {
             return dropped("filter");
@@ -193,6 +185,13 @@ impl Injector {
             Ok(interface) => interface,
             Err(()) => return,
         };
+        // Only an authenticated message counts in its line's window of sequence numbers:
+        // a forged stamp would move another line's window ahead and have all its
+        // messages dropped as old (issue 22: line C silencing line A on line B with one
+        // message), and each line a stranger invents would take a window.
+        if !self.dedup.first_time(&message.stamp) {
+            return dropped("duplicate");
+        }
         let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
             (
                 Arc::clone(&interface),

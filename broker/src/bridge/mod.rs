@@ -342,7 +342,11 @@ async fn run(
             (export_link.0, export_link.1),
             remote_interest_rx,
             Arc::clone(&ctx),
-            config.export.clone(),
+            export::Shares {
+                export: config.export.clone(),
+                per_line: config.max_remote_filters_per_line,
+                all: config.max_remote_filters,
+            },
         )),
         tokio::spawn(federation::bus_events(
             Arc::clone(&link),

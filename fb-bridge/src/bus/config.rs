@@ -53,6 +53,12 @@ pub struct BusConfig {
     pub tls: Option<BusTls>,
     /// Who may talk to this line over a mutual-TLS bus, by certificate common name.
     pub peers: Option<BusPeers>,
+    /// Filters one other line may subscribe to here (its interest tokens). Each is
+    /// matched against every exported message, so their number is the export path's
+    /// cost; beyond it a line's new filter is not honoured.
+    pub max_remote_filters_per_line: usize,
+    /// Filters all other lines together may subscribe to here.
+    pub max_remote_filters: usize,
 }
 
 impl Default for BusConfig {
@@ -67,6 +73,8 @@ impl Default for BusConfig {
             lease_ms: 3_000,
             tls: None,
             peers: None,
+            max_remote_filters_per_line: 1_000,
+            max_remote_filters: 10_000,
         }
     }
 }
@@ -148,6 +156,22 @@ impl BusConfig {
                     "`{line}` cannot name a line on the bus: use letters, digits, `-`, `_`, `.`"
                 ),
             ));
+        }
+        for (key, value) in [
+            (
+                "bridge.max_remote_filters_per_line",
+                self.max_remote_filters_per_line,
+            ),
+            ("bridge.max_remote_filters", self.max_remote_filters),
+        ] {
+            if value == 0 {
+                return Err((
+                    key.into(),
+                    "must be at least 1 (another line's subscriptions are how it receives \
+                     this line's messages)"
+                        .into(),
+                ));
+            }
         }
         for (key, filters) in [
             ("bridge.export", &self.export),
@@ -273,6 +297,25 @@ mod tests {
             ..BusConfig::default()
         };
         assert!(bad.validate("a").is_err());
+    }
+
+    #[test]
+    fn remote_filter_shares_are_at_least_one() {
+        for (per_line, all, key) in [
+            (0, 10, Some("bridge.max_remote_filters_per_line")),
+            (5, 0, Some("bridge.max_remote_filters")),
+            (1, 1, None),
+        ] {
+            let config = BusConfig {
+                max_remote_filters_per_line: per_line,
+                max_remote_filters: all,
+                ..BusConfig::default()
+            };
+            assert_eq!(
+                config.validate("line-a").err().map(|(k, _)| k),
+                key.map(String::from)
+            );
+        }
     }
 
     #[test]

@@ -49,7 +49,14 @@ impl Stamp {
 /// How many sequence numbers per origin [`Dedup`] remembers.
 pub const DEDUP_WINDOW: u64 = 4096;
 
-/// Drops messages already seen, per origin line: a sliding window of sequence numbers.
+/// Origin lines [`Dedup`] keeps windows for; past this many it starts over. A plant has
+/// tens of lines; the broker feeds it only messages of devices their line declared, so
+/// reaching this takes a bus of more lines than any plant has, or a stranger on an
+/// unauthenticated loopback bus. Starting over may let one repeat in flight through.
+pub const DEDUP_ORIGINS: usize = 1024;
+
+/// Drops messages already seen, per origin line: a sliding window of sequence numbers
+/// (at most [`DEDUP_WINDOW`] per origin, [`DEDUP_ORIGINS`] origins).
 #[derive(Debug, Default)]
 pub struct Dedup {
     origins: HashMap<String, Window>,
@@ -71,6 +78,9 @@ impl Dedup {
             return true;
         }
         if !self.origins.contains_key(&stamp.line) {
+            if self.origins.len() >= DEDUP_ORIGINS {
+                self.origins.clear();
+            }
             self.origins.insert(stamp.line.clone(), Window::default());
         }
         let w = self
@@ -139,5 +149,15 @@ mod tests {
             assert!(d.first_time(&stamp("a", 2, seq)));
         }
         assert!(!d.first_time(&stamp("a", 2, 5)), "older than the window");
+    }
+
+    #[test]
+    fn dedup_holds_a_bounded_number_of_origins() {
+        let mut d = Dedup::default();
+        for i in 0..DEDUP_ORIGINS * 3 {
+            assert!(d.first_time(&stamp(&format!("line-{i}"), 1, 1)));
+            assert!(d.origins.len() <= DEDUP_ORIGINS);
+        }
+        assert!(!d.first_time(&stamp(&format!("line-{}", DEDUP_ORIGINS * 3 - 1), 1, 1)));
     }
 }

@@ -170,13 +170,13 @@ pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
     ));
     t.line(format!("fbbus:     {}", fbbus.display()));
     let mut failed = 0;
-    // The control's local p99 during the storm, once `alone` ran.
+    // The control's figures, once `alone` ran.
     let mut alone = None;
     for &topology in &p.topologies {
         t.line(String::new());
         t.line(format!("== topology {} ==", topology.name()));
-        match plant(fbbus, topology, p, alone, &mut t).await {
-            Ok(p99) if topology == Topology::Alone => alone = Some(p99),
+        match plant(fbbus, topology, p, alone.as_ref(), &mut t).await {
+            Ok(control) if topology == Topology::Alone => alone = Some(control),
             Ok(_) => {}
             Err(e) => {
                 failed += 1;
@@ -194,15 +194,23 @@ pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// What topology `alone` measured, for the others to be set against.
+struct Control {
+    /// Line 3's local p99 during the storm.
+    p99: u64,
+    /// Each line's resident memory on the quiet plant (KiB).
+    rss_kib: Vec<u64>,
+}
+
 /// One topology, from its lines' start to the router's death (`alone`: to the quiet
-/// plant). Returns line 3's local p99 during the storm; `alone` is the control's.
+/// plant). Returns its figures; `alone` is the control's.
 async fn plant(
     fbbus: &Path,
     topology: Topology,
     p: &PlantParams,
-    alone: Option<u64>,
+    alone: Option<&Control>,
     t: &mut Transcript,
-) -> Result<u64> {
+) -> Result<Control> {
     let endpoints: Vec<String> = (0..p.lines)
         .map(|_| spawn::free_port().map(|port| format!("tcp/127.0.0.1:{port}")))
         .collect::<std::result::Result<_, _>>()?;
@@ -283,17 +291,50 @@ async fn plant(
         idle.describe(),
         ratio(during.p99(), idle.p99())
     ));
-    if topology == Topology::Alone {
-        pings.abort();
-        return Ok(during.p99());
-    }
     if let Some(alone) = alone {
         t.line(format!(
             "           p99 during the storm against the same storm with no bus (topology alone, \
              {} ms): {}",
-            ms(alone),
-            ratio(during.p99(), alone)
+            ms(alone.p99),
+            ratio(during.p99(), alone.p99)
         ));
+    }
+    let control = Control {
+        p99: during.p99(),
+        rss_kib: lines.iter().map(|l| l.rss_kib().unwrap_or(0)).collect(),
+    };
+    let mib: Vec<String> = control
+        .rss_kib
+        .iter()
+        .map(|k| format!("{:.1}", *k as f64 / 1024.0))
+        .collect();
+    t.line(format!(
+        "memory:    resident MiB per line on the quiet plant: {}",
+        mib.join(" ")
+    ));
+    if let Some(alone) = alone {
+        let remote = ((p.lines - 1) * p.devices).max(1) as f64;
+        let more: Vec<f64> = control
+            .rss_kib
+            .iter()
+            .zip(&alone.rss_kib)
+            .map(|(bus, own)| *bus as f64 - *own as f64)
+            .collect();
+        let mean = more.iter().sum::<f64>() / more.len().max(1) as f64;
+        t.line(format!(
+            "           against topology alone: MiB more per line {} (the bus: its zenoh \
+             session and the {remote} remote devices each line holds), {:.2} KiB per remote \
+             device on average, the session included",
+            more.iter()
+                .map(|k| format!("{:+.1}", k / 1024.0))
+                .collect::<Vec<_>>()
+                .join(" "),
+            mean / remote
+        ));
+    }
+    if topology == Topology::Alone {
+        pings.abort();
+        return Ok(control);
     }
 
     // The traffic matrix.
@@ -356,7 +397,7 @@ async fn plant(
         back.join(", ")
     ));
     pings.abort();
-    Ok(during.p99())
+    Ok(control)
 }
 
 const ONLINE: &str = "fbbus_registry_devices{status=\"online\"}";
