@@ -275,7 +275,7 @@ async fn plant(
             per_line.join(", ")
         ));
     }
-    let during = local.phase().await;
+    let during = local.phase();
     // The quiet plant, as long as the federation took (3 to 10 s).
     tokio::time::sleep(
         declared
@@ -283,7 +283,7 @@ async fn plant(
             .clamp(Duration::from_secs(3), Duration::from_secs(10)),
     )
     .await;
-    let idle = local.phase().await;
+    let idle = local.phase();
     local.stop().await;
     t.line(format!(
         "local:     line 3 -> line 3 while the bus federated: {}; quiet plant: {}; p99 ratio {}",
@@ -558,7 +558,7 @@ async fn matrix(
 
 /// Reads PUBLISHes until `stop`, counting each value once (a second copy is a duplicate).
 async fn receive(
-    mut reader: PacketReader,
+    reader: PacketReader,
     epoch: Instant,
     figures: Arc<Mutex<Figures>>,
     stop: Arc<tokio::sync::Notify>,
@@ -566,30 +566,15 @@ async fn receive(
     let mut seen = std::collections::HashSet::new();
     let (mut delivered, mut duplicated) = (0u64, 0u64);
     let mut latencies = Vec::new();
-    let stopped = stop.notified();
-    tokio::pin!(stopped);
-    loop {
-        tokio::select! {
-            _ = &mut stopped => break,
-            read = reader.read_more() => {
-                match read {
-                    Ok(0) | Err(_) => break,
-                    Ok(_) => {}
-                }
-                while let Ok(Some((header, body))) = reader.next_packet() {
-                    let Some(value) = sent_at(header, body) else {
-                        continue;
-                    };
-                    if seen.insert(value) {
-                        delivered += 1;
-                        latencies.push((micros(epoch) - value).max(1) as u64);
-                    } else {
-                        duplicated += 1;
-                    }
-                }
-            }
+    read_values(reader, &stop, |value| {
+        if seen.insert(value) {
+            delivered += 1;
+            latencies.push((micros(epoch) - value).max(1) as u64);
+        } else {
+            duplicated += 1;
         }
-    }
+    })
+    .await;
     let mut f = figures.lock().await;
     f.delivered += delivered;
     f.duplicated += duplicated;
@@ -598,9 +583,36 @@ async fn receive(
     }
 }
 
+/// Reads PUBLISHes until `stop` or the connection's end, handing each measured value
+/// (its send time, [`sent_at`]) to `each`.
+async fn read_values(
+    mut reader: PacketReader,
+    stop: &tokio::sync::Notify,
+    mut each: impl FnMut(i64),
+) {
+    let stopped = stop.notified();
+    tokio::pin!(stopped);
+    loop {
+        tokio::select! {
+            _ = &mut stopped => break,
+            read = reader.read_more() => {
+                if !matches!(read, Ok(n) if n > 0) {
+                    break;
+                }
+                while let Ok(Some((header, body))) = reader.next_packet() {
+                    if let Some(value) = sent_at(header, body) {
+                        each(value);
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// A device publishing to subscribers, whose latency is read phase by phase.
 struct Probe {
-    latency: Arc<Mutex<Histogram<u64>>>,
+    /// A std mutex: held only to record or take, never across an await.
+    latency: Arc<std::sync::Mutex<Histogram<u64>>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     stop: Arc<tokio::sync::Notify>,
 }
@@ -631,7 +643,9 @@ impl Probe {
         epoch: Instant,
         period: Duration,
     ) -> Result<Probe> {
-        let latency = Arc::new(Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3)?));
+        let latency = Arc::new(std::sync::Mutex::new(Histogram::new_with_bounds(
+            1, 60_000_000, 3,
+        )?));
         let stop = Arc::new(tokio::sync::Notify::new());
         let id = device_id(line, device);
         let mut dev = mqtt::connect(on.addr, &id, None).await?;
@@ -646,24 +660,13 @@ impl Probe {
             mqtt::subscribe(&mut s, &topic(line, device)).await?;
             let (latency, stop) = (Arc::clone(&latency), Arc::clone(&stop));
             tasks.push(tokio::spawn(async move {
-                let mut reader = PacketReader::new(s);
-                let stopped = stop.notified();
-                tokio::pin!(stopped);
-                loop {
-                    tokio::select! {
-                        _ = &mut stopped => break,
-                        read = reader.read_more() => {
-                            if !matches!(read, Ok(n) if n > 0) {
-                                break;
-                            }
-                            while let Ok(Some((header, body))) = reader.next_packet() {
-                                if let Some(value) = sent_at(header, body) {
-                                    let _ = latency.lock().await.record((micros(epoch) - value).max(1) as u64);
-                                }
-                            }
-                        }
-                    }
-                }
+                read_values(PacketReader::new(s), &stop, |value| {
+                    let _ = latency
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .record((micros(epoch) - value).max(1) as u64);
+                })
+                .await;
             }));
         }
         let topic = topic(line, device);
@@ -693,8 +696,11 @@ impl Probe {
     }
 
     /// The latencies since the last phase, and a fresh start.
-    async fn phase(&self) -> Phase {
-        let mut h = self.latency.lock().await;
+    fn phase(&self) -> Phase {
+        let mut h = self
+            .latency
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let taken = h.clone();
         h.reset();
         Phase(taken)
