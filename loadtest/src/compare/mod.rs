@@ -106,10 +106,11 @@ enum FbbusOnly {
         burst: Option<usize>,
     },
     /// fbbus only (issue 32): a plant on one machine: N lines x M devices on one zenoh
-    /// bus, two router lines and clients of both (`routers`) or a mesh of peers
-    /// (`peers`): registry convergence, a line's local delivery while the bus federates,
-    /// a traffic matrix (neighbour, all-to-one, one-to-all: delivered, lost, latency, CPU
-    /// per line), and line 1 killed. Writes plant.txt.
+    /// bus, two router lines and clients of both (`routers`), a mesh of peers (`peers`),
+    /// or clients of two real zenohd routers (`zenohd`), beside the same lines without a
+    /// bus (`alone`): registry convergence, a line's local delivery while the bus
+    /// federates, a traffic matrix (neighbour, all-to-one, one-to-all: delivered, lost,
+    /// latency, CPU per line), and line 1 (zenohd: router 1) killed. Writes plant.txt.
     Plant {
         /// Small sizes (5 lines x 20 devices, 2 s of traffic): a smoke test.
         #[arg(long)]
@@ -123,12 +124,18 @@ enum FbbusOnly {
         /// Devices per line (default 1000; --quick 20).
         #[arg(long, value_name = "M")]
         devices: Option<usize>,
-        /// Topologies, comma-separated: routers, peers. Default: both.
+        /// Topologies, comma-separated: alone, routers, peers, zenohd. Default: all (zenohd
+        /// when a zenohd binary is found).
         #[arg(long, value_delimiter = ',', value_name = "LIST")]
         topology: Vec<String>,
         /// Seconds of traffic per pattern (default 6; --quick 2).
         #[arg(long, value_name = "SECONDS")]
         traffic_secs: Option<u64>,
+        /// The zenohd binary (1.10) for topology zenohd. Default: target/zenohd/bin/zenohd
+        /// (`cargo install zenohd --version 1.10.2 --locked --root target/zenohd`, as
+        /// deploy/plant/check.sh does), else `zenohd` on PATH.
+        #[arg(long, value_name = "PATH")]
+        zenohd: Option<PathBuf>,
     },
     /// fbbus's store (issue 17) beside Mosquitto's persistence: QoS 1 burst throughput and
     /// steady latency into a persistent subscriber with fbbus's persistence off and with
@@ -343,6 +350,7 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
             devices,
             topology,
             traffic_secs,
+            zenohd,
         }) => {
             let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
             let mut params = if quick {
@@ -350,7 +358,11 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
             } else {
                 plant::PlantParams::full()
             };
-            params.topologies = plant::Topology::parse_list(&topology)?;
+            params.zenohd = zenohd.or_else(|| {
+                spawn::find_program("zenohd", &["target/zenohd/bin/zenohd"])
+            });
+            params.topologies =
+                plant::Topology::parse_list(&topology, params.zenohd.is_some())?;
             if let Some(n) = lines {
                 params.lines = n;
             }

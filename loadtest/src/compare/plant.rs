@@ -31,7 +31,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -53,6 +53,8 @@ pub struct PlantParams {
     pub period: Duration,
     /// How long convergence may take before the run says it did not converge.
     pub converge_within: Duration,
+    /// The zenohd binary for topology `zenohd`.
+    pub zenohd: Option<PathBuf>,
 }
 
 impl PlantParams {
@@ -60,10 +62,11 @@ impl PlantParams {
         PlantParams {
             lines: 8,
             devices: 1000,
-            topologies: Topology::ALL.to_vec(),
+            topologies: vec![Topology::Alone, Topology::Routers, Topology::Peers],
             traffic: Duration::from_secs(6),
             period: Duration::from_millis(20),
             converge_within: Duration::from_secs(120),
+            zenohd: None,
         }
     }
 
@@ -86,34 +89,53 @@ pub enum Topology {
     Alone,
     Routers,
     Peers,
+    /// Every line a zenoh client of two real `zenohd` routers, router 2 linked to router
+    /// 1: the plant of deploy/plant/ (without TLS). Router 1 is what dies.
+    Zenohd,
 }
 
 impl Topology {
-    pub const ALL: [Topology; 3] = [Topology::Alone, Topology::Routers, Topology::Peers];
+    pub const ALL: [Topology; 4] = [
+        Topology::Alone,
+        Topology::Routers,
+        Topology::Peers,
+        Topology::Zenohd,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             Topology::Alone => "alone",
             Topology::Routers => "routers",
             Topology::Peers => "peers",
+            Topology::Zenohd => "zenohd",
         }
     }
 
-    pub fn parse_list(names: &[String]) -> Result<Vec<Topology>> {
+    /// `names` (empty: every topology, `zenohd` only `with_zenohd`).
+    pub fn parse_list(names: &[String], with_zenohd: bool) -> Result<Vec<Topology>> {
         let mut out = Vec::new();
         for name in names {
             let t = Topology::ALL
                 .into_iter()
                 .find(|t| t.name() == name.trim())
                 .with_context(|| {
-                    format!("unknown topology `{name}` (known: alone, routers, peers)")
+                    format!("unknown topology `{name}` (known: alone, routers, peers, zenohd)")
                 })?;
             if !out.contains(&t) {
                 out.push(t);
             }
         }
         if out.is_empty() {
-            out = Topology::ALL.to_vec();
+            out = Topology::ALL
+                .into_iter()
+                .filter(|t| with_zenohd || *t != Topology::Zenohd)
+                .collect();
+        }
+        if out.contains(&Topology::Zenohd) && !with_zenohd {
+            bail!(
+                "topology zenohd needs zenohd 1.10 (--zenohd PATH; `cargo install zenohd \
+                 --version 1.10.2 --locked --root target/zenohd`)"
+            );
         }
         Ok(out)
     }
@@ -123,6 +145,8 @@ impl Topology {
         let (first, second) = (&endpoints[0], &endpoints[1]);
         let (mode, listen, connect): (&str, Vec<&String>, Vec<&String>) = match (self, n) {
             (Topology::Alone, _) => return String::new(),
+            // The two endpoints are the zenohd routers'.
+            (Topology::Zenohd, _) => ("client", vec![], vec![first, second]),
             (Topology::Routers, 1) => ("router", vec![first], vec![]),
             (Topology::Routers, 2) => ("router", vec![second], vec![first]),
             (Topology::Routers, _) => ("client", vec![], vec![first, second]),
@@ -214,6 +238,14 @@ async fn plant(
     let endpoints: Vec<String> = (0..p.lines)
         .map(|_| spawn::free_port().map(|port| format!("tcp/127.0.0.1:{port}")))
         .collect::<std::result::Result<_, _>>()?;
+    // Topology zenohd: the routers take the first two endpoints, the lines only connect.
+    let mut routers = match (topology, &p.zenohd) {
+        (Topology::Zenohd, Some(zenohd)) => {
+            Some(ZenohRouters::start(zenohd, &endpoints[0], &endpoints[1]).await?)
+        }
+        (Topology::Zenohd, None) => bail!("topology zenohd needs --zenohd"),
+        _ => None,
+    };
     let mut lines = Vec::with_capacity(p.lines);
     for n in 1..=p.lines {
         let tables = format!(
@@ -377,6 +409,11 @@ async fn plant(
         ));
     }
 
+    if let Some(routers) = routers.as_mut() {
+        router_dies(routers, &admins, (p.lines * p.devices) as f64, t).await?;
+        pings.abort();
+        return Ok(control);
+    }
     // A router (or the first peer) dies.
     let living = ((p.lines - 1) * p.devices) as f64;
     let killed = Instant::now();
@@ -401,6 +438,112 @@ async fn plant(
 }
 
 const ONLINE: &str = "fbbus_registry_devices{status=\"online\"}";
+
+/// Topology zenohd: router 1 dies, no line does. Every line is polled every 50 ms for 8 s
+/// (the 3 s lease and as much again): whether any listed fewer than `want` devices online,
+/// the lowest count, and the last moment one did.
+async fn router_dies(
+    routers: &mut ZenohRouters,
+    admins: &[SocketAddr],
+    want: f64,
+    t: &mut Transcript,
+) -> Result<()> {
+    let killed = Instant::now();
+    routers.kill_first()?;
+    let (mut lowest, mut last_short) = (f64::MAX, None);
+    while killed.elapsed() < Duration::from_secs(8) {
+        for admin in admins {
+            let online = metric(*admin, ONLINE).await;
+            lowest = lowest.min(online);
+            if online < want {
+                last_short = Some(killed.elapsed());
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    t.line(match last_short {
+        None => format!(
+            "router 1 (zenohd) killed: no line ever listed fewer than all {want} devices \
+             online (every line polled every 50 ms for 8 s)"
+        ),
+        Some(d) => format!(
+            "router 1 (zenohd) killed: every line lists all {want} devices online again \
+             {:.2} s after it at the latest; lowest count seen meanwhile {lowest}",
+            d.as_secs_f64()
+        ),
+    });
+    Ok(())
+}
+
+/// Two zenohd routers on plain tcp/ loopback endpoints, router 2 connecting to router 1,
+/// with the lines' lease (3 s); killed on drop.
+struct ZenohRouters {
+    children: Vec<std::process::Child>,
+    _dir: tempfile::TempDir,
+}
+
+impl ZenohRouters {
+    async fn start(zenohd: &Path, first: &str, second: &str) -> Result<ZenohRouters> {
+        let dir = tempfile::tempdir()?;
+        let mut routers = ZenohRouters {
+            children: Vec::new(),
+            _dir: tempfile::tempdir()?,
+        };
+        for (i, (listen, connect)) in [(first, None), (second, Some(first))]
+            .into_iter()
+            .enumerate()
+        {
+            let config = serde_json::json!({
+                "mode": "router",
+                "listen": {"endpoints": [listen]},
+                "connect": {
+                    "endpoints": connect.into_iter().collect::<Vec<_>>(),
+                    "timeout_ms": -1,
+                    "exit_on_failure": false,
+                },
+                "scouting": {"multicast": {"enabled": false}},
+                "transport": {"link": {"tx": {"lease": 3000, "keep_alive": 4}}},
+            });
+            let file = dir.path().join(format!("router-{}.json5", i + 1));
+            std::fs::write(&file, config.to_string())?;
+            let log = std::fs::File::create(dir.path().join(format!("router-{}.log", i + 1)))?;
+            let child = std::process::Command::new(zenohd)
+                .arg("-c")
+                .arg(&file)
+                .stdout(log.try_clone()?)
+                .stderr(log)
+                .spawn()
+                .with_context(|| format!("starting {}", zenohd.display()))?;
+            routers.children.push(child);
+            let addr = listen.trim_start_matches("tcp/");
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while TcpStream::connect(addr).await.is_err() {
+                if Instant::now() > deadline {
+                    bail!("zenohd did not listen on {listen} within 10 s");
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+        routers._dir = dir;
+        Ok(routers)
+    }
+
+    fn kill_first(&mut self) -> Result<()> {
+        let first = &mut self.children[0];
+        first.kill().context("killing zenohd router 1")?;
+        first.wait().context("reaping zenohd router 1")?;
+        Ok(())
+    }
+}
+
+impl Drop for ZenohRouters {
+    fn drop(&mut self) {
+        for child in &mut self.children {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
 
 /// Connects and declares `m` devices of line `line`; their connections by id, held open.
 async fn devices(addr: SocketAddr, line: usize, m: usize) -> Result<Vec<(String, TcpStream)>> {
