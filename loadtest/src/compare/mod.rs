@@ -358,11 +358,9 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
             } else {
                 plant::PlantParams::full()
             };
-            params.zenohd = zenohd.or_else(|| {
-                spawn::find_program("zenohd", &["target/zenohd/bin/zenohd"])
-            });
-            params.topologies =
-                plant::Topology::parse_list(&topology, params.zenohd.is_some())?;
+            params.zenohd =
+                zenohd.or_else(|| spawn::find_program("zenohd", &["target/zenohd/bin/zenohd"]));
+            params.topologies = plant::Topology::parse_list(&topology, params.zenohd.is_some())?;
             if let Some(n) = lines {
                 params.lines = n;
             }
