@@ -105,7 +105,19 @@ impl Argon2Params {
 /// A stored hash may also not ask for more than [`MAX_STORED_MEMORY_KIB`] of memory or
 /// [`MAX_STORED_ITERATIONS`] passes: a password file is outside input, and one line with
 /// `m=4294967295` made the first login of that user allocate 4 TiB.
+///
+/// A parameter named twice is refused: `get_decimal` reads the first, argon2 builds its
+/// `Params` from the last, so `p=1,p=4294967295` passed the check above and overflowed
+/// all the same (found by broker/fuzz `password_file_parse`).
 fn argon2_params(parsed: &PasswordHash<'_>) -> Option<Params> {
+    let names: Vec<&str> = parsed
+        .params
+        .iter()
+        .map(|(name, _)| name.as_str())
+        .collect();
+    if (1..names.len()).any(|i| names[..i].contains(&names[i])) {
+        return None;
+    }
     let param = |name| parsed.params.get_decimal(name);
     if param("p").is_some_and(|p| p > Params::MAX_P_COST)
         || param("m").is_some_and(|m| m > MAX_STORED_MEMORY_KIB)
@@ -493,6 +505,25 @@ mod tests {
                 parallelism: p,
             };
             assert!(params.validate().is_err(), "p={p}");
+        }
+    }
+
+    /// Regression (broker/fuzz/regressions/password_file_parse/argon2id-repeated-lane-count):
+    /// a parameter named twice, the second past the limits, overflowed inside argon2.
+    #[test]
+    fn a_parameter_named_twice_is_refused() {
+        for params in [
+            "m=64,p=1,p=4294967295",
+            "m=64,t=1,p=1,t=2",
+            "m=64,m=65,t=1,p=1",
+        ] {
+            let line = format!(
+                "$argon2id$v=19${params}$Y2hlYXBzYWx0Y2hlYXA$xA6phcuUKMYdTVySFVVEq0B2sh5LnDskCu162it3BHs"
+            );
+            assert!(
+                matches!(StoredHash::parse(&line), Err(HashError::InvalidArgon2id(_))),
+                "{params}"
+            );
         }
     }
 
