@@ -14,7 +14,7 @@
 //! 1. **convergence**: from the last device's declaration until every line's registry
 //!    lists all N x M devices online (`fbbus_registry_devices{status="online"}`);
 //! 2. **local delivery while the bus federates**: a device of line 3 publishes every
-//!    `period` to a subscriber on line 3 from before the devices connect until
+//!    `probe_period` to a subscriber on line 3 from before the devices connect until
 //!    convergence, then as long again on the quiet plant: p50/p99 of each phase (the
 //!    goal: during within 2x idle);
 //! 3. **traffic matrix**, each pattern for `traffic` seconds, a message every `period` per
@@ -51,6 +51,9 @@ pub struct PlantParams {
     pub topologies: Vec<Topology>,
     pub traffic: Duration,
     pub period: Duration,
+    /// How often the local probe of line 3 publishes: often enough for a p99 of a storm
+    /// that lasts seconds (at the traffic's 20 ms, 65-260 samples: the p99 was the max).
+    pub probe_period: Duration,
     /// How long convergence may take before the run says it did not converge.
     pub converge_within: Duration,
     /// The zenohd binary for topology `zenohd`.
@@ -65,6 +68,7 @@ impl PlantParams {
             topologies: vec![Topology::Alone, Topology::Routers, Topology::Peers],
             traffic: Duration::from_secs(6),
             period: Duration::from_millis(20),
+            probe_period: Duration::from_millis(2),
             converge_within: Duration::from_secs(120),
             zenohd: None,
         }
@@ -224,6 +228,8 @@ struct Control {
     p99: u64,
     /// Each line's resident memory on the quiet plant (KiB).
     rss_kib: Vec<u64>,
+    /// Each line's CPU from the first connection to convergence (ms).
+    storm_cpu_ms: Vec<u64>,
 }
 
 /// One topology, from its lines' start to the router's death (`alone`: to the quiet
@@ -265,9 +271,17 @@ async fn plant(
     let epoch = Instant::now();
 
     // Local delivery on line 3, through everything that follows until convergence.
-    let local = Probe::start(&lines[2], (3, p.devices), &[&lines[2]], epoch, p.period).await?;
+    let local = Probe::start(
+        &lines[2],
+        (3, p.devices),
+        &[&lines[2]],
+        epoch,
+        p.probe_period,
+    )
+    .await?;
     // The devices, every line at once.
     let connecting = Instant::now();
+    let cpu_before = cpu(&lines);
     let mut joins = Vec::new();
     for (i, line) in lines.iter().enumerate() {
         let (addr, m) = (line.addr, p.devices);
@@ -308,6 +322,11 @@ async fn plant(
         ));
     }
     let during = local.phase();
+    let storm_cpu_ms: Vec<u64> = cpu(&lines)
+        .iter()
+        .zip(&cpu_before)
+        .map(|(a, b)| a.saturating_sub(*b) * 1000 / ticks_per_second())
+        .collect();
     // The quiet plant, as long as the federation took (3 to 10 s).
     tokio::time::sleep(
         declared
@@ -334,7 +353,29 @@ async fn plant(
     let control = Control {
         p99: during.p99(),
         rss_kib: lines.iter().map(|l| l.rss_kib().unwrap_or(0)).collect(),
+        storm_cpu_ms,
     };
+    let join = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(" ");
+    t.line(format!(
+        "cpu:       ms per line from the first connection to convergence: {}",
+        join(&control.storm_cpu_ms)
+    ));
+    if let Some(alone) = alone {
+        let remote = ((p.lines - 1) * p.devices).max(1) as f64;
+        let more: Vec<f64> = control
+            .storm_cpu_ms
+            .iter()
+            .zip(&alone.storm_cpu_ms)
+            .map(|(bus, own)| *bus as f64 - *own as f64)
+            .collect();
+        let mean = more.iter().sum::<f64>() / more.len().max(1) as f64;
+        t.line(format!(
+            "           against topology alone: {:.0} ms more per line on average, {:.1} us \
+             per remote device taken",
+            mean,
+            mean * 1000.0 / remote
+        ));
+    }
     let mib: Vec<String> = control
         .rss_kib
         .iter()
