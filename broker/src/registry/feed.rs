@@ -1,5 +1,5 @@
 //! The change feed: every change of a record is published retained on
-//! `fbbus/devices/<id>` with the line's online count, handed to the bridge's observer
+//! `fbbus/devices/<id>` with the line's online count when it changed, handed to the bridge's observer
 //! (local devices) and sent on the console's bounded broadcast channel.
 
 use std::sync::{Arc, PoisonError};
@@ -18,6 +18,7 @@ pub const CHANGES_CAPACITY: usize = 4096;
 
 /// One change of a local device, as the bridge announces it to the other lines.
 #[derive(Debug, Clone)]
+#[cfg_attr(not(feature = "bridge"), allow(dead_code))]
 pub enum LocalChange {
     /// Its record as it is now.
     Record(Record),
@@ -96,10 +97,16 @@ impl Registry {
                 .with_label_values(&[status.label()])
                 .set(count);
         }
-        self.publisher.publish(Message::broker(
-            topic::line_online(&self.line),
-            online_here.to_string(),
-            true,
-        ));
+        // Called with the devices locked: the last count published is the current one.
+        let before = self
+            .announced_online
+            .swap(online_here, std::sync::atomic::Ordering::Relaxed);
+        if before != online_here {
+            self.publisher.publish(Message::broker(
+                topic::line_online(&self.line),
+                online_here.to_string(),
+                true,
+            ));
+        }
     }
 }

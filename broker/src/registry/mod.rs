@@ -114,6 +114,10 @@ pub struct Registry {
     observer: std::sync::OnceLock<tokio::sync::mpsc::UnboundedSender<LocalChange>>,
     /// Every change of any record, for the console ([`Registry::changes`]).
     changes: tokio::sync::broadcast::Sender<Change>,
+    /// The online count last published on `fbbus/lines/<line>/online` (-1: none yet):
+    /// another line's record does not change it, and 7,000 of them arriving at once
+    /// republished it 7,000 times through the router (issue 32's plant).
+    announced_online: std::sync::atomic::AtomicI64,
     /// The other lines on the bus and whether they are reachable, as the bridge last
     /// saw them ([`Registry::lines`]).
     lines: Mutex<BTreeMap<String, LineState>>,
@@ -184,6 +188,7 @@ impl Registry {
             journal: Mutex::new(journal),
             observer: std::sync::OnceLock::new(),
             changes: tokio::sync::broadcast::channel(CHANGES_CAPACITY).0,
+            announced_online: std::sync::atomic::AtomicI64::new(-1),
             lines: Mutex::new(BTreeMap::new()),
         });
         {
