@@ -222,6 +222,17 @@ pub async fn run(fbbus: &Path, p: &PlantParams, out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// How much more each line used than the same line in topology `alone`, and the mean.
+fn beyond(bus: &[u64], alone: &[u64]) -> (Vec<f64>, f64) {
+    let more: Vec<f64> = bus
+        .iter()
+        .zip(alone)
+        .map(|(bus, own)| *bus as f64 - *own as f64)
+        .collect();
+    let mean = more.iter().sum::<f64>() / more.len().max(1) as f64;
+    (more, mean)
+}
+
 /// What topology `alone` measured, for the others to be set against.
 struct Control {
     /// Line 3's local p99 during the storm.
@@ -360,15 +371,10 @@ async fn plant(
         "cpu:       ms per line from the first connection to convergence: {}",
         join(&control.storm_cpu_ms)
     ));
+    // Remote devices each line holds, for the bus's share per device.
+    let remote = ((p.lines - 1) * p.devices).max(1) as f64;
     if let Some(alone) = alone {
-        let remote = ((p.lines - 1) * p.devices).max(1) as f64;
-        let more: Vec<f64> = control
-            .storm_cpu_ms
-            .iter()
-            .zip(&alone.storm_cpu_ms)
-            .map(|(bus, own)| *bus as f64 - *own as f64)
-            .collect();
-        let mean = more.iter().sum::<f64>() / more.len().max(1) as f64;
+        let (_, mean) = beyond(&control.storm_cpu_ms, &alone.storm_cpu_ms);
         t.line(format!(
             "           against topology alone: {:.0} ms more per line on average, {:.1} us \
              per remote device taken",
@@ -386,14 +392,7 @@ async fn plant(
         mib.join(" ")
     ));
     if let Some(alone) = alone {
-        let remote = ((p.lines - 1) * p.devices).max(1) as f64;
-        let more: Vec<f64> = control
-            .rss_kib
-            .iter()
-            .zip(&alone.rss_kib)
-            .map(|(bus, own)| *bus as f64 - *own as f64)
-            .collect();
-        let mean = more.iter().sum::<f64>() / more.len().max(1) as f64;
+        let (more, mean) = beyond(&control.rss_kib, &alone.rss_kib);
         t.line(format!(
             "           against topology alone: MiB more per line {} (the bus: its zenoh \
              session and the {remote} remote devices each line holds), {:.2} KiB per remote \
