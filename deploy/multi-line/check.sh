@@ -23,43 +23,9 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
 FBBUS=${1:-}
-if [ -z "$FBBUS" ]; then
-  cargo build --release -p broker --bin fbbus >/dev/null
-  FBBUS=$ROOT/target/release/fbbus
-fi
-ZENOHD=${ZENOHD:-$(command -v zenohd || true)}
-if [ -z "$ZENOHD" ]; then
-  ZENOHD=$ROOT/target/zenohd/bin/zenohd
-  [ -x "$ZENOHD" ] || cargo install zenohd --version 1.10.2 --locked --root "$ROOT/target/zenohd"
-fi
-for port in 1883 1884 9883 9884 7447; do
-  if (exec 3<>/dev/tcp/127.0.0.1/$port) 2>/dev/null; then
-    echo "check.sh: port $port is in use; the example's ports must be free" >&2
-    exit 1
-  fi
-done
-
-WORK=$(mktemp -d)
-PIDS=()
-cleanup() {
-  for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done
-  wait 2>/dev/null || true
-  rm -rf "$WORK"
-}
-trap cleanup EXIT
-fail() {
-  echo "FAIL: $*" >&2
-  for f in "$WORK"/*.log; do echo "--- $f" >&2; tail -n 20 "$f" >&2; done
-  exit 1
-}
-wait_for() { # wait_for SECONDS DESCRIPTION COMMAND...
-  local until=$((SECONDS + $1)) what=$2; shift 2
-  until "$@" >/dev/null 2>&1; do
-    [ $SECONDS -lt $until ] || fail "$what"
-    sleep 0.2
-  done
-  echo "ok: $what"
-}
+# shellcheck source=deploy/check-lib.sh
+source "$ROOT/deploy/check-lib.sh"
+ports_free 1883 1884 9883 9884 7447
 status_on_b() { "$FBBUS" devices --admin 127.0.0.1:9884 | awk -v d="$1" '$1 == d { print $2, $3 }'; }
 is() { [ "$(status_on_b plc-1)" = "line-a $1" ]; }
 

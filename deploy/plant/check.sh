@@ -19,45 +19,9 @@ ROOT=$PWD
 N=${1:-8}
 DEVICES=${2:-50}
 FBBUS=${3:-}
-if [ -z "$FBBUS" ]; then
-  cargo build --release -p broker --bin fbbus >/dev/null
-  FBBUS=$ROOT/target/release/fbbus
-fi
-ZENOHD=${ZENOHD:-$(command -v zenohd || true)}
-if [ -z "$ZENOHD" ]; then
-  ZENOHD=$ROOT/target/zenohd/bin/zenohd
-  [ -x "$ZENOHD" ] || cargo install zenohd --version 1.10.2 --locked --root "$ROOT/target/zenohd"
-fi
-for port in $(seq 1883 $((1882 + N))) $(seq 9883 $((9882 + N))) 7447 7448; do
-  if (exec 3<>/dev/tcp/127.0.0.1/$port) 2>/dev/null; then
-    echo "check.sh: port $port is in use; the plant's ports must be free" >&2
-    exit 1
-  fi
-done
-
-WORK=$(mktemp -d)
-PIDS=()
-cleanup() {
-  for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done
-  wait 2>/dev/null || true
-  rm -rf "$WORK"
-}
-trap cleanup EXIT
-fail() {
-  echo "FAIL: $*" >&2
-  for f in "$WORK"/*.log; do echo "--- $f" >&2; tail -n 20 "$f" >&2; done
-  exit 1
-}
-now() { date +%s.%N; }
-since() { awk -v a="$(now)" -v b="$1" 'BEGIN { print a - b }'; }
-wait_for() { # wait_for SECONDS DESCRIPTION COMMAND...
-  local until=$((SECONDS + $1)) what=$2 from; from=$(now); shift 2
-  until "$@" >/dev/null 2>&1; do
-    [ $SECONDS -lt $until ] || fail "$what"
-    sleep 0.1
-  done
-  printf 'ok: %s (%.2f s)\n' "$what" "$(since "$from")"
-}
+# shellcheck source=deploy/check-lib.sh
+source "$ROOT/deploy/check-lib.sh"
+ports_free $(seq 1883 $((1882 + N))) $(seq 9883 $((9882 + N))) 7447 7448
 online() { curl -s "127.0.0.1:$((9882 + $1))/metrics" | awk '$1 == "fbbus_registry_devices{status=\"online\"}" { print $2 }'; }
 everyone_online() {
   for k in $(seq 1 "$N"); do [ "$(online "$k")" = "$((N * DEVICES))" ] || return 1; done
