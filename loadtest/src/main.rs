@@ -243,15 +243,17 @@ enum Command {
         #[arg(value_name = "REPORT_JSON")]
         report: PathBuf,
     },
-    /// fbbus beside Mosquitto and raw rumqttd, or two fbbus builds, on brokers it starts
+    /// fbbus beside Mosquitto, raw rumqttd and FlashMQ, or two fbbus builds, on brokers it
+    /// starts
     ///
     /// The earlier broker study's scenarios (fan-in, latency, idle memory, memory after
-    /// 1M messages, connection rate, auth storm) on brokers this command starts itself on
-    /// loopback, with ratios. Two builds: `--brokers fbbus --fbbus old=PATH --fbbus
+    /// 1M messages, connection rate, auth storm), the fan-in at QoS 1 and independent
+    /// pairs, on brokers this command starts itself on loopback, with ratios and a summary
+    /// table (FlashMQ where `--flashmq PATH` or PATH has it). Two builds: `--brokers fbbus --fbbus old=PATH --fbbus
     /// new=PATH --rounds 3` (alternating, ratio new/old). `compare fb` and `compare
     /// bridge`: fbbus's typed topics, registry and bridge (`--bus tcp,mtls`: plain TCP
     /// vs mutual TLS with access control).
-    Compare(compare::CompareArgs),
+    Compare(Box<compare::CompareArgs>),
     /// Internal (`compare`): run raw rumqttd 0.20 on 127.0.0.1:PORT until killed.
     #[command(hide = true)]
     ServeRumqttd {
@@ -388,7 +390,7 @@ async fn run(cli: Cli) -> Result<()> {
     let scenario = match cli.scenario {
         Command::Compare(args) => {
             let out = c.out_dir(args.scenario_dir());
-            return compare::run(args, &out).await;
+            return compare::run(*args, &out, c.inflight).await;
         }
         other => other,
     };

@@ -10,6 +10,7 @@
 
 use std::io;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -308,6 +309,46 @@ pub fn publish_payload(header: u8, body: &[u8]) -> Option<&[u8]> {
     let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
     let start = 2 + topic_len + if qos > 0 { 2 } else { 0 };
     body.get(start..)
+}
+
+/// Sends `count` QoS 1 PUBLISHes, the k-th made by `make(k, packet id, buffer)`, with at
+/// most `window` unacknowledged, and reads the PUBACKs; returns when every one is
+/// acknowledged. `sent` counts what was written. (`compare persistence`'s bursts and
+/// retained store, `compare`'s QoS 1 fan-in.)
+pub async fn publish_acked(
+    conn: &mut PacketReader,
+    count: usize,
+    window: usize,
+    sent: &AtomicU64,
+    mut make: impl FnMut(usize, u16, &mut Vec<u8>),
+) -> io::Result<()> {
+    let window = window.clamp(1, 65_535);
+    let (mut next, mut acked) = (0usize, 0usize);
+    let mut buf = Vec::with_capacity(window * 64);
+    while acked < count {
+        let before = next;
+        while next < count && next - acked < window {
+            make(next, (next % 65_535) as u16 + 1, &mut buf);
+            next += 1;
+        }
+        if !buf.is_empty() {
+            conn.get_mut().write_all(&buf).await?;
+            buf.clear();
+            sent.fetch_add((next - before) as u64, Ordering::Relaxed);
+        }
+        if conn.read_more().await? == 0 {
+            return Err(io::Error::new(
+                io::ErrorKind::UnexpectedEof,
+                format!("the broker closed the connection after {acked} PUBACKs of {count}"),
+            ));
+        }
+        while let Some((header, _)) = conn.next_packet()? {
+            if header >> 4 == 4 {
+                acked += 1;
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -201,6 +201,66 @@ fn fbbus_mosquitto_and_raw_rumqttd_side_by_side() {
     );
 }
 
+/// Issue 34: the QoS 1 fan-in and the independent pairs deliver every message, and the
+/// summary table has a row per scenario with the lost count next to the rate, beside
+/// rumqttd with its ratio column (FlashMQ too where a `flashmq` binary is on PATH).
+#[test]
+fn qos1_fanin_and_pairs_in_the_summary_table() {
+    let fbbus = fbbus_bin();
+    let run = loadtest(
+        &[
+            "compare",
+            "--quick",
+            "--brokers",
+            "fbbus,rumqttd",
+            "--scenarios",
+            "fanin1,pairs",
+            "--fbbus",
+            fbbus,
+        ],
+        &[],
+    );
+    assert!(run.success, "compare failed\n{}", run.context());
+    for (title, expected) in [
+        ("QoS 1 burst fan-in", "10000/10000"),
+        ("independent pairs", "5000/5000"),
+    ] {
+        let line = ratio_line(&run, title);
+        assert!(
+            matches!(rate_of(line, "fbbus"), Some(r) if r > 0.0),
+            "no fbbus msg/s in {line:?}\n{}",
+            run.context()
+        );
+        let delivered = run
+            .stdout
+            .lines()
+            .filter(|l| l.starts_with("   fbbus ") && l.contains(expected))
+            .count();
+        assert!(
+            delivered >= 1,
+            "fbbus lost messages in {title}\n{}",
+            run.context()
+        );
+    }
+    let table: Vec<&str> = run
+        .stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("== summary table"))
+        .collect();
+    assert!(
+        table.iter().any(|l| l.contains("fbbus/rumqttd")),
+        "no ratio column\n{}",
+        run.context()
+    );
+    for row in ["fanin1 msg/s", "pairs msg/s"] {
+        let line = table
+            .iter()
+            .find(|l| l.trim_start().starts_with(row))
+            .unwrap_or_else(|| panic!("no `{row}` row\n{}", run.context()));
+        assert!(line.contains("(lost 0)"), "{line}");
+    }
+}
+
 /// `compare bridge --quick` links two fbbus lines over zenoh and reports the hop.
 #[test]
 fn quick_bridge_scenario_reports_the_hop() {

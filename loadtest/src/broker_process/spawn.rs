@@ -1,5 +1,5 @@
-//! Brokers the harness starts itself (`fbbus-loadtest compare`): fbbus, Mosquitto and raw
-//! rumqttd, each a child process of its own on free 127.0.0.1 ports, so its resident
+//! Brokers the harness starts itself (`fbbus-loadtest compare`): fbbus, Mosquitto, raw
+//! rumqttd and FlashMQ, each a child process of its own on free 127.0.0.1 ports, so its resident
 //! memory is its own. [`Running`] kills the process when dropped, also when a scenario
 //! panics; raw rumqttd also exits when the harness dies (it watches its stdin). For
 //! `compare persistence` a broker can also be stopped with SIGTERM
@@ -29,6 +29,8 @@ pub enum Kind {
     MosquittoDefault,
     /// Upstream rumqttd 0.20 as a library, in `fbbus-loadtest serve-rumqttd`.
     Rumqttd,
+    /// FlashMQ (a C++ broker, one event loop per core), from its own binary.
+    FlashMq,
 }
 
 impl Kind {
@@ -38,6 +40,7 @@ impl Kind {
             Kind::Mosquitto => "mosquitto",
             Kind::MosquittoDefault => "mosquitto (nodelay off)",
             Kind::Rumqttd => "rumqttd",
+            Kind::FlashMq => "flashmq",
         }
     }
 }
@@ -52,7 +55,8 @@ impl fmt::Display for Kind {
 pub struct AuthFiles {
     /// `user:$argon2id$...` made with `security::hash_password`.
     pub fbbus: Option<PathBuf>,
-    /// `user:$7$...` made with `mosquitto_passwd -U`.
+    /// `user:$7$...` made with `mosquitto_passwd -U`; FlashMQ reads the same file
+    /// (`mosquitto_password_file`, which takes Mosquitto's PBKDF2-SHA512 `$7$` hashes).
     pub mosquitto: Option<PathBuf>,
     /// `user:password` lines, loaded into rumqttd's static auth map.
     pub rumqttd: PathBuf,
@@ -79,7 +83,7 @@ pub enum Persistence {
 /// What to start.
 pub struct Spec<'a> {
     pub kind: Kind,
-    /// fbbus or mosquitto; for raw rumqttd the harness binary (re-executed as
+    /// fbbus, mosquitto or flashmq; for raw rumqttd the harness binary (re-executed as
     /// `serve-rumqttd`).
     pub program: &'a Path,
     /// fbbus: `key = value` lines added to its `[broker]` section.
@@ -348,6 +352,17 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
             c.arg("-c").arg(&path);
             c
         }
+        Kind::FlashMq => {
+            let path = dir.path().join("flashmq.conf");
+            std::fs::write(&path, flashmq_config(spec, dir.path(), port)?)?;
+            let mut c = Command::new(spec.program);
+            c.arg("--config-file")
+                .arg(&path)
+                // A debug build locks `$HOME/.FlashMQ.lock` (one instance per user): each
+                // broker gets its own home, so rounds and parallel tests never collide.
+                .env("HOME", dir.path());
+            c
+        }
         Kind::Rumqttd => {
             let mut c = Command::new(spec.program);
             c.arg("serve-rumqttd")
@@ -477,6 +492,67 @@ fn fbbus_config(
     Ok(config)
 }
 
+/// FlashMQ's generated `flashmq.conf`: one plain MQTT listener on `port` of 127.0.0.1 with
+/// `tcp_nodelay true` (as Mosquitto's `set_tcp_nodelay true`: the clients write small
+/// packets and measure latency), `thread_count` = the cores (FlashMQ's own auto-detected
+/// default, written out so the header's claim is the config's), warnings only to a log
+/// file in `dir` (its packaged config logs to /var/log/flashmq), no `storage_dir` (no
+/// persistence; the packaged one uses /var/lib/flashmq). `max_qos_msg_pending_per_client`
+/// and `max_qos_bytes_pending_per_client` are raised from 512 messages / 64 KiB to the
+/// most the first allows (65,535) and 100 MiB: past them FlashMQ drops QoS 1 messages for a
+/// subscriber, and a QoS 1 burst of 100,000 queues more than 512 for the one subscriber;
+/// Mosquitto is given `max_queued_messages 100000` for the same reason. `rlimit_nofile`
+/// is this process's hard limit: FlashMQ's default (1,000,000) fails without privileges
+/// and logs an error. Anonymous clients, or for the auth storm only the users of
+/// Mosquitto's password file (`mosquitto_password_file`).
+fn flashmq_config(spec: &Spec<'_>, dir: &Path, port: u16) -> Result<String, Error> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut config = format!(
+        "thread_count {threads}\n\
+         log_file {}\n\
+         log_level warning\n\
+         max_qos_msg_pending_per_client 65535\n\
+         max_qos_bytes_pending_per_client 104857600\n",
+        dir.join("flashmq.log").display()
+    );
+    if let Some(limit) = nofile_hard_limit() {
+        config.push_str(&format!("rlimit_nofile {limit}\n"));
+    }
+    match spec.auth {
+        Some(a) => {
+            let file = a.mosquitto.as_ref().ok_or_else(|| {
+                Error::Process(
+                    "no mosquitto password file was prepared for flashmq (is mosquitto_passwd installed?)"
+                        .into(),
+                )
+            })?;
+            config.push_str(&format!(
+                "allow_anonymous false\nmosquitto_password_file {}\n",
+                file.display()
+            ));
+        }
+        None => config.push_str("allow_anonymous true\n"),
+    }
+    config.push_str(&format!(
+        "listen {{\n  protocol mqtt\n  inet_protocol ip4\n  inet4_bind_address 127.0.0.1\n  \
+         port {port}\n  tcp_nodelay true\n}}\n"
+    ));
+    Ok(config)
+}
+
+/// This process's hard limit of open files (inherited by the brokers it starts).
+fn nofile_hard_limit() -> Option<libc::rlim_t> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit(2) writes into the struct we pass and reads nothing else.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } != 0 {
+        return None;
+    }
+    (limit.rlim_max != libc::RLIM_INFINITY).then_some(limit.rlim_max)
+}
+
 /// An MQTT CONNECT gets a successful CONNACK; the probe then disconnects cleanly.
 async fn accepts_clients(addr: SocketAddr, credentials: Option<(&str, &str)>) -> bool {
     let attempt = async {
@@ -510,6 +586,19 @@ pub fn mosquitto_version(mosquitto: &Path) -> String {
             text.lines().next().unwrap_or("unknown").trim().to_string()
         }
         Err(e) => format!("unknown ({e})"),
+    }
+}
+
+/// The first line of `flashmq --version`.
+pub fn flashmq_version(flashmq: &Path) -> String {
+    match Command::new(flashmq).arg("--version").output() {
+        Ok(out) => String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .next()
+            .unwrap_or("unknown")
+            .trim()
+            .to_string(),
+        Err(e) => format!("unknown ({}: {e})", flashmq.display()),
     }
 }
 

@@ -1,7 +1,7 @@
 //! The auth storm's users and their password files, one per broker's format, made before
 //! any broker starts (not timed): fbbus argon2id with fbbus's own defaults
-//! (`security::hash_password`), Mosquitto PBKDF2-SHA512 (`mosquitto_passwd -U`), rumqttd
-//! a plaintext `user:password` list for its static map.
+//! (`security::hash_password`), Mosquitto PBKDF2-SHA512 (`mosquitto_passwd -U`; FlashMQ
+//! reads the same file), rumqttd a plaintext `user:password` list for its static map.
 
 use std::path::Path;
 
@@ -45,7 +45,8 @@ pub fn prepare(devices: usize, kinds: &[Kind]) -> Result<Storm> {
         None
     };
 
-    let mosquitto = if kinds.contains(&Kind::Mosquitto) {
+    // FlashMQ reads Mosquitto's file (`mosquitto_password_file`, `$7$` hashes).
+    let mosquitto = if kinds.contains(&Kind::Mosquitto) || kinds.contains(&Kind::FlashMq) {
         match spawn::find_program("mosquitto_passwd", &["/usr/bin/mosquitto_passwd"]) {
             Some(tool) => {
                 let path = dir.path().join("mosquitto-passwd");
@@ -62,7 +63,7 @@ pub fn prepare(devices: usize, kinds: &[Kind]) -> Result<Storm> {
                 Some(path)
             }
             None => {
-                eprintln!("  mosquitto_passwd not found: mosquitto will not run the auth storm (apt-get install -y mosquitto)");
+                eprintln!("  mosquitto_passwd not found: mosquitto and flashmq will not run the auth storm (apt-get install -y mosquitto)");
                 None
             }
         }

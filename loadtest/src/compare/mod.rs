@@ -1,11 +1,13 @@
-//! `fbbus-loadtest compare`: the earlier broker study's scenarios against fbbus,
-//! Mosquitto and raw rumqttd, or against two fbbus builds (before/after a change), in one
-//! run, with every figure as a ratio. See loadtest/README.md, "compare".
+//! `fbbus-loadtest compare`: the earlier broker study's scenarios (and issue 34's QoS 1
+//! fan-in and independent pairs) against fbbus, Mosquitto, raw rumqttd and FlashMQ, or
+//! against two fbbus builds (before/after a change), in one run, with every figure as a
+//! ratio and a summary table (a column per broker, a ratio column per peer). See
+//! loadtest/README.md, "compare".
 //!
 //! Unlike the other scenarios, `compare` starts the brokers itself: every broker is a
 //! child process of its own on free 127.0.0.1 ports, freshly started for each scenario
 //! ([`loadtest::broker_process::spawn`]; raw rumqttd is this binary re-executed as the
-//! hidden `serve-rumqttd` subcommand), so its resident memory is its own and no scenario
+//! hidden `serve-rumqttd` subcommand; FlashMQ its own binary, `--flashmq`), so its resident memory is its own and no scenario
 //! inherits another's state. With `--rounds N` each scenario runs N times per broker,
 //! alternating (A B A B ...), so machine noise hits every broker alike; the ratios use
 //! each broker's median.
@@ -180,12 +182,12 @@ enum FbbusOnly {
 
 #[derive(Args)]
 struct RunArgs {
-    /// Scenarios to run, comma-separated: fanin, latency, idlemem, msgmem, connrate, authstorm.
-    /// Default: all.
+    /// Scenarios to run, comma-separated: fanin, fanin1, pairs, latency, idlemem, msgmem,
+    /// connrate, authstorm. Default: all.
     #[arg(long, value_delimiter = ',', value_name = "LIST")]
     scenarios: Vec<String>,
-    /// Brokers to run, comma-separated: fbbus (every --fbbus binary), mosquitto, rumqttd.
-    /// Default: all.
+    /// Brokers to run, comma-separated: fbbus (every --fbbus binary), mosquitto, rumqttd,
+    /// flashmq. Default: all, flashmq only when its binary is found.
     #[arg(long, value_delimiter = ',', value_name = "LIST")]
     brokers: Vec<String>,
     /// Small sizes (a smoke test, not a measurement).
@@ -200,6 +202,10 @@ struct RunArgs {
     /// The mosquitto binary. Default: /usr/sbin/mosquitto, else PATH.
     #[arg(long, value_name = "PATH")]
     mosquitto: Option<PathBuf>,
+    /// The flashmq binary (FlashMQ 1.x, built from github.com/halfgaar/FlashMQ). Default:
+    /// `flashmq` on PATH.
+    #[arg(long, value_name = "PATH")]
+    flashmq: Option<PathBuf>,
     /// Skip the extra Mosquitto run with its shipped `set_tcp_nodelay false` (fanin, latency).
     #[arg(long)]
     no_mosquitto_default: bool,
@@ -218,6 +224,13 @@ struct RunArgs {
     /// Messages per publisher in the fan-in burst (default 20000; --quick 2000).
     #[arg(long, value_name = "N")]
     fanin_messages: Option<usize>,
+    /// Messages per publisher in the QoS 1 fan-in, `fanin1` (default 10000; --quick 1000).
+    #[arg(long, value_name = "N")]
+    fanin1_messages: Option<usize>,
+    /// Publisher/subscriber pairs in `pairs` (default 50; --quick 10); the 100,000
+    /// messages (--quick 5,000) are shared among them.
+    #[arg(long, value_name = "N")]
+    pairs: Option<usize>,
     /// Duration of the steady-rate latency scenario in seconds (default 10; --quick 2).
     #[arg(long, value_name = "SECONDS")]
     latency_secs: Option<u64>,
@@ -279,8 +292,9 @@ impl CompareArgs {
 }
 
 /// Runs `compare`; the main comparison's output also goes to `<out>/compare.txt`, `compare
-/// bridge`'s to `<out>/bridge.txt`.
-pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
+/// bridge`'s to `<out>/bridge.txt`. `inflight` is the global `--inflight`, the QoS 1
+/// fan-in's window per publisher.
+pub async fn run(args: CompareArgs, out: &Path, inflight: u16) -> Result<()> {
     let harness = std::env::current_exe().context("locating this binary")?;
     let default_fbbus = harness.with_file_name("fbbus");
     match args.fbbus_only {
@@ -422,7 +436,7 @@ pub async fn run(args: CompareArgs, out: &Path) -> Result<()> {
                 mosquitto.or_else(|| spawn::find_program("mosquitto", &["/usr/sbin/mosquitto"]));
             persistence::run(&fbbus, mosquitto.as_deref(), &kinds, &params, out).await
         }
-        None => compare(args.run, &harness, &default_fbbus, out).await,
+        None => compare(args.run, &harness, &default_fbbus, out, inflight).await,
     }
 }
 
@@ -510,7 +524,8 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
             _ if entries.len() == 1 => ("fbbus".to_owned(), entry.as_str()),
             _ => (format!("fbbus-{}", i + 1), entry.as_str()),
         };
-        if ["mosquitto", "rumqttd"].contains(&name.as_str()) || out.iter().any(|c| c.label == name)
+        if ["mosquitto", "rumqttd", "flashmq"].contains(&name.as_str())
+            || out.iter().any(|c| c.label == name)
         {
             bail!("--fbbus {entry}: the name `{name}` is taken; give each binary its own name (--fbbus old=PATH --fbbus new=PATH)");
         }
@@ -524,10 +539,34 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
     Ok(out)
 }
 
-async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path) -> Result<()> {
+async fn compare(
+    args: RunArgs,
+    harness: &Path,
+    default_fbbus: &Path,
+    out: &Path,
+    inflight: u16,
+) -> Result<()> {
     let scenarios = chosen_scenarios(&args.scenarios)?;
+    let flashmq = args
+        .flashmq
+        .clone()
+        .or_else(|| spawn::find_program("flashmq", &[]));
     let names: Vec<&str> = if args.brokers.is_empty() {
-        vec!["fbbus", "mosquitto", "rumqttd"]
+        // FlashMQ is not packaged here (it is built from source): by default it runs
+        // where it is found, and the run says when it is not.
+        let mut all = vec!["fbbus", "mosquitto", "rumqttd"];
+        match &flashmq {
+            Some(path) if path.is_file() => all.push("flashmq"),
+            Some(path) => eprintln!(
+                "flashmq is skipped: {} is not a file (--flashmq PATH)",
+                path.display()
+            ),
+            None => eprintln!(
+                "flashmq is skipped: no `flashmq` on PATH (build it, see loadtest/README.md, \
+                 and pass --flashmq PATH)"
+            ),
+        }
+        all
     } else {
         args.brokers.iter().map(|b| b.trim()).collect()
     };
@@ -537,7 +576,10 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
             "fbbus" => Kind::Fbbus,
             "mosquitto" => Kind::Mosquitto,
             "rumqttd" => Kind::Rumqttd,
-            other => bail!("unknown broker `{other}` (known: fbbus, mosquitto, rumqttd)"),
+            "flashmq" => Kind::FlashMq,
+            other => {
+                bail!("unknown broker `{other}` (known: fbbus, mosquitto, rumqttd, flashmq)")
+            }
         };
         if !kinds.contains(&kind) {
             kinds.push(kind);
@@ -564,6 +606,16 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
     if let Some(n) = args.fanin_messages {
         params.fanin_messages = n.max(1);
     }
+    if let Some(n) = args.fanin1_messages {
+        params.fanin1_messages = n.max(1);
+    }
+    if let Some(n) = args.pairs {
+        // The total stays: `pairs` spreads the same messages over more or fewer pairs.
+        let total = params.pairs * params.pairs_messages;
+        params.pairs = n.max(1);
+        params.pairs_messages = (total / params.pairs).max(1);
+    }
+    params.inflight = usize::from(inflight.max(1));
     if let Some(s) = args.latency_secs {
         params.latency_secs = s.max(1);
     }
@@ -590,6 +642,13 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
                 label: "rumqttd".into(),
                 kind: Kind::Rumqttd,
                 program: harness.to_path_buf(),
+                transport: Transport::Tcp,
+            }),
+            Kind::FlashMq => contenders.push(Contender {
+                label: "flashmq".into(),
+                kind: Kind::FlashMq,
+                // Missing: every scenario's row says how to get it.
+                program: flashmq.clone().unwrap_or_else(|| PathBuf::from("flashmq")),
                 transport: Transport::Tcp,
             }),
             Kind::MosquittoDefault => {}
@@ -647,16 +706,17 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
 
     let started = Instant::now();
     let mut summary = Vec::new();
+    let mut all_rows: Vec<(Scenario, Vec<table::Row>)> = Vec::new();
+    let nodelay_off = Contender {
+        label: Kind::MosquittoDefault.label().into(),
+        kind: Kind::MosquittoDefault,
+        program: mosquitto
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("mosquitto")),
+        transport: Transport::Tcp,
+    };
     for &scenario in &scenarios {
         let mut runs: Vec<&Contender> = Vec::new();
-        let nodelay_off = Contender {
-            label: Kind::MosquittoDefault.label().into(),
-            kind: Kind::MosquittoDefault,
-            program: mosquitto
-                .clone()
-                .unwrap_or_else(|| PathBuf::from("mosquitto")),
-            transport: Transport::Tcp,
-        };
         for c in &contenders {
             runs.push(c);
             if c.kind == Kind::Mosquitto
@@ -694,6 +754,7 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
         let line = table::ratio_line(scenario, &params, &rows, rounds);
         t.line(&line);
         summary.push(line);
+        all_rows.push((scenario, rows));
     }
     t.line("");
     t.line(format!(
@@ -703,6 +764,8 @@ async fn compare(args: RunArgs, harness: &Path, default_fbbus: &Path, out: &Path
     for line in summary {
         t.line(line);
     }
+    t.line("");
+    table::summary_table(&mut t, &all_rows, rounds);
     drop(storm);
     std::fs::create_dir_all(out).with_context(|| format!("creating --out {}", out.display()))?;
     let file = out.join("compare.txt");
@@ -732,11 +795,23 @@ async fn run_one(
             "mosquitto is not installed (apt-get install -y mosquitto, or --mosquitto PATH)".into(),
         );
     }
+    if contender.kind == Kind::FlashMq && !contender.program.is_file() {
+        return Outcome::failed(
+            scenario,
+            format!(
+                "no flashmq binary at {} (build it, see loadtest/README.md, or --flashmq PATH)",
+                contender.program.display()
+            ),
+        );
+    }
     // A WebSocket listener beside the broker's TCP one, for `--transport ws`.
     let ws_port = match contender.transport {
         Transport::WebSocket => match (contender.kind, spawn::free_port()) {
             (Kind::Rumqttd, _) => {
                 return Outcome::failed(scenario, "rumqttd is run without websockets".into())
+            }
+            (Kind::FlashMq, _) => {
+                return Outcome::failed(scenario, "flashmq is run without websockets".into())
             }
             (_, Ok(port)) => Some(port),
             (_, Err(e)) => return Outcome::failed(scenario, format!("no free port: {e}")),

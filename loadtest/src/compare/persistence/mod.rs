@@ -43,7 +43,7 @@ mod throughput;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context as _, Result};
@@ -524,45 +524,6 @@ async fn persistent_subscriber(addr: SocketAddr, topic: &str) -> Result<PacketRe
         bail!("the subscription to {topic} was granted QoS {granted}, not 1");
     }
     Ok(sub)
-}
-
-/// Sends `count` QoS 1 PUBLISHes, the k-th made by `make(k, packet id, buffer)`, with at
-/// most `window` unacknowledged, and reads the PUBACKs; returns when every one is
-/// acknowledged. `sent` counts what was written.
-async fn publish_acked(
-    conn: &mut PacketReader,
-    count: usize,
-    window: usize,
-    sent: &AtomicU64,
-    mut make: impl FnMut(usize, u16, &mut Vec<u8>),
-) -> std::io::Result<()> {
-    let window = window.clamp(1, 65_535);
-    let (mut next, mut acked) = (0usize, 0usize);
-    let mut buf = Vec::with_capacity(window * 64);
-    while acked < count {
-        let before = next;
-        while next < count && next - acked < window {
-            make(next, (next % 65_535) as u16 + 1, &mut buf);
-            next += 1;
-        }
-        if !buf.is_empty() {
-            conn.get_mut().write_all(&buf).await?;
-            buf.clear();
-            sent.fetch_add((next - before) as u64, Ordering::Relaxed);
-        }
-        if conn.read_more().await? == 0 {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                format!("the broker closed the connection after {acked} PUBACKs of {count}"),
-            ));
-        }
-        while let Some((header, _)) = conn.next_packet()? {
-            if header >> 4 == 4 {
-                acked += 1;
-            }
-        }
-    }
-    Ok(())
 }
 
 /// The payload of message `seq` of publisher `publisher`, sent at `sent_ns`.

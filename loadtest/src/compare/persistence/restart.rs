@@ -10,14 +10,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context as _, Result};
 use loadtest::broker_process::spawn::{Kind, Running};
-use loadtest::raw_client::{self as mqtt, PacketReader};
+use loadtest::raw_client::{self as mqtt, publish_acked, PacketReader};
 use loadtest::scrape;
 use tokio::io::AsyncWriteExt;
 
 use super::metric;
-use super::{
-    add_note, connect, publish_acked, Figures, PersistParams, CONNECT_TIMEOUT, PAYLOAD_BYTES,
-};
+use super::{add_note, connect, Figures, PersistParams, CONNECT_TIMEOUT, PAYLOAD_BYTES};
 
 /// Retained messages per topic group (`bench/retained/<group>/+`): the check after the
 /// restart subscribes group by group, as a burst of retained messages on one SUBSCRIBE

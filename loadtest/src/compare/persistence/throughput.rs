@@ -8,12 +8,12 @@ use std::time::Instant;
 use anyhow::{Context as _, Result};
 use loadtest::broker_process;
 use loadtest::broker_process::spawn::{Kind, Running};
-use loadtest::raw_client::{self as mqtt};
+use loadtest::raw_client::{self as mqtt, publish_acked};
 use tokio::sync::watch;
 
 use super::{
-    add_note, lost, payload, publish_acked, receive_acking, store_counters,
-    subscriber_and_publishers, Figures, PersistParams,
+    add_note, lost, payload, receive_acking, store_counters, subscriber_and_publishers, Figures,
+    PersistParams,
 };
 
 pub(super) fn count_and_mean(count: f64, seconds: f64) -> String {

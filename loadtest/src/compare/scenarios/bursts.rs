@@ -1,6 +1,8 @@
-//! The bursts (`fanin`, `latency`, `msgmem`): raw PUBLISH packets from publishers that
-//! write as fast as they can (or at a steady rate) into one subscriber, which drains and
-//! counts them.
+//! The bursts (`fanin`, `fanin1`, `pairs`, `latency`, `msgmem`): raw PUBLISH packets from
+//! publishers that write as fast as they can (or at a steady rate) into subscribers that
+//! drain and count them (and acknowledge them at QoS 1). One burst, [`burst`], for every
+//! shape ([`Shape`]): many publishers into one subscriber (fan-in, at QoS 0 or 1), or
+//! many independent publisher/subscriber pairs.
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -44,23 +46,43 @@ async fn connect(addr: SocketAddr, id: &str) -> Result<TcpStream> {
         .with_context(|| id.to_string())
 }
 
-/// One subscriber on `topic` plus `publishers` connected publishers.
+/// One subscriber on `topic` at `qos` (`<prefix>-sub`) plus `publishers` connected
+/// publishers (`<prefix>-pub-<i>`).
+async fn group(
+    addr: SocketAddr,
+    prefix: &str,
+    topic: &str,
+    publishers: usize,
+    qos: u8,
+) -> Result<(PacketReader, Vec<TcpStream>)> {
+    let id = format!("{prefix}-sub");
+    let mut sub = connect(addr, &id).await?;
+    let granted = tokio::time::timeout(CONNECT_TIMEOUT, mqtt::subscribe_qos(&mut sub, topic, qos))
+        .await
+        .with_context(|| format!("{id}: no SUBACK"))??;
+    if granted != qos {
+        anyhow::bail!("{id}: the subscription to {topic} was granted QoS {granted}, not {qos}");
+    }
+    let mut pubs = Vec::with_capacity(publishers);
+    for i in 0..publishers {
+        pubs.push(connect(addr, &format!("{prefix}-pub-{i}")).await?);
+    }
+    Ok((PacketReader::new(sub), pubs))
+}
+
+/// Routers apply a subscription asynchronously to its SUBACK on some brokers: the pause
+/// between the last SUBACK and the first PUBLISH.
+const SUBSCRIPTION_SETTLE: Duration = Duration::from_millis(200);
+
+/// One QoS 0 subscriber on `topic` plus `publishers` connected publishers, settled.
 async fn subscriber_and_publishers(
     addr: SocketAddr,
     topic: &str,
     publishers: usize,
 ) -> Result<(PacketReader, Vec<TcpStream>)> {
-    let mut sub = connect(addr, "bench-sub").await?;
-    tokio::time::timeout(CONNECT_TIMEOUT, mqtt::subscribe(&mut sub, topic))
-        .await
-        .context("no SUBACK")??;
-    let mut pubs = Vec::with_capacity(publishers);
-    for i in 0..publishers {
-        pubs.push(connect(addr, &format!("bench-pub-{i}")).await?);
-    }
-    // Routers apply a subscription asynchronously to its SUBACK on some brokers.
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    Ok((PacketReader::new(sub), pubs))
+    let clients = group(addr, "bench", topic, publishers, 0).await?;
+    tokio::time::sleep(SUBSCRIPTION_SETTLE).await;
+    Ok(clients)
 }
 
 #[derive(Debug, PartialEq, Eq)]
@@ -82,8 +104,9 @@ struct Drained {
 }
 
 /// Counts PUBLISHes until `expected` arrived, the publishers are done and the stream was
-/// idle for `idle`, the broker closed the connection, or `end_at`. With `epoch`, the first
-/// 8 payload bytes are a send time (ns since `epoch`) and latencies go into a histogram.
+/// idle for `idle`, the broker closed the connection, or `end_at`; acknowledges QoS 1 ones.
+/// With `epoch`, the first 8 payload bytes are a send time (ns since `epoch`) and
+/// latencies go into a histogram.
 async fn drain(
     mut reader: PacketReader,
     expected: u64,
@@ -100,6 +123,7 @@ async fn drain(
     let mut last_receive = None;
     let mut last_activity = Instant::now();
     let mut done_seen: Option<Instant> = None;
+    let mut acks = Vec::new();
     let end = loop {
         if received >= expected {
             break DrainEnd::Complete;
@@ -128,6 +152,9 @@ async fn drain(
                 loop {
                     match reader.next_packet() {
                         Ok(Some((header, body))) => {
+                            if let Some(pid) = mqtt::packet_id(header, body) {
+                                acks.extend_from_slice(&mqtt::puback_packet(pid));
+                            }
                             if let Some(payload) = mqtt::publish_payload(header, body) {
                                 got += 1;
                                 if let (Some(h), Some(now_ns), Some(ts)) =
@@ -154,6 +181,13 @@ async fn drain(
                     received += got;
                     last_receive = Some(t);
                 }
+                // QoS 1: every PUBLISH of this read acknowledged in one write.
+                if !acks.is_empty() {
+                    if let Err(e) = reader.get_mut().write_all(&acks).await {
+                        break DrainEnd::Error(e.to_string());
+                    }
+                    acks.clear();
+                }
             }
         }
     };
@@ -166,6 +200,29 @@ async fn drain(
     }
 }
 
+/// What a burst sends, and where: `groups` topics, each with one subscriber and
+/// `publishers` publishers that write `per_publisher` messages of [`PAYLOAD_BYTES`] at
+/// `qos` as fast as they can (QoS 1: at most `inflight` unacknowledged per publisher).
+/// Fan-in is one group of 10 publishers; `pairs` is 50 groups of one.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Shape {
+    pub groups: usize,
+    pub publishers: usize,
+    pub per_publisher: usize,
+    pub qos: u8,
+    pub inflight: usize,
+}
+
+impl Shape {
+    fn expected_per_group(&self) -> u64 {
+        (self.publishers * self.per_publisher) as u64
+    }
+
+    fn expected(&self) -> u64 {
+        self.groups as u64 * self.expected_per_group()
+    }
+}
+
 struct Burst {
     sent: u64,
     expected: u64,
@@ -175,7 +232,7 @@ struct Burst {
     timed_out: bool,
     note: Option<String>,
     /// Every client connection, still open.
-    _keep: (PacketReader, Vec<TcpStream>),
+    _keep: (Vec<PacketReader>, Vec<TcpStream>),
 }
 
 impl Burst {
@@ -186,93 +243,154 @@ impl Burst {
     }
 }
 
-/// `publishers` x `per_publisher` QoS 0 messages as fast as possible into one subscriber.
-async fn burst(
-    addr: SocketAddr,
-    publishers: usize,
-    per_publisher: usize,
-    deadline: Duration,
-) -> Result<Burst> {
-    let topic = "bench/burst";
-    let (reader, pubs) = subscriber_and_publishers(addr, topic, publishers).await?;
-    let packet = Arc::new(mqtt::publish_packet(topic, &[0x5a; PAYLOAD_BYTES]));
+/// One publisher of a burst: waits for `go`, then writes its messages. QoS 0: 64 KiB
+/// buffered writes, nothing to wait for. QoS 1: a window of `inflight` PUBLISHes, each
+/// batch written at once, the next ones as PUBACKs come back.
+async fn publish_burst(
+    stream: TcpStream,
+    topic: String,
+    shape: Shape,
+    sent: &AtomicU64,
+    end_at: Instant,
+) -> (
+    TcpStream,
+    std::result::Result<std::io::Result<()>, tokio::time::error::Elapsed>,
+) {
+    if shape.qos == 0 {
+        let packet = mqtt::publish_packet(&topic, &[0x5a; PAYLOAD_BYTES]);
+        let mut writer = BufWriter::with_capacity(64 * 1024, stream);
+        let send_all = async {
+            for _ in 0..shape.per_publisher {
+                writer.write_all(&packet).await?;
+                sent.fetch_add(1, Ordering::Relaxed);
+            }
+            writer.flush().await
+        };
+        let result = tokio::time::timeout_at(end_at.into(), send_all).await;
+        (writer.into_inner(), result)
+    } else {
+        let mut conn = PacketReader::new(stream);
+        let send_all = mqtt::publish_acked(
+            &mut conn,
+            shape.per_publisher,
+            shape.inflight,
+            sent,
+            |_, pid, buf| {
+                buf.extend(mqtt::publish_qos1_packet(
+                    &topic,
+                    pid,
+                    false,
+                    &[0x5a; PAYLOAD_BYTES],
+                ))
+            },
+        );
+        let result = tokio::time::timeout_at(end_at.into(), send_all).await;
+        (conn.into_inner(), result)
+    }
+}
+
+/// A burst of `shape`: every group's clients connected first, then every publisher starts
+/// at once; each subscriber drains its own topic. Received and lost are over all groups;
+/// the last receive is the latest of any subscriber.
+async fn burst(addr: SocketAddr, shape: Shape, deadline: Duration) -> Result<Burst> {
+    let mut subs = Vec::with_capacity(shape.groups);
+    let mut pubs = Vec::with_capacity(shape.groups * shape.publishers);
+    for g in 0..shape.groups {
+        // One group keeps the fan-in's topic and client ids of the earlier study.
+        let (prefix, topic) = match shape.groups {
+            1 => ("bench".to_string(), "bench/burst".to_string()),
+            _ => (format!("bench-{g}"), format!("bench/pair/{g}")),
+        };
+        let (sub, group_pubs) = group(addr, &prefix, &topic, shape.publishers, shape.qos).await?;
+        subs.push(sub);
+        pubs.extend(group_pubs.into_iter().map(|p| (topic.clone(), p)));
+    }
+    tokio::time::sleep(SUBSCRIPTION_SETTLE).await;
+    let publishers = pubs.len();
     let (go_tx, go_rx) = watch::channel(false);
     let done = Arc::new(AtomicUsize::new(0));
     let sent = Arc::new(AtomicU64::new(0));
     let first_error = Arc::new(Mutex::new(None::<String>));
     let end_at = Instant::now() + deadline;
     let mut tasks = Vec::with_capacity(publishers);
-    for stream in pubs {
-        let (mut go, packet, done, sent, first_error) = (
+    for (topic, stream) in pubs {
+        let (mut go, done, sent, first_error) = (
             go_rx.clone(),
-            packet.clone(),
             done.clone(),
             sent.clone(),
             first_error.clone(),
         );
         tasks.push(tokio::spawn(async move {
             let _ = go.wait_for(|go| *go).await;
-            let mut writer = BufWriter::with_capacity(64 * 1024, stream);
-            let send_all = async {
-                for _ in 0..per_publisher {
-                    writer.write_all(&packet).await?;
-                    sent.fetch_add(1, Ordering::Relaxed);
-                }
-                writer.flush().await
-            };
-            note_publisher_end(
-                &first_error,
-                tokio::time::timeout_at(end_at.into(), send_all).await,
-            );
+            let (stream, result) = publish_burst(stream, topic, shape, &sent, end_at).await;
+            note_publisher_end(&first_error, result);
             done.fetch_add(1, Ordering::Release);
-            writer.into_inner()
+            stream
         }));
     }
-    let expected = (publishers * per_publisher) as u64;
-    let drained = tokio::spawn(drain(
-        reader,
-        expected,
-        done.clone(),
-        publishers,
-        Duration::from_secs(2),
-        end_at,
-        None,
-    ));
+    let drains: Vec<_> = subs
+        .into_iter()
+        .map(|reader| {
+            tokio::spawn(drain(
+                reader,
+                shape.expected_per_group(),
+                done.clone(),
+                publishers,
+                Duration::from_secs(2),
+                end_at,
+                None,
+            ))
+        })
+        .collect();
     let first_send = Instant::now();
     go_tx.send(true).ok();
     let mut streams = Vec::with_capacity(publishers);
     for t in tasks {
         streams.push(t.await.context("publisher task")?);
     }
-    let drained = drained.await.context("subscriber task")?;
     let mut note = first_error
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner)
         .take();
-    let timed_out =
-        drained.end == DrainEnd::Deadline || note.as_deref() == Some("publishers hit the deadline");
-    match &drained.end {
-        DrainEnd::Closed => add_note(&mut note, "broker closed the subscriber"),
-        DrainEnd::Error(e) => add_note(&mut note, format!("subscriber: {e}")),
-        _ => {}
+    let mut timed_out = note.as_deref() == Some("publishers hit the deadline");
+    let (mut received, mut last_receive) = (0u64, None::<Instant>);
+    let mut readers = Vec::with_capacity(drains.len());
+    let mut subscriber_problem = None;
+    for d in drains {
+        let drained = d.await.context("subscriber task")?;
+        received += drained.received;
+        last_receive = last_receive.max(drained.last_receive);
+        timed_out |= drained.end == DrainEnd::Deadline;
+        let problem = match &drained.end {
+            DrainEnd::Closed => Some("broker closed the subscriber".to_string()),
+            DrainEnd::Error(e) => Some(format!("subscriber: {e}")),
+            _ => None,
+        };
+        subscriber_problem = subscriber_problem.or(problem);
+        readers.push(drained.reader);
+    }
+    if let Some(problem) = subscriber_problem {
+        add_note(&mut note, problem);
     }
     if timed_out {
         add_note(&mut note, "timeout");
     }
     Ok(Burst {
         sent: sent.load(Ordering::Relaxed),
-        expected,
-        received: drained.received,
+        expected: shape.expected(),
+        received,
         first_send,
-        last_receive: drained.last_receive,
+        last_receive,
         timed_out,
         note,
-        _keep: (drained.reader, streams),
+        _keep: (readers, streams),
     })
 }
 
-pub(super) async fn fanin(broker: &Running, p: &Params) -> Result<Outcome> {
-    let b = burst(broker.addr, p.publishers, p.fanin_messages, p.deadline).await?;
+/// `fanin`, `fanin1` and `pairs`: delivered msg/s (first send to last receive) and what
+/// was lost, for a burst of `shape`.
+pub(super) async fn throughput(broker: &Running, shape: Shape, p: &Params) -> Result<Outcome> {
+    let b = burst(broker.addr, shape, p.deadline).await?;
     let rate = b.rate();
     let span = b
         .last_receive
@@ -286,6 +404,7 @@ pub(super) async fn fanin(broker: &Running, p: &Params) -> Result<Outcome> {
             span,
         ],
         keys: vec![rate],
+        lost: Some(b.sent.saturating_sub(b.received)),
         note: b.note.clone(),
         timed_out: b.timed_out,
     })
@@ -373,6 +492,7 @@ pub(super) async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
             lost(drained.received, sent),
         ],
         keys: vec![p50, p99, max],
+        lost: Some(sent.saturating_sub(drained.received)),
         note,
         timed_out,
     })
@@ -381,13 +501,14 @@ pub(super) async fn latency(broker: &Running, p: &Params) -> Result<Outcome> {
 pub(super) async fn message_memory(broker: &Running, p: &Params) -> Result<Outcome> {
     tokio::time::sleep(Duration::from_secs(1)).await;
     let before = rss(broker)?;
-    let b = burst(
-        broker.addr,
-        p.publishers,
-        p.msgmem_per_publisher,
-        p.deadline,
-    )
-    .await?;
+    let shape = Shape {
+        groups: 1,
+        publishers: p.publishers,
+        per_publisher: p.msgmem_per_publisher,
+        qos: 0,
+        inflight: p.inflight,
+    };
+    let b = burst(broker.addr, shape, p.deadline).await?;
     tokio::time::sleep(Duration::from_secs(2)).await;
     let after = rss(broker)?;
     let rate = b.rate();
@@ -400,6 +521,7 @@ pub(super) async fn message_memory(broker: &Running, p: &Params) -> Result<Outco
             rate.map(si).unwrap_or_else(|| "-".into()),
         ],
         keys: vec![Some(after_mb)],
+        lost: None,
         note: b.note.clone(),
         timed_out: b.timed_out,
     })

@@ -1,8 +1,9 @@
-//! The six measurements of `compare`, the earlier broker study's. Each runs against one
-//! freshly started broker, is bounded by a count and a deadline, and returns what it
-//! measured as an [`Outcome`] (also after a timeout).
+//! The measurements of `compare`: the earlier broker study's six, and (issue 34) the
+//! fan-in at QoS 1 (`fanin1`) and independent publisher/subscriber pairs (`pairs`). Each
+//! runs against one freshly started broker, is bounded by a count and a deadline, and
+//! returns what it measured as an [`Outcome`] (also after a timeout).
 //!
-//! The bursts (`fanin`, `latency`, `msgmem`) write raw PUBLISH packets
+//! The bursts (`fanin`, `fanin1`, `pairs`, `latency`, `msgmem`) write raw PUBLISH packets
 //! ([`loadtest::raw_client`]): 200,000 messages into one subscriber are beyond what a
 //! client library generates on a shared 2-core machine. The connection scenarios
 //! (`idlemem`, `connrate`, `authstorm`) are the harness's own connection wave and
@@ -22,7 +23,7 @@ use loadtest::raw_client::{self as mqtt};
 mod bursts;
 mod waves;
 
-use bursts::{fanin, latency, message_memory};
+use bursts::{latency, message_memory, throughput, Shape};
 use waves::{auth_storm, connection_rate, idle_memory};
 
 /// How the storm's devices log in: user `<STORM_USER_PREFIX><i>` for device `i`, all
@@ -44,6 +45,9 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Scenario {
     Fanin,
+    /// The fan-in at QoS 1 (publishers and subscriber), whatever the other rows use.
+    Fanin1,
+    Pairs,
     Latency,
     IdleMem,
     MsgMem,
@@ -52,8 +56,10 @@ pub enum Scenario {
 }
 
 impl Scenario {
-    pub const ALL: [Scenario; 6] = [
+    pub const ALL: [Scenario; 8] = [
         Scenario::Fanin,
+        Scenario::Fanin1,
+        Scenario::Pairs,
         Scenario::Latency,
         Scenario::IdleMem,
         Scenario::MsgMem,
@@ -64,6 +70,8 @@ impl Scenario {
     pub fn name(self) -> &'static str {
         match self {
             Scenario::Fanin => "fanin",
+            Scenario::Fanin1 => "fanin1",
+            Scenario::Pairs => "pairs",
             Scenario::Latency => "latency",
             Scenario::IdleMem => "idlemem",
             Scenario::MsgMem => "msgmem",
@@ -82,6 +90,15 @@ impl Scenario {
             Scenario::Fanin => format!(
                 "burst fan-in ({} x {} x {PAYLOAD_BYTES} B, QoS 0)",
                 p.publishers, p.fanin_messages
+            ),
+            // Not "burst fan-in ...": the QoS 0 row's title is what its line starts with.
+            Scenario::Fanin1 => format!(
+                "QoS 1 burst fan-in ({} x {} x {PAYLOAD_BYTES} B, {} in flight)",
+                p.publishers, p.fanin1_messages, p.inflight
+            ),
+            Scenario::Pairs => format!(
+                "independent pairs ({} pairs x {} x {PAYLOAD_BYTES} B, QoS 0)",
+                p.pairs, p.pairs_messages
             ),
             Scenario::Latency => format!(
                 "steady latency ({} x {} msg/s x {} s, {PAYLOAD_BYTES} B, QoS 0)",
@@ -119,6 +136,20 @@ impl Scenario {
                  Deadline {secs} s.",
                 p.publishers, p.fanin_messages
             ),
+            Scenario::Fanin1 => format!(
+                "the fan-in at QoS 1: {} publishers each write {} QoS 1 PUBLISHes of {PAYLOAD_BYTES} B to one topic \
+                 as fast as the PUBACKs allow (at most {} unacknowledged per publisher, --inflight); one subscriber \
+                 (SUBSCRIBE QoS 1) counts them and acknowledges each read's PUBLISHes in one write. \
+                 msg/s = received / (last receive - first send). Deadline {secs} s.",
+                p.publishers, p.fanin1_messages, p.inflight
+            ),
+            Scenario::Pairs => format!(
+                "{} publisher/subscriber pairs, each on its own topic (bench/pair/<i>); every publisher writes {} \
+                 QoS 0 PUBLISHes of {PAYLOAD_BYTES} B at once, as fast as possible (64 KiB buffered writes); each \
+                 subscriber counts its own. msg/s = received by all / (last receive anywhere - first send). \
+                 Deadline {secs} s.",
+                p.pairs, p.pairs_messages
+            ),
             Scenario::Latency => format!(
                 "{} publishers each send {} msg/s for {} s (one write per message, nodelay) to one subscriber; \
                  the payload carries the send time (ns since a shared Instant). HDR histogram of receive - send; \
@@ -145,7 +176,8 @@ impl Scenario {
                 "{} devices with passwords start TCP connect + CONNECT at the same instant against a broker \
                  process started for this scenario; time until the last CONNACK. Password stores: fbbus argon2id \
                  (security::hash_password defaults), mosquitto PBKDF2-SHA512 $7$ (mosquitto_passwd), \
-                 rumqttd plaintext static map (no hashing at all). One salted hash per device.",
+                 rumqttd plaintext static map (no hashing at all), flashmq Mosquitto's file \
+                 (mosquitto_password_file). One salted hash per device.",
                 p.storm_devices
             ),
         }
@@ -153,7 +185,9 @@ impl Scenario {
 
     pub fn columns(self) -> &'static [&'static str] {
         match self {
-            Scenario::Fanin => &["msg/s", "delivered", "lost", "send->last recv"],
+            Scenario::Fanin | Scenario::Fanin1 | Scenario::Pairs => {
+                &["msg/s", "delivered", "lost", "send->last recv"]
+            }
             Scenario::Latency => &["p50 ms", "p99 ms", "max ms", "received", "lost"],
             Scenario::IdleMem => &["RSS before", "RSS after", "KB/conn", "connected"],
             Scenario::MsgMem => &["RSS before", "RSS after", "delivered", "msg/s"],
@@ -164,7 +198,10 @@ impl Scenario {
 
     /// Whether a larger key figure is better (decides the wording of the ratio line).
     pub fn higher_is_better(self) -> bool {
-        matches!(self, Scenario::Fanin | Scenario::ConnRate)
+        matches!(
+            self,
+            Scenario::Fanin | Scenario::Fanin1 | Scenario::Pairs | Scenario::ConnRate
+        )
     }
 
     /// The key figures as printed in the ratio line.
@@ -172,7 +209,9 @@ impl Scenario {
         let k = |i: usize| keys.get(i).copied().flatten();
         let or_na = |v: Option<String>| v.unwrap_or_else(|| "n/a".into());
         match self {
-            Scenario::Fanin => or_na(k(0).map(|v| format!("{} msg/s", si(v)))),
+            Scenario::Fanin | Scenario::Fanin1 | Scenario::Pairs => {
+                or_na(k(0).map(|v| format!("{} msg/s", si(v))))
+            }
             Scenario::Latency => match (k(0), k(1), k(2)) {
                 (Some(a), Some(b), Some(c)) => format!("p50/p99/max {a:.2}/{b:.2}/{c:.2} ms"),
                 _ => "n/a".into(),
@@ -184,9 +223,42 @@ impl Scenario {
         }
     }
 
+    /// The scenario's row in the summary table: its name and the unit of its figure.
+    pub fn summary_label(self) -> &'static str {
+        match self {
+            Scenario::Fanin => "fanin msg/s",
+            Scenario::Fanin1 => "fanin1 msg/s",
+            Scenario::Pairs => "pairs msg/s",
+            Scenario::Latency => "latency p50/p99/max ms",
+            Scenario::IdleMem => "idlemem KB/conn",
+            Scenario::MsgMem => "msgmem RSS MB",
+            Scenario::ConnRate => "connrate conn/s",
+            Scenario::AuthStorm => "authstorm s",
+        }
+    }
+
+    /// The key figures in a summary-table cell, without the unit (the row has it).
+    pub fn summary_figure(self, keys: &[Option<f64>]) -> String {
+        let k = |i: usize| keys.get(i).copied().flatten();
+        let or_na = |v: Option<String>| v.unwrap_or_else(|| "n/a".into());
+        match self {
+            Scenario::Fanin | Scenario::Fanin1 | Scenario::Pairs => or_na(k(0).map(si)),
+            Scenario::Latency => match (k(0), k(1), k(2)) {
+                (Some(a), Some(b), Some(c)) => format!("{a:.2}/{b:.2}/{c:.2}"),
+                _ => "n/a".into(),
+            },
+            Scenario::IdleMem => or_na(k(0).map(|v| format!("{v:.2}"))),
+            Scenario::MsgMem => or_na(k(0).map(|v| format!("{v:.1}"))),
+            Scenario::ConnRate => or_na(k(0).map(|v| format!("{v:.0}"))),
+            Scenario::AuthStorm => or_na(k(0).map(|v| format!("{v:.2}"))),
+        }
+    }
+
     pub async fn run(self, broker: &Running, p: &Params, storm: Option<&Login>) -> Outcome {
         let result = match self {
-            Scenario::Fanin => fanin(broker, p).await,
+            Scenario::Fanin => throughput(broker, p.fanin_shape(0), p).await,
+            Scenario::Fanin1 => throughput(broker, p.fanin_shape(1), p).await,
+            Scenario::Pairs => throughput(broker, p.pairs_shape(), p).await,
             Scenario::Latency => latency(broker, p).await,
             Scenario::IdleMem => idle_memory(broker, p).await,
             Scenario::MsgMem => message_memory(broker, p).await,
@@ -204,7 +276,15 @@ impl Scenario {
 #[derive(Clone, Debug)]
 pub struct Params {
     pub publishers: usize,
+    /// Messages per publisher in the QoS 0 fan-in.
     pub fanin_messages: usize,
+    /// Messages per publisher in the QoS 1 fan-in (`fanin1`).
+    pub fanin1_messages: usize,
+    /// QoS 1 PUBLISHes a publisher may have unacknowledged (`--inflight`).
+    pub inflight: usize,
+    /// Publisher/subscriber pairs of `pairs`, and messages per pair.
+    pub pairs: usize,
+    pub pairs_messages: usize,
     pub latency_rate: u64,
     pub latency_secs: u64,
     pub idle_connections: usize,
@@ -221,6 +301,10 @@ impl Params {
         Params {
             publishers: 10,
             fanin_messages: 20_000,
+            fanin1_messages: 10_000,
+            inflight: 100,
+            pairs: 50,
+            pairs_messages: 2_000,
             latency_rate: 1_000,
             latency_secs: 10,
             idle_connections: 1_000,
@@ -236,6 +320,10 @@ impl Params {
         Params {
             publishers: 10,
             fanin_messages: 2_000,
+            fanin1_messages: 1_000,
+            inflight: 100,
+            pairs: 10,
+            pairs_messages: 500,
             latency_rate: 1_000,
             latency_secs: 2,
             idle_connections: 100,
@@ -246,6 +334,31 @@ impl Params {
             deadline: Duration::from_secs(20),
         }
     }
+
+    /// The fan-in, 10 publishers into one subscriber, at `qos` (0: `fanin`, 1: `fanin1`).
+    fn fanin_shape(&self, qos: u8) -> Shape {
+        Shape {
+            groups: 1,
+            publishers: self.publishers,
+            per_publisher: match qos {
+                0 => self.fanin_messages,
+                _ => self.fanin1_messages,
+            },
+            qos,
+            inflight: self.inflight,
+        }
+    }
+
+    /// `pairs`: one publisher and one subscriber per topic.
+    fn pairs_shape(&self) -> Shape {
+        Shape {
+            groups: self.pairs,
+            publishers: 1,
+            per_publisher: self.pairs_messages,
+            qos: 0,
+            inflight: self.inflight,
+        }
+    }
 }
 
 /// What one scenario measured on one broker: the table cells, the key figures for the ratio
@@ -254,6 +367,10 @@ impl Params {
 pub struct Outcome {
     pub cells: Vec<String>,
     pub keys: Vec<Option<f64>>,
+    /// Messages sent and not delivered, where the scenario sends messages: shown next to
+    /// the throughput in the summary table (a broker that drops part of a burst can show
+    /// any rate).
+    pub lost: Option<u64>,
     pub note: Option<String>,
     /// The key figures are incomplete (deadline hit): shown as "timeout" in the ratio line.
     pub timed_out: bool,
@@ -264,6 +381,7 @@ impl Outcome {
         Outcome {
             cells: vec!["-".into(); scenario.columns().len()],
             keys: Vec::new(),
+            lost: None,
             note: Some(note),
             timed_out: false,
         }

@@ -68,6 +68,7 @@ pub(super) async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome>
             format!("{n}/{}", p.idle_connections),
         ],
         keys: vec![per_conn],
+        lost: None,
         note,
         timed_out: false,
     })
@@ -95,6 +96,7 @@ pub(super) async fn connection_rate(broker: &Running, p: &Params) -> Result<Outc
             format!("{:.3} s", took.as_secs_f64()),
         ],
         keys: vec![rate],
+        lost: None,
         note,
         timed_out: false,
     })
@@ -119,6 +121,8 @@ pub(super) async fn auth_storm(broker: &Running, p: &Params, login: &Login) -> R
         Kind::Fbbus => "argon2id m=8192 t=1 p=1",
         Kind::Rumqttd => "plaintext map",
         Kind::Mosquitto | Kind::MosquittoDefault => "PBKDF2-SHA512 $7$",
+        // The same file as Mosquitto's (`mosquitto_password_file`).
+        Kind::FlashMq => "PBKDF2-SHA512 $7$ (mosquitto_passwd file)",
     };
     let mut note = wave_note(&wave);
     // "All have CONNACK" is only true when nobody failed.
@@ -137,6 +141,7 @@ pub(super) async fn auth_storm(broker: &Running, p: &Params, login: &Login) -> R
     Ok(Outcome {
         cells,
         keys: vec![all.filter(|_| complete).map(|d| d.as_secs_f64())],
+        lost: None,
         note,
         timed_out: false,
     })
