@@ -275,16 +275,27 @@ fn serve(config_path: Option<PathBuf>) -> Result<()> {
     broker::init_logging(&config.log).map_err(anyhow::Error::msg)?;
     broker::install_panic_hook();
     broker::configure_memory();
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let workers = config.broker.workers(cores);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("fbbus")
+        .worker_threads(workers)
         .build()
         .context("cannot start the tokio runtime")?;
     let served = runtime.block_on(async move {
         match &config_path {
-            Some(p) => tracing::info!(config = %p.display(), line = config.broker.line, "starting"),
+            Some(p) => tracing::info!(
+                config = %p.display(),
+                line = config.broker.line,
+                workers,
+                cores,
+                "starting"
+            ),
             None => tracing::info!(
                 line = config.broker.line,
+                workers,
+                cores,
                 "starting on the embedded default configuration (loopback only)"
             ),
         }

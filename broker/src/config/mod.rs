@@ -25,7 +25,7 @@ pub use crate::logging::{LogFormat, LogSection};
 pub use crate::store::PersistenceSection;
 pub use crate::tls::TlsSection;
 
-pub use self::broker::{BrokerSection, MAX_CONNECTIONS, MIN_QUEUED_BYTES};
+pub use self::broker::{BrokerSection, MAX_CONNECTIONS, MAX_WORKER_THREADS, MIN_QUEUED_BYTES};
 pub use self::fb::FbSection;
 
 mod broker;

@@ -291,6 +291,7 @@ fn liveness_limits_are_bounded() {
         ),
         ("dead_link_timeout_s = 3601", "broker.dead_link_timeout_s"),
         ("sys_interval_s = 86401", "broker.sys_interval_s"),
+        ("worker_threads = 257", "broker.worker_threads"),
     ] {
         let err = config(keys).unwrap_err().to_string();
         assert!(err.contains(key), "{keys}: {err}");
@@ -340,4 +341,16 @@ fn websocket_listener_keys_are_checked() {
         let err = listener(keys).unwrap_err().to_string();
         assert!(err.contains(key), "{keys}: {err}");
     }
+}
+
+/// `worker_threads = 0` leaves the router's thread a core: one fewer than the cores, never
+/// none; a number given is taken as it is.
+#[test]
+fn worker_threads_default_to_one_fewer_than_the_cores() {
+    let mut b = BrokerSection::default();
+    assert_eq!(b.workers(1), 1);
+    assert_eq!(b.workers(2), 1);
+    assert_eq!(b.workers(8), 7);
+    b.worker_threads = 4;
+    assert_eq!(b.workers(2), 4);
 }

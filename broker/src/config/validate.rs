@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use super::{Config, ConfigError, MAX_CONNECTIONS, MIN_QUEUED_BYTES};
+use super::{Config, ConfigError, MAX_CONNECTIONS, MAX_WORKER_THREADS, MIN_QUEUED_BYTES};
 
 impl Config {
     pub(super) fn validate(&self, file: &str) -> Result<(), ConfigError> {
@@ -224,6 +224,13 @@ impl Config {
                 file,
                 "broker.sys_interval_s",
                 "must be at most 86400 (0: no $SYS topics)",
+            ));
+        }
+        if b.worker_threads > MAX_WORKER_THREADS {
+            return Err(invalid(
+                file,
+                "broker.worker_threads",
+                format!("must be at most {MAX_WORKER_THREADS} (0: one fewer than the cores)"),
             ));
         }
         if self.auth.verify_concurrency == 0 {
