@@ -29,7 +29,7 @@ static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
 /// overrides it.
 #[cfg(feature = "jemalloc")]
 #[unsafe(export_name = "_rjem_malloc_conf")]
-pub static JEMALLOC_CONF: &[u8; 83] = broker::JEMALLOC_CONF;
+pub static JEMALLOC_CONF: &[u8; 125] = broker::JEMALLOC_CONF;
 
 #[derive(Parser)]
 #[command(

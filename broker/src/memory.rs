@@ -17,24 +17,35 @@
 //!   peak resident size although nothing is allocated there any more.
 //!
 //! So the `fbbus` binary uses jemalloc (feature `jemalloc`, on by default) with
-//! [`JEMALLOC_CONF`]: one arena and no per-thread caches, so every size class lives in
-//! slabs of its own and a freed login block is reused by the next login instead of
-//! leaving a hole next to a session; and a background thread that returns freed pages to
-//! the OS one second after they were freed, also when the broker is idle. Measured on the
-//! same storm: 3.3-3.4 KiB per idle connection. Burst throughput with this configuration
-//! is 0.93-0.96 of glibc's (`fbbus-loadtest --compare`, fan-in, QoS 0 and 1): the price of
-//! sharing one arena without thread caches. The environment variable `_RJEM_MALLOC_CONF`
-//! overrides these options for an experiment.
+//! [`JEMALLOC_CONF`]: one arena, so every size class lives in slabs of its own and a freed
+//! login block is reused by the next login instead of leaving a hole next to a session;
+//! small per-thread caches (at most 20 blocks per size class, blocks up to 4 KiB); and a
+//! background thread that returns freed pages to the OS one second after they were freed,
+//! also when the broker is idle. Measured on the same storm: 3.3-3.4 KiB per idle
+//! connection without thread caches.
+//!
+//! The thread caches (issue 34): without them every allocation and every free took the
+//! arena's lock (`pthread_mutex_trylock` and its unlock were 5 % of the broker's samples in a
+//! profile of 50 independent pairs). jemalloc's default caches (200 blocks per class)
+//! bought 1.11-1.17x on the bursts for 9 % more memory per idle connection and 15-50 %
+//! more right after a login storm; the small ones kept here, alternating against none in
+//! one run (`fbbus-loadtest compare --fbbus notc=… --fbbus tcs=…`, 4 rounds): fan-in
+//! 1.06x, QoS 1 fan-in 1.07x, 50 pairs 1.22x, steady p50/p99 0.92x/0.90x, idle connection
+//! 1.00x, and after a storm of 1,000 argon2id logins 4.56-4.6 against 4.26-4.3 KiB per
+//! idle connection. mimalloc (16-33 KiB) and jemalloc with all its defaults (7.8-8.0 KiB)
+//! did worse on memory. The environment variable `_RJEM_MALLOC_CONF` overrides these
+//! options for an experiment.
 //!
 //! Built without the feature, the binary uses glibc's malloc, with fixed thresholds for
 //! large blocks ([`configure`]) and `malloc_trim` after the router released memory
 //! ([`release_freed`]).
 
 /// jemalloc's options for the broker (see the module doc), as the C string jemalloc
-/// reads before `main`: one arena, no thread caches, freed pages returned after 1 s by a
-/// background thread.
-pub const JEMALLOC_CONF: &[u8; 83] =
-    b"narenas:1,tcache:false,background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0\0";
+/// reads before `main`: one arena, small thread caches, freed pages returned after 1 s by
+/// a background thread.
+pub const JEMALLOC_CONF: &[u8; 125] =
+    b"narenas:1,tcache:true,tcache_nslots_small_max:20,tcache_max:4096,\
+background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0\0";
 
 /// Allocations at least this large get pages of their own (mmap), returned on free.
 #[cfg(all(target_os = "linux", target_env = "gnu", not(feature = "jemalloc")))]
