@@ -14,6 +14,7 @@ mod common;
 
 use std::time::Duration;
 
+use common::memory::settled_rss_kib;
 use common::raw::{self, Connect, RawClient};
 use common::{Broker, Options};
 
@@ -27,32 +28,12 @@ const SLACK_KIB: u64 = 10 * 1024;
 /// Messages a flood sends between two barriers.
 const PACE: usize = 1_000;
 
-/// The broker's resident memory once freed pages went back: the lowest of its VmRSS over
-/// 6 s. The broker's jemalloc returns freed pages about a second after they were freed
-/// (`broker/src/memory.rs`), and on a busy machine (the four tests run at once) a flood's
-/// last pages took several seconds to go: a reading right after the retained flood
+/// How long the broker's resident memory is watched for its lowest reading
+/// ([`settled_rss_kib`]). On a busy machine (the four tests run at once) a flood's last
+/// freed pages took several seconds to go: a reading right after the retained flood
 /// measured 3 to 28 MiB of growth, run after run, and the lowest over 2.5 s still 1.5 to
-/// 8.5 MiB; over 6 s, 1.1-1.3 MiB in every run. What a flood left behind is what stays
-/// once they went.
-fn rss_kib(broker: &Broker) -> u64 {
-    let mut lowest = u64::MAX;
-    for _ in 0..60 {
-        lowest = lowest.min(vm_rss_kib(broker));
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    lowest
-}
-
-/// The broker process's resident memory now, in KiB.
-fn vm_rss_kib(broker: &Broker) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{}/status", broker.child.id()))
-        .expect("/proc/<pid>/status");
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .expect("VmRSS")
-}
+/// 8.5 MiB; over 6 s, 1.1-1.3 MiB in every run.
+const SETTLE: Duration = Duration::from_secs(6);
 
 fn client(broker: &Broker, id: &str, version: u8) -> RawClient {
     let mut c = RawClient::connect(broker.port());
@@ -125,7 +106,7 @@ fn a_retained_flood_past_the_limit_leaves_memory_bounded() {
         p.send(&publish0(&format!("flood/kept/{i}"), &payload, true));
     }
     barrier(&mut p, "flood/barrier", 1);
-    let at_limit = rss_kib(&broker);
+    let at_limit = settled_rss_kib(&broker, SETTLE);
     for i in 0..FLOOD {
         p.send(&publish0(&format!("flood/new/{i:05}"), &payload, true));
         if i % PACE == PACE - 1 {
@@ -136,7 +117,12 @@ fn a_retained_flood_past_the_limit_leaves_memory_bounded() {
     let refused = r#"fbbus_limit_refusals_total{limit="retained_messages"}"#;
     assert!(broker.wait_metric(refused, FLOOD as f64) >= FLOOD as f64);
     assert_eq!(broker.metric("fbbus_retained_messages"), MAX as f64);
-    assert_bounded("retained flood", at_limit, rss_kib(&broker), FLOOD as u64);
+    assert_bounded(
+        "retained flood",
+        at_limit,
+        settled_rss_kib(&broker, SETTLE),
+        FLOOD as u64,
+    );
 }
 
 /// Devices past `max_devices`: 1,000 new devices each declaring ~12 KiB of interface
@@ -191,7 +177,7 @@ fn a_device_flood_past_the_limit_leaves_memory_bounded() {
             "device {i} within the limit"
         );
     }
-    let at_limit = rss_kib(&broker);
+    let at_limit = settled_rss_kib(&broker, SETTLE);
     for i in 0..FLOOD {
         assert_eq!(
             declare(&format!("flood-{i:04}")),
@@ -204,7 +190,7 @@ fn a_device_flood_past_the_limit_leaves_memory_bounded() {
     assert_bounded(
         "device flood",
         at_limit,
-        rss_kib(&broker),
+        settled_rss_kib(&broker, SETTLE),
         (FLOOD * 12 * 4) as u64,
     );
 }
@@ -242,7 +228,7 @@ fn a_flood_of_invented_port_names_leaves_metrics_and_memory_bounded() {
     d.send(&publish0("fb/dev-labels/F/INVENTED_00000", b"\"x\"", false));
     barrier(&mut d, "labels/barrier", 2);
     let metrics_at_limit = broker.metrics().len();
-    let at_limit = rss_kib(&broker);
+    let at_limit = settled_rss_kib(&broker, SETTLE);
     for i in 1..=FLOOD {
         d.send(&publish0(
             &format!("fb/dev-labels/F/INVENTED_{i:05}"),
@@ -268,7 +254,7 @@ fn a_flood_of_invented_port_names_leaves_metrics_and_memory_bounded() {
     assert_bounded(
         "port-name flood",
         at_limit,
-        rss_kib(&broker),
+        settled_rss_kib(&broker, SETTLE),
         (FLOOD * 3 / 2) as u64,
     );
 }
@@ -306,7 +292,7 @@ fn a_subscription_flood_past_the_limit_leaves_memory_bounded() {
     for (n, from) in (0..MAX).step_by(PER_PACKET).enumerate() {
         assert!(subscribe(n as u16 + 1, from).iter().all(|&code| code == 0));
     }
-    let at_limit = rss_kib(&broker);
+    let at_limit = settled_rss_kib(&broker, SETTLE);
     for (n, from) in (MAX..MAX + FLOOD).step_by(PER_PACKET).enumerate() {
         let codes = subscribe((n % 60_000) as u16 + 100, from);
         assert!(codes.iter().all(|&code| code == 0x97), "past the limit");
@@ -316,7 +302,7 @@ fn a_subscription_flood_past_the_limit_leaves_memory_bounded() {
     assert_bounded(
         "subscription flood",
         at_limit,
-        rss_kib(&broker),
+        settled_rss_kib(&broker, SETTLE),
         (FLOOD * 900 / 1024) as u64,
     );
 }

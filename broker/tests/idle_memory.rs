@@ -19,6 +19,7 @@ mod common;
 
 use std::time::Duration;
 
+use common::memory::settled_rss_kib;
 use common::raw::{Connect, RawClient};
 use common::{Broker, Options};
 
@@ -26,27 +27,9 @@ use common::{Broker, Options};
 /// before the session's task stopped holding it twice).
 const BOUND_BYTES: u64 = 5 * 1024;
 
-/// The broker's resident memory, in KiB, once it settled: the lowest of its VmRSS over
-/// 3 s (jemalloc returns freed pages about a second after they were freed,
-/// `broker/src/memory.rs`; what a wave of logins left behind is not what idle devices hold).
-fn settled_rss_kib(broker: &Broker) -> u64 {
-    let mut lowest = u64::MAX;
-    for _ in 0..30 {
-        lowest = lowest.min(vm_rss_kib(broker));
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    lowest
-}
-
-fn vm_rss_kib(broker: &Broker) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{}/status", broker.child.id()))
-        .expect("/proc/<pid>/status");
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .expect("VmRSS")
-}
+/// How long the broker's resident memory is watched for its lowest reading
+/// ([`settled_rss_kib`]): what a wave of logins left behind is not what idle devices hold.
+const SETTLE: Duration = Duration::from_secs(3);
 
 /// Raises this process's open-file limit to its hard limit: 10,000 client sockets are
 /// beyond the 1,024 many machines start a process with.
@@ -123,12 +106,12 @@ fn an_idle_connection_costs_at_most_the_stated_bound() {
     // connection (the session table's first slab, the router's first scheduling), is
     // not counted as the idle connections' cost.
     drop(connect_idle(&broker, FIRST + MORE, 1));
-    let base = settled_rss_kib(&broker);
+    let base = settled_rss_kib(&broker, SETTLE);
 
     let mut clients = connect_idle(&broker, 0, FIRST);
-    let at_first = settled_rss_kib(&broker);
+    let at_first = settled_rss_kib(&broker, SETTLE);
     clients.extend(connect_idle(&broker, FIRST, MORE));
-    let at_all = settled_rss_kib(&broker);
+    let at_all = settled_rss_kib(&broker, SETTLE);
 
     let first = per_connection_bytes(base, at_first, FIRST);
     let all = per_connection_bytes(base, at_all, FIRST + MORE);

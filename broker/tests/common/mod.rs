@@ -7,6 +7,7 @@
 pub mod bus;
 pub mod clients;
 pub mod fb;
+pub mod memory;
 pub mod netns;
 pub mod pki;
 pub mod raw;
