@@ -18,7 +18,9 @@
 //! - [`profile`]: device profiles, the declaration the broker holds for a runtime that
 //!   cannot send one (4diac FORTE, DINASORE), with its own topics mapped onto its ports;
 //! - [`codec`]: canonical JSON, DINASORE JSON and 4diac's `fbdk` bytes, all decoded to
-//!   and encoded from one [`codec::Message`].
+//!   and encoded from one [`codec::Message`];
+//! - [`sparkplug`]: Sparkplug B 3.0 payloads (the protobuf types of Eclipse Tahu's
+//!   `sparkplug_b.proto`) and the mapping of port types and values onto their metrics.
 //!
 //! The **device client API**, [`client`] (cargo feature `client`, on by default, the only
 //! user of `rumqttc`): IEC 61499 PUBLISH/SUBSCRIBE semantics (INIT, REQ→CNF, IND) over an
@@ -48,6 +50,7 @@ pub mod client;
 pub mod codec;
 pub mod interface;
 pub mod profile;
+pub mod sparkplug;
 pub mod topic;
 pub mod types;
 pub mod value;
