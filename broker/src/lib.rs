@@ -20,7 +20,8 @@
 //! rules, typed FB topics, origin mark), last wills (`wills`), the device registry
 //! (`registry`), the broker's own publications (`broker_publisher`, its `$SYS/` status in
 //! `sys`), the bus bridge
-//! to other lines (`bridge`, feature `bridge`), health, metrics and the admin endpoint
+//! to other lines (`bridge`, feature `bridge`), the line as a Sparkplug B edge node for
+//! SCADA (`sparkplug`), health, metrics and the admin endpoint
 //! (`health`, `metrics`, `admin`), the tasks it runs and what a panic does
 //! (`supervisor`), and assembly from a [`Config`] (`server`).
 //!
@@ -60,6 +61,7 @@ mod router;
 mod server;
 mod session;
 mod silence;
+mod sparkplug;
 pub mod store;
 mod supervisor;
 mod sys;

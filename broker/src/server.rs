@@ -77,6 +77,8 @@ pub struct Broker {
     tasks: Tasks,
     registry: Arc<Registry>,
     store: Option<Arc<Store>>,
+    /// The Sparkplug view, whose NDEATH goes out before the clients' connections close.
+    sparkplug: Option<Arc<crate::sparkplug::View>>,
     #[cfg(feature = "bridge")]
     bridge: Option<Arc<crate::bridge::Bridge>>,
 }
@@ -173,6 +175,24 @@ impl Broker {
             sessions.seed(session);
         }
 
+        // The line as a Sparkplug edge node: its own router link, off the packet path but for
+        // hosts' commands (the policy's Sparkplug stage).
+        let sparkplug = if config.sparkplug.enabled {
+            let link = router
+                .observer_link(crate::sparkplug::CLIENT_ID)
+                .await
+                .map_err(|e| StartError::Router(e.to_string()))?;
+            Some(crate::sparkplug::start(
+                &config,
+                Arc::clone(&registry),
+                &metrics,
+                (link.0, link.1),
+                &tasks,
+            ))
+        } else {
+            None
+        };
+
         let (shutdown, shutdown_rx) = watch::channel(false);
         let fb = Arc::new(
             FbTopics::new(
@@ -205,11 +225,22 @@ impl Broker {
             router,
             authenticator,
             identity: Identities::new(config.auth.password_file.is_some(), config.auth.client_id),
-            policy: PublishPolicy::new(
-                Access::new(acl.clone()),
-                Arc::clone(&fb),
-                Arc::clone(&metrics),
-            ),
+            policy: {
+                let policy = PublishPolicy::new(
+                    Access::new(acl.clone()),
+                    Arc::clone(&fb),
+                    Arc::clone(&metrics),
+                );
+                match &sparkplug {
+                    Some(view) => policy.with_sparkplug(crate::sparkplug::command::Commands::new(
+                        &config.sparkplug.group,
+                        &config.broker.line,
+                        config.sparkplug.commands,
+                        Arc::clone(view),
+                    )),
+                    None => policy,
+                }
+            },
             wills,
             fb,
             sessions,
@@ -407,6 +438,7 @@ impl Broker {
             tasks,
             registry,
             store: ctx.store.clone(),
+            sparkplug,
             #[cfg(feature = "bridge")]
             bridge,
         })
@@ -438,6 +470,9 @@ impl Broker {
     /// the last write.
     pub async fn shutdown(self, grace: Duration) {
         self.health.set_started(false);
+        if let Some(view) = &self.sparkplug {
+            view.shutdown().await;
+        }
         let _ = self.shutdown.send(true);
         let deadline = tokio::time::Instant::now() + grace;
         while self.metrics.connections.get() > 0 && tokio::time::Instant::now() < deadline {

@@ -6,24 +6,11 @@
 
 mod common;
 
-use std::path::PathBuf;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+use common::fb::conveyor_example;
 use common::{http_get, run, Broker, Options};
-
-/// Builds the example (a no-op when `cargo test --workspace` already did) and returns it.
-fn conveyor_example() -> PathBuf {
-    let (ok, _, err) = run(
-        Command::new(env!("CARGO")).args(["build", "-p", "fb-bridge", "--example", "conveyor"]),
-        Duration::from_secs(600),
-    );
-    assert!(ok, "cannot build the conveyor example: {err}");
-    // target/debug/fbbus -> target/debug/examples/conveyor
-    PathBuf::from(env!("CARGO_BIN_EXE_fbbus"))
-        .with_file_name("examples")
-        .join("conveyor")
-}
 
 #[test]
 fn the_conveyor_line_runs_add_remove_and_swap_to_completion() {

@@ -22,6 +22,7 @@ pub use crate::authenticator::{AuthSection, ThrottleSection};
 pub use crate::console::ConsoleSection;
 pub use crate::listener::ListenerSection;
 pub use crate::logging::{LogFormat, LogSection};
+pub use crate::sparkplug::SparkplugSection;
 pub use crate::store::PersistenceSection;
 pub use crate::tls::TlsSection;
 
@@ -111,6 +112,9 @@ pub struct Config {
     pub persistence: PersistenceSection,
     /// Present: link this line to the other lines' brokers over zenoh (`bridge`).
     pub bridge: Option<fb_bridge::bus::BusConfig>,
+    /// The line as a Sparkplug B edge node (`sparkplug`); off by default.
+    #[serde(default)]
+    pub sparkplug: SparkplugSection,
 }
 
 impl Config {

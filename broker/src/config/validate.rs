@@ -274,6 +274,33 @@ impl Config {
                 .validate(&b.line)
                 .map_err(|(key, message)| invalid(file, &key, message))?;
         }
+        let sp = &self.sparkplug;
+        if sp.enabled {
+            use crate::sparkplug::valid_id;
+            if !valid_id(&sp.group) {
+                return Err(invalid(
+                    file,
+                    "sparkplug.group",
+                    "must be a non-empty Sparkplug id without `/`, `+` or `#`",
+                ));
+            }
+            if !sp.primary_host.is_empty() && !valid_id(&sp.primary_host) {
+                return Err(invalid(
+                    file,
+                    "sparkplug.primary_host",
+                    "must be empty or a Sparkplug host id without `/`, `+` or `#`",
+                ));
+            }
+            if sp.commands && self.auth.acl_file.is_none() {
+                return Err(invalid(
+                    file,
+                    "sparkplug.commands",
+                    "a command writes a device's input, and only the ACL says which host may: \
+                     set [auth] acl_file (rules granting each host `publish` on the \
+                     fb/<device>/<fb>/<port> inputs it may write), or set commands = false",
+                ));
+            }
+        }
         if self.listeners.is_empty() {
             return Err(invalid(
                 file,

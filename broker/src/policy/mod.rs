@@ -11,7 +11,10 @@
 //!
 //! 1. **access** ([`access`]): the ACL, or allow-all when no ACL file is configured;
 //! 2. **typed check** ([`typed`]): typed FB topics against the publishing device's
-//!    declared interface; declarations are consumed here;
+//!    declared interface; declarations are consumed here. With the Sparkplug view on,
+//!    its group's topics are decided instead by [`crate::sparkplug::command`]: a host's
+//!    `DCMD` is authorized per input port by the same ACL and checked against the ports'
+//!    types, then delivered typed;
 //! 3. **origin mark** ([`origin`]): the publication's QoS, RETAIN and publisher, which the
 //!    router carries to the delivery rules.
 //!
@@ -85,6 +88,8 @@ pub enum Admission {
 pub struct PublishPolicy {
     access: Access,
     typed: Arc<FbTopics>,
+    /// The Sparkplug group's stage, when the view is on.
+    sparkplug: Option<crate::sparkplug::command::Commands>,
     metrics: Arc<Metrics>,
 }
 
@@ -93,8 +98,15 @@ impl PublishPolicy {
         PublishPolicy {
             access,
             typed,
+            sparkplug: None,
             metrics,
         }
+    }
+
+    /// Decides the Sparkplug group's topics with `commands` (`[sparkplug]` on).
+    pub fn with_sparkplug(mut self, commands: crate::sparkplug::command::Commands) -> Self {
+        self.sparkplug = Some(commands);
+        self
     }
 
     /// The access rules, which also decide subscriptions.
@@ -127,7 +139,27 @@ impl PublishPolicy {
             };
         }
 
-        // 2. Typed check. A message from another line is checked like a local one,
+        // 2. Typed check: a Sparkplug command (its values for input ports) or an FB topic.
+        if let Some(sparkplug) = &self.sparkplug {
+            let command = sparkplug.check(&self.access, publisher, &self.typed, topic, payload);
+            match command {
+                None => {}
+                Some(Ok(routes)) => {
+                    return Admission::Route {
+                        origin: origin::new(qos, retain, origin_name),
+                        routes: (!routes.is_empty()).then_some(routes),
+                    }
+                }
+                Some(Err(refusal)) => {
+                    self.count_refusal(door, Stage::Typed);
+                    return Admission::Refused {
+                        stage: Stage::Typed,
+                        refusal,
+                    };
+                }
+            }
+        }
+        // A message from another line is checked like a local one,
         // against its device's declaration as its own line's record gave it (the bus door
         // imports nothing for a device without one: `bridge::import`).
         let cleared = match retain && payload.is_empty() {

@@ -446,3 +446,22 @@ pub async fn declare_ok(
 pub fn offline_because<'a>(reason: &'a str) -> impl Fn(&Value) -> bool + 'a {
     move |r: &Value| r["status"] == "offline" && r["last_will_reason"] == reason
 }
+
+/// Builds the example (a no-op when `cargo test --workspace` already did) and returns it.
+pub fn conveyor_example() -> std::path::PathBuf {
+    let (ok, _, err) = super::run(
+        std::process::Command::new(env!("CARGO")).args([
+            "build",
+            "-p",
+            "fb-bridge",
+            "--example",
+            "conveyor",
+        ]),
+        std::time::Duration::from_secs(600),
+    );
+    assert!(ok, "cannot build the conveyor example: {err}");
+    // target/debug/fbbus -> target/debug/examples/conveyor
+    std::path::PathBuf::from(env!("CARGO_BIN_EXE_fbbus"))
+        .with_file_name("examples")
+        .join("conveyor")
+}

@@ -284,7 +284,8 @@ impl FbTopics {
         }
     }
 
-    fn mirrored(&self, encoding: Encoding) -> bool {
+    /// Whether typed messages are published in `encoding` (someone reads it; `fb/`: always).
+    pub(crate) fn mirrored(&self, encoding: Encoding) -> bool {
         encoding == Encoding::Json
             || self.mirrors[Encoding::ALL
                 .iter()
