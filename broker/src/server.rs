@@ -187,7 +187,6 @@ impl Broker {
                 Arc::clone(&registry),
                 &metrics,
                 (link.0, link.1),
-                &tasks,
             ))
         } else {
             None
@@ -212,6 +211,9 @@ impl Broker {
         // handle exists before any client connects (it links the bus once started, below).
         let mut observers = Observers::default();
         observers.register(Arc::clone(&fb) as _);
+        if let Some(view) = &sparkplug {
+            observers.register(view.readers() as _);
+        }
         #[cfg(feature = "bridge")]
         let bridge = match &config.bridge {
             Some(bus) => {

@@ -186,6 +186,8 @@ struct Host {
     name: &'static str,
     /// Every message line so far, in order.
     seen: Vec<Value>,
+    /// `seen[..taken]` were passed over or returned by [`Host::message`].
+    taken: usize,
 }
 
 impl Host {
@@ -242,8 +244,13 @@ impl Host {
             lines,
             name,
             seen: Vec::new(),
+            taken: 0,
         };
         host.expect("ready", |v| v["event"] == "ready");
+        // The first reader's births come 250 ms after its SUBSCRIBE (the view waits for
+        // the subscription to be in force), and values meanwhile go into them, not into
+        // DDATA: a test publishing values waits that out.
+        std::thread::sleep(Duration::from_millis(1000));
         host
     }
 
@@ -279,12 +286,22 @@ impl Host {
         }
     }
 
-    /// The next message of `kind` on `topic_end` (`line-1`, `line-1/dev`).
+    /// The next message of `kind` on `node_device` (`line-1`, `line-1/dev`) after the last
+    /// one this returned: from those already seen, else waiting for it.
     fn message(&mut self, kind: &str, node_device: &str) -> Value {
         let topic = format!("spBv1.0/fbbus/{kind}/{node_device}");
-        self.expect(&topic.clone(), move |v| {
+        let earlier = self.seen[self.taken..]
+            .iter()
+            .position(|v| v["topic"] == topic);
+        if let Some(i) = earlier {
+            self.taken += i + 1;
+            return self.seen[self.taken - 1].clone();
+        }
+        let found = self.expect(&topic.clone(), move |v| {
             v["event"] == "message" && v["topic"] == topic
-        })
+        });
+        self.taken = self.seen.len();
+        found
     }
 
     fn puback(&mut self) -> u64 {
@@ -587,11 +604,18 @@ async fn a_primary_host_coming_online_gets_every_birth() {
     };
     let mut dev = Dev::connect(broker.port(), 5, "types");
     assert_eq!(dev.declare(TYPES), 0);
-    let Some(mut host) = Host::python(&broker, &["--host-id", "scada"]) else {
+    // A first reader gets the births when it subscribes.
+    let Some(mut watcher) = Host::python(&broker, &[]) else {
         return;
     };
-    host.message("NBIRTH", "line-1");
-    host.message("DBIRTH", "line-1/types");
+    watcher.message("NBIRTH", "line-1");
+    watcher.message("DBIRTH", "line-1/types");
+    // The primary host comes online (STATE): every node is born again, for everyone.
+    let scada = Host::python(&broker, &["--host-id", "scada"]).unwrap();
+    let again = watcher.message("NBIRTH", "line-1");
+    assert_eq!(again["seq"], 0);
+    watcher.message("DBIRTH", "line-1/types");
+    drop(scada);
 }
 
 /// A line with passwords and an ACL: `scada` may write the conveyors' inputs, `viewer`
@@ -886,4 +910,37 @@ async fn another_line_is_an_edge_node_that_dies_when_its_broker_is_killed() {
     );
     assert_sequences(&host);
     drop(press);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_view_reads_nothing_until_a_host_reads_sparkplug() {
+    let broker = line("", |_| {});
+    let mut dev = Dev::connect(broker.port(), 5, "types");
+    assert_eq!(dev.declare(TYPES), 0);
+    for i in 0..5 {
+        assert_eq!(dev.publish("fb/types/ALL/I", i.to_string().as_bytes()), 0);
+    }
+    // A retained value: the view gets it when it starts reading.
+    assert_eq!(dev.publish_retained("fb/types/ALL/UI", b"42"), 0);
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(
+        broker.metric("fbbus_sparkplug_messages_total{kind=\"DDATA\"}"),
+        0.0
+    );
+    // A host subscribes: every birth, unasked, with the retained value.
+    let Some(mut host) = Host::python(&broker, &[]) else {
+        return;
+    };
+    host.message("NBIRTH", "line-1");
+    let birth = host.message("DBIRTH", "line-1/types");
+    assert_eq!(metric(&birth, "ALL/UI")["value"], 42, "{birth}");
+    assert_eq!(
+        metric(&birth, "ALL/I")["is_null"],
+        true,
+        "not retained: not kept"
+    );
+    assert!(
+        host.seen.iter().all(|m| m["type"] != "DDATA"),
+        "no data before the births"
+    );
 }

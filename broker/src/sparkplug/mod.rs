@@ -26,6 +26,14 @@
 //! so what it sends is bounded by what the router takes. The one part on the packet path
 //! is a host's `DCMD`, which must be authorized as its publisher ([`command`]).
 //!
+//! **Free until someone reads it.** As the typed stage re-encodes into `dinasore/` only
+//! once someone reads it, the view takes the line's values only once a client subscribed
+//! to a filter under `spBv1.0/` ([`Readers`]; a filter starting with a wildcard, `#`, does
+//! not count): until then it publishes births and deaths but reads no `fb/` message and
+//! costs the packet path nothing. When the first reader comes, the view subscribes to
+//! `fb/#` (whose retained messages bring the last values) and every node is born again,
+//! so the new host has every birth. The flag is never cleared.
+//!
 //! **When the line dies.** Sparkplug's NDEATH is normally the edge node's MQTT will; the
 //! view is inside the broker, so its death is the broker's:
 //! - a clean shutdown publishes NDEATH before any client connection is closed;
@@ -37,6 +45,10 @@
 //!
 //! **bdSeq** (0-255) is kept across restarts in `<[persistence] dir>/sparkplug-bdseq.json`
 //! ([`bdseq`]); without a persistence directory it starts at 0 at every start.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use tokio::sync::Notify;
 
 pub mod bdseq;
 pub mod command;
@@ -82,6 +94,35 @@ impl Default for SparkplugSection {
             remote_lines: true,
         }
     }
+}
+
+/// Whether any client reads Sparkplug: told of every subscription (`observer`), set by the
+/// first filter under `spBv1.0/`, never cleared.
+#[derive(Default)]
+pub struct Readers {
+    some: AtomicBool,
+    first: Notify,
+}
+
+impl Readers {
+    /// Resolves once some client reads under `spBv1.0/` (at once if one already did).
+    async fn arrived(&self) {
+        if !self.some.load(Ordering::Relaxed) {
+            self.first.notified().await;
+        }
+    }
+}
+
+impl crate::observer::SubscriptionObserver for Readers {
+    fn subscribed(&self, filter: &str) {
+        let filter = fb_bridge::topic::filter::unshared(filter);
+        if filter.split('/').next() == Some(NAMESPACE) && !self.some.swap(true, Ordering::Relaxed) {
+            tracing::info!("first Sparkplug reader: the view now publishes the line's values");
+            self.first.notify_one();
+        }
+    }
+
+    fn unsubscribed(&self, _filter: &str) {}
 }
 
 /// Whether `id` can be a Sparkplug group, edge node or device id: a topic level that is

@@ -226,69 +226,116 @@ impl Nodes {
         out
     }
 
-    /// An accepted typed publication, in canonical JSON on `fb/...`.
+    /// An accepted typed publication, in canonical JSON on `fb/...` (the tests' one at a time).
+    #[cfg(test)]
     pub fn value(&mut self, topic: &str, payload: &[u8]) -> Out {
+        self.values([(topic, payload)])
+    }
+
+    /// Accepted typed publications (what the router delivered at once): each value is
+    /// kept, and each born device that had some gets one DDATA with all of them, in
+    /// order (split where a packet would be full). A burst of a device's messages costs
+    /// the router one DDATA per batch, not one per message.
+    pub fn values<'a>(&mut self, batch: impl IntoIterator<Item = (&'a str, &'a [u8])>) -> Out {
         let mut out = Out::new();
-        let Some(typed) = TypedTopic::parse(topic) else {
-            return out;
-        };
-        if typed.encoding != Encoding::Json {
-            return out;
+        let mut order: Vec<(String, Vec<proto::payload::Metric>)> = Vec::new();
+        let mut index: HashMap<String, usize> = HashMap::new();
+        for (topic, payload) in batch {
+            let Some((device, metrics)) = self.metrics_of(topic, payload) else {
+                continue;
+            };
+            match index.get(&device) {
+                Some(&i) => order[i].1.extend(metrics),
+                None => {
+                    index.insert(device.clone(), order.len());
+                    order.push((device, metrics));
+                }
+            }
         }
-        let Some(device) = self.devices.get_mut(typed.device) else {
-            return out;
-        };
-        let Some(port) = device.interface.output(typed.fb, typed.port) else {
-            return out;
-        };
-        let Ok(message) = codec::decode(
+        for (device, metrics) in order {
+            let Some(line) = self.devices.get(&device).map(|d| d.line.clone()) else {
+                continue;
+            };
+            let room = self.max_payload.saturating_sub(1024).max(1);
+            let mut chunk = Vec::new();
+            let mut size = 0;
+            for metric in metrics {
+                let len = metric.encoded_len() + 4;
+                if size + len > room && !chunk.is_empty() {
+                    self.publish(
+                        &line,
+                        Kind::DData,
+                        Some(&device),
+                        std::mem::take(&mut chunk),
+                        &mut out,
+                    );
+                    size = 0;
+                }
+                size += len;
+                chunk.push(metric);
+            }
+            if !chunk.is_empty() {
+                self.publish(&line, Kind::DData, Some(&device), chunk, &mut out);
+            }
+        }
+        out
+    }
+
+    /// Keeps the values of one accepted publication; the DDATA metrics for them when its
+    /// device is born.
+    fn metrics_of(
+        &mut self,
+        topic: &str,
+        payload: &[u8],
+    ) -> Option<(String, Vec<proto::payload::Metric>)> {
+        let typed = TypedTopic::parse(topic)?;
+        if typed.encoding != Encoding::Json {
+            return None;
+        }
+        let device = self.devices.get_mut(typed.device)?;
+        let port = device.interface.output(typed.fb, typed.port)?;
+        let message = codec::decode(
             Encoding::Json,
             payload,
             typed.port,
             &port,
             codec::fbdk::TimeUnit::default(),
-        ) else {
-            return out;
-        };
+        )
+        .ok()?;
         let now = now_ms();
-        let mut changed: Vec<(String, Value, u64)> = Vec::new();
+        let mut changed: Vec<(&str, Value, u64)> = Vec::new();
         match message {
-            Message::Data(value) => changed.push((metric_name(typed.fb, typed.port), value, now)),
+            Message::Data(value) => changed.push((typed.port, value, now)),
             Message::Event(event) => {
                 let at = event.ts_us.map_or(now, |us| us / 1000);
-                let names = match &port {
-                    fb_bridge::OutputPort::Event(with) => {
-                        with.iter().map(|(n, _)| *n).collect::<Vec<_>>()
+                changed.push((typed.port, Value::Ulint(event.seq.unwrap_or(0)), at));
+                if let fb_bridge::OutputPort::Event(with) = &port {
+                    for ((name, _), value) in with.iter().zip(event.data) {
+                        changed.push((name, value, at));
                     }
-                    fb_bridge::OutputPort::Data(_) => Vec::new(),
-                };
-                changed.push((
-                    metric_name(typed.fb, typed.port),
-                    Value::Ulint(event.seq.unwrap_or(0)),
-                    at,
-                ));
-                for (name, value) in names.into_iter().zip(event.data) {
-                    changed.push((metric_name(typed.fb, name), value, at));
                 }
             }
         }
-        for (name, value, at) in &changed {
-            device.values.insert(name.clone(), (value.clone(), *at));
+        // One name buffer for every metric of the message: `FB/PORT` is looked up, and
+        // allocated only for a port's first value.
+        let mut name = String::with_capacity(typed.fb.len() + 1 + 64);
+        let mut metrics = Vec::with_capacity(changed.len());
+        for (port, value, at) in changed {
+            name.clear();
+            name.push_str(typed.fb);
+            name.push('/');
+            name.push_str(port);
+            if let Some(alias) = device.aliases.as_ref().and_then(|a| a.get(name.as_str())) {
+                metrics.push(sp::metric(None, Some(*alias), Some(at), &value));
+            }
+            match device.values.get_mut(name.as_str()) {
+                Some(kept) => *kept = (value, at),
+                None => {
+                    device.values.insert(name.clone(), (value, at));
+                }
+            }
         }
-        let Some(aliases) = &device.aliases else {
-            return out;
-        };
-        let metrics = changed
-            .iter()
-            .filter_map(|(name, value, at)| {
-                let alias = aliases.get(name)?;
-                Some(sp::metric(None, Some(*alias), Some(*at), value))
-            })
-            .collect();
-        let line = device.line.clone();
-        let id = typed.device.to_owned();
-        self.publish(&line, Kind::DData, Some(&id), metrics, &mut out);
-        out
+        (!metrics.is_empty()).then(|| (typed.device.to_owned(), metrics))
     }
 
     fn remember(&mut self, record: &Record) {

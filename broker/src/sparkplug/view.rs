@@ -22,7 +22,6 @@ use crate::link;
 use crate::metrics::Metrics;
 use crate::policy::origin;
 use crate::registry::{Change, Registry};
-use crate::supervisor::Tasks;
 
 /// How long a registry change waits before the view applies it: the values of a will
 /// (the device's, or its profile's broker-side will) are routed before the registry marks
@@ -30,6 +29,11 @@ use crate::supervisor::Tasks;
 /// the registry's channel. Held back this long, they are the device's last DDATA before
 /// its DDEATH, as a host expects.
 const RECORD_DELAY: Duration = Duration::from_millis(100);
+
+/// How long after the first reader's SUBSCRIBE the view publishes every birth: the
+/// session tells the view before the router has the subscription, and births published
+/// before it is in force would not reach that reader.
+const READER_GRACE: Duration = Duration::from_millis(250);
 
 /// Registry changes held back at most; beyond, the view reads the registry again.
 const HELD_CHANGES: usize = crate::registry::CHANGES_CAPACITY;
@@ -44,9 +48,16 @@ pub struct View {
     stop: mpsc::Sender<oneshot::Sender<()>>,
     /// `fbbus_sparkplug_commands_total{result}`.
     pub commands: IntCounterVec,
+    readers: Arc<super::Readers>,
 }
 
 impl View {
+    /// Told of subscriptions: the view reads the line's values once a client reads
+    /// Sparkplug.
+    pub fn readers(&self) -> Arc<super::Readers> {
+        Arc::clone(&self.readers)
+    }
+
     /// The aliases of the line's born devices' metrics.
     pub fn aliases(&self) -> &Arc<AliasBook> {
         &self.aliases
@@ -69,8 +80,8 @@ pub fn start(
     registry: Arc<Registry>,
     metrics: &Metrics,
     link: (LinkTx, LinkRx),
-    tasks: &Tasks,
 ) -> Arc<View> {
+    let readers = Arc::new(super::Readers::default());
     let persistence = &config.persistence;
     let persistence = persistence.enabled.then_some(persistence.dir.as_path());
     let line = config.broker.line.as_str();
@@ -119,11 +130,36 @@ pub fn start(
     )
     .with_max_payload(max_packet);
     let (stop, stops) = mpsc::channel(1);
-    tasks.spawn(run(nodes, config.clone(), registry, link, stops, published));
+    // A thread of its own: the view decodes every accepted typed message and encodes
+    // Sparkplug, work that on the workers' runtime would take turns with the sessions.
+    let task = run(
+        nodes,
+        config.clone(),
+        registry,
+        link,
+        stops,
+        published,
+        Arc::clone(&readers),
+    );
+    let thread = std::thread::Builder::new()
+        .name("fbbus-sparkplug".into())
+        .spawn(move || {
+            match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(runtime) => runtime.block_on(task),
+                Err(e) => tracing::error!(error = %e, "Sparkplug view: cannot start its runtime"),
+            }
+        });
+    if let Err(e) = thread {
+        tracing::error!(error = %e, "Sparkplug view: cannot start its thread");
+    }
     Arc::new(View {
         aliases,
         stop,
         commands,
+        readers,
     })
 }
 
@@ -141,6 +177,7 @@ async fn run(
     link: (LinkTx, LinkRx),
     mut stops: mpsc::Receiver<oneshot::Sender<()>>,
     published: IntCounterVec,
+    readers: Arc<super::Readers>,
 ) {
     let (mut tx, mut rx) = link;
     let mut changes = registry.changes();
@@ -151,14 +188,10 @@ async fn run(
         preserve_retain: false,
         retain_forward_rule: rule,
     };
-    // The last values known before the view started come as the retained `fb/` messages.
-    let mut filters = vec![
-        filter("fb/#".to_owned(), RetainForwardRule::OnEverySubscribe),
-        filter(
-            format!("{NAMESPACE}/{}/NCMD/+", config.group),
-            RetainForwardRule::Never,
-        ),
-    ];
+    let mut filters = vec![filter(
+        format!("{NAMESPACE}/{}/NCMD/+", config.group),
+        RetainForwardRule::Never,
+    )];
     if !config.primary_host.is_empty() {
         filters.push(filter(
             format!("{NAMESPACE}/STATE/{}", config.primary_host),
@@ -184,9 +217,32 @@ async fn run(
     // Registry changes in order, each with when it may be applied (RECORD_DELAY).
     let mut held: VecDeque<(Instant, Change)> = VecDeque::new();
     let mut resync = false;
+    let mut reading = false;
+    let mut births_due: Option<Instant> = None;
     loop {
         let next_due = held.front().map(|(due, _)| *due);
         let out = tokio::select! {
+            _ = sleep_until(births_due), if births_due.is_some() => {
+                births_due = None;
+                nodes.rebirth(None)
+            },
+            // The first Sparkplug reader: take the line's values from now on (the last ones
+            // come as the retained `fb/` messages), and give the reader every birth.
+            _ = readers.arrived(), if !reading => {
+                reading = true;
+                let subscribe = Packet::Subscribe(
+                    Subscribe {
+                        pkid: 0,
+                        filters: vec![filter("fb/#".to_owned(), RetainForwardRule::OnEverySubscribe)],
+                    },
+                    None,
+                );
+                if send.tx.send(subscribe).await.is_err() {
+                    return;
+                }
+                births_due = Some(Instant::now() + READER_GRACE);
+                continue;
+            },
             change = changes.recv() => match change {
                 Ok(change) if held.len() < HELD_CHANGES => {
                     held.push_back((Instant::now() + RECORD_DELAY, change));
@@ -226,20 +282,30 @@ async fn run(
                     return;
                 };
                 let mut out = Out::new();
-                for (topic, payload) in batch {
-                    let Ok(topic) = std::str::from_utf8(&topic) else { continue };
+                let values = batch.iter().filter_map(|(topic, payload)| {
+                    let topic = std::str::from_utf8(topic).ok()?;
+                    topic.starts_with("fb/").then_some((topic, payload.as_ref()))
+                });
+                let data = nodes.values(values);
+                // Until the first reader's births, values are only kept: they are in the
+                // births, and data before them would be data of the births at start.
+                if births_due.is_none() {
+                    out.extend(data);
+                }
+                for (topic, payload) in &batch {
+                    let Ok(topic) = std::str::from_utf8(topic) else { continue };
                     if topic.starts_with("fb/") {
-                        out.extend(nodes.value(topic, &payload));
+                        continue;
                     } else if topic == state_topic {
                         // A primary host that comes online (again) gets every birth.
-                        let Ok(state) = serde_json::from_slice::<State>(&payload) else {
+                        let Ok(state) = serde_json::from_slice::<State>(payload) else {
                             continue;
                         };
                         if state.online && primary_seen.is_none_or(|t| state.timestamp > t) {
                             primary_seen = Some(state.timestamp);
                             out.extend(nodes.rebirth(None));
                         }
-                    } else if let Some(node) = rebirth_request(topic, &payload, &config.group) {
+                    } else if let Some(node) = rebirth_request(topic, payload, &config.group) {
                         out.extend(nodes.rebirth(Some(&node)));
                     }
                 }

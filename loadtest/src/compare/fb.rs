@@ -16,6 +16,14 @@
 //!    `GET /api/v1/devices/<id>` (1,000 sequential requests, random ids) and of the full
 //!    `GET /api/v1/devices` list (20 requests), p50/p99/max.
 //!
+//! 4. **The Sparkplug view's cost** (issue 36; run after section 1): two fbbus processes of the same binary,
+//!    one with `[sparkplug] enabled = true`, both running, each with the same publishers
+//!    declared, and on the "on" broker a Sparkplug host subscribed to `spBv1.0/#` reading
+//!    everything; the typed burst of section 1 in rounds off, on, off, on, ... Reported:
+//!    each round's msg/s, the medians and on/off against the goal (at least 0.90), and
+//!    the view's DDATA count on the "on" broker (it must have published one per message:
+//!    a binary without the view fails the section).
+//!
 //! Everything runs on 127.0.0.1 against an fbbus child process; every loop is bounded
 //! by a count and a deadline.
 
@@ -104,11 +112,12 @@ pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
     );
 
     validation_cost(&broker, admin, p).await?;
+    sparkplug_cost(fbbus, &tables, p).await?;
     let _devices = births(&broker, admin, p).await?;
     registry_queries(admin, p).await?;
     if let Some(kib) = broker.rss_kib() {
         println!(
-            "\nbroker resident memory with {} devices connected and registered: {:.1} MB",
+            "\nbroker resident memory with {} devices connected and registered: {:.1} MB\n",
             p.devices + p.publishers,
             kib as f64 / 1024.0
         );
@@ -117,23 +126,7 @@ pub async fn run(fbbus: &Path, p: &FbParams) -> Result<()> {
 }
 
 async fn validation_cost(broker: &Running, admin: SocketAddr, p: &FbParams) -> Result<()> {
-    let mut sub = mqtt::connect(broker.addr, "bench-sub", None).await?;
-    subscribe_all(&mut sub, &["fb/+/CONV/STATE", "plant/+/CONV/STATE"]).await?;
-    // (`line/+/state` is not read: a mapped message reaches the subscriber once, on fb/.)
-    let mut reader = PacketReader::new(sub);
-    let mut pubs = Vec::new();
-    for i in 0..p.publishers {
-        let id = format!("bench-pub-{i}");
-        let mut s = mqtt::connect(broker.addr, &id, None).await?;
-        s.write_all(&mqtt::publish_packet(
-            &format!("fbbus/declare/{id}"),
-            INTERFACE.as_bytes(),
-        ))
-        .await?;
-        pubs.push((id, s));
-    }
-    wait_online(admin, p.publishers).await?;
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let (mut reader, mut pubs) = publishers(broker, admin, p).await?;
 
     println!("1. validation and mapping cost: the same STATE event, untyped vs typed vs the device's own (profile-mapped) topic (QoS 0 burst, 1 subscriber)");
     println!(
@@ -165,6 +158,96 @@ async fn validation_cost(broker: &Running, admin: SocketAddr, p: &FbParams) -> R
         t / u,
         (1.0 - t / u) * 100.0,
         m / t
+    );
+    Ok(())
+}
+
+/// One subscriber of every burst's topics, and `p.publishers` devices declared and online.
+async fn publishers(
+    broker: &Running,
+    admin: SocketAddr,
+    p: &FbParams,
+) -> Result<(PacketReader, Vec<(String, TcpStream)>)> {
+    let mut sub = mqtt::connect(broker.addr, "bench-sub", None).await?;
+    subscribe_all(&mut sub, &["fb/+/CONV/STATE", "plant/+/CONV/STATE"]).await?;
+    // (`line/+/state` is not read: a mapped message reaches the subscriber once, on fb/.)
+    let reader = PacketReader::new(sub);
+    let mut pubs = Vec::new();
+    for i in 0..p.publishers {
+        let id = format!("bench-pub-{i}");
+        let mut s = mqtt::connect(broker.addr, &id, None).await?;
+        s.write_all(&mqtt::publish_packet(
+            &format!("fbbus/declare/{id}"),
+            INTERFACE.as_bytes(),
+        ))
+        .await?;
+        pubs.push((id, s));
+    }
+    wait_online(admin, p.publishers).await?;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    Ok((reader, pubs))
+}
+
+/// Section 4: the typed burst with the Sparkplug view off and on, alternating.
+async fn sparkplug_cost(fbbus: &Path, tables: &str, p: &FbParams) -> Result<()> {
+    println!("4. the Sparkplug view's cost: the typed burst of section 1, view off and on with a Sparkplug host reading (two brokers of one binary, rounds alternating)");
+    let off = start(fbbus, &[], tables).await?;
+    let on = start(
+        fbbus,
+        &[],
+        &format!("{tables}\n[sparkplug]\nenabled = true\n"),
+    )
+    .await?;
+    let mut lines = Vec::new();
+    for broker in [&off, &on] {
+        let admin = broker.admin.context("fbbus runs with an admin endpoint")?;
+        lines.push((publishers(broker, admin, p).await?, admin));
+    }
+    // A Sparkplug host reading everything the view publishes (the view reads the line's
+    // values only once someone reads Sparkplug), draining its socket until the end.
+    let mut host = mqtt::connect(on.addr, "bench-scada", None).await?;
+    subscribe_all(&mut host, &["spBv1.0/#"]).await?;
+    let sparkplug_bytes = Arc::new(AtomicUsize::new(0));
+    let drain = tokio::spawn({
+        let read = Arc::clone(&sparkplug_bytes);
+        async move {
+            let mut buf = vec![0u8; 1 << 16];
+            while let Ok(n @ 1..) = host.read(&mut buf).await {
+                read.fetch_add(n, Ordering::Relaxed);
+            }
+        }
+    });
+    println!("   {:<7} {:>14} {:>14}", "round", "off msg/s", "on msg/s");
+    let mut rates: [Vec<f64>; 2] = Default::default();
+    for round in 1..=p.rounds.max(3) {
+        let mut this = [0.0; 2];
+        for (k, ((reader, pubs), _)) in lines.iter_mut().enumerate() {
+            let (rate, lost) = burst(reader, pubs, Topic::Typed, p.messages).await?;
+            if lost > 0 {
+                bail!(
+                    "Sparkplug view {} round {round}: {lost} messages lost",
+                    ["off", "on"][k]
+                );
+            }
+            this[k] = rate;
+            rates[k].push(rate);
+        }
+        println!("   {round:<7} {:>14.0} {:>14.0}", this[0], this[1]);
+    }
+    let [off_rate, on_rate] = rates.map(|mut r| median(&mut r));
+    let ratio = on_rate / off_rate;
+    println!(
+        "   median  {off_rate:>14.0} {on_rate:>14.0}   on/off = {ratio:.3} (goal: at least 0.90: {})",
+        if ratio >= 0.90 { "met" } else { "NOT met" }
+    );
+    let ddata = metric(lines[1].1, "fbbus_sparkplug_messages_total{kind=\"DDATA\"}").await;
+    if ddata < 1.0 {
+        bail!("the \"on\" broker published no Sparkplug DDATA: this fbbus has no Sparkplug view");
+    }
+    drain.abort();
+    println!(
+        "   the view published {ddata:.0} DDATA on the \"on\" broker; its host read {:.1} MB\n",
+        sparkplug_bytes.load(Ordering::Relaxed) as f64 / 1e6
     );
     Ok(())
 }

@@ -278,3 +278,24 @@ fn a_birth_stays_within_a_packet_whatever_the_values() {
         .count();
     assert_eq!(nulls, 1, "the value that did not fit is null: {payload:?}");
 }
+
+#[test]
+fn a_batch_of_a_device_s_values_is_one_ddata() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut n = nodes(dir.path());
+    n.start(vec![record("conv", "line-1", Status::Online)]);
+    let payloads: Vec<String> = (0..50).map(|i| i.to_string()).collect();
+    let out = decode(
+        &n.values(
+            payloads
+                .iter()
+                .map(|p| ("fb/conv/CONV/POSITION", p.as_bytes())),
+        ),
+    );
+    assert_eq!(out.len(), 1);
+    assert_eq!(out[0].2.metrics.len(), 50, "every value, in order");
+    assert_eq!(
+        out[0].2.metrics[49].value,
+        Some(proto::payload::metric::Value::IntValue(49))
+    );
+}
