@@ -5,7 +5,10 @@
 //! and `/api/v1/devices/{id}` (one record, 404 if unknown); the device profiles:
 //! `/api/v1/profiles` (what each profile recognises and maps) and
 //! `PUT /api/v1/profiles/{device}` (a profile in TOML, as `fbbus declare` sends it);
-//! `DELETE /api/v1/devices/{id}` forgets an offline device (`fbbus devices forget`).
+//! `DELETE /api/v1/devices/{id}` forgets an offline device (`fbbus devices forget`); the
+//! sessions (`/api/v1/sessions`), the connected clients (`/api/v1/clients`, `clients`)
+//! and the retained topics clients hold (`/api/v1/retained?filter=`, `retained_share`),
+//! each paged.
 //!
 //! Who may ask, in two rules, each in one place:
 //! - Credentials: with `[admin] password_file` set, every request, whatever its route
@@ -98,6 +101,10 @@ pub struct AdminState {
     pub writes: Arc<WriteRules>,
     /// The sessions, to list and to drop a kept one (`session::control`).
     pub sessions: Arc<SessionControl>,
+    /// The connected clients (`clients`).
+    pub clients: Arc<crate::clients::Clients>,
+    /// The retained topics clients hold (`retained_share`).
+    pub retained: Arc<crate::retained_share::RetainedShares>,
 }
 
 impl HasWriteRules for AdminState {
@@ -122,6 +129,8 @@ pub fn routes(state: AdminState) -> Router {
             "/api/v1/sessions/:client_id",
             axum::routing::delete(drop_session),
         )
+        .route("/api/v1/clients", get(clients))
+        .route("/api/v1/retained", get(retained))
         .route("/api/v1/profiles", get(profiles))
         .route("/api/v1/profiles/:device", put(put_profile))
         .merge(crate::console::routes(state.console.clone()))
@@ -275,6 +284,62 @@ async fn sessions(State(state): State<AdminState>, Query(page): Query<SessionPag
         .collect();
     axum::Json(serde_json::json!({"sessions": sessions, "total": total, "next": next}))
         .into_response()
+}
+
+/// The connected clients in client id order (issue 37): `?limit=N` (default 100, at most
+/// 1,000), `?after=<client id>`; `next` names the next page's `after`.
+async fn clients(State(state): State<AdminState>, Query(page): Query<SessionPage>) -> Response {
+    let limit = page.limit.unwrap_or(CLIENTS_PAGE);
+    if limit == 0 {
+        return error(StatusCode::BAD_REQUEST, "limit must be at least 1".into());
+    }
+    let (listed, total) = state
+        .clients
+        .list(page.after.as_deref().unwrap_or(""), limit);
+    let next = (listed.len() == limit.min(crate::clients::MAX_PAGE))
+        .then(|| listed.last().map(|c| c.client_id.clone()))
+        .flatten();
+    axum::Json(serde_json::json!({"clients": listed, "total": total, "next": next})).into_response()
+}
+
+/// Clients per page of `GET /api/v1/clients` unless `?limit=` says otherwise.
+const CLIENTS_PAGE: usize = 100;
+
+#[derive(Debug, Deserialize)]
+struct RetainedPage {
+    filter: Option<String>,
+    after: Option<String>,
+    limit: Option<usize>,
+}
+
+/// The retained topics clients hold under `?filter=` (an MQTT filter, default `#`), in
+/// topic order, with their size, owner and age (issue 37): `?limit=N` (default 100, at
+/// most 1,000), `?after=<topic>`; `next` names the next page's `after`. The broker's own
+/// retained topics (`fbbus/...`: the registry's records) are not listed: the devices are.
+async fn retained(State(state): State<AdminState>, Query(page): Query<RetainedPage>) -> Response {
+    let filter = page.filter.as_deref().unwrap_or("#");
+    if !fb_bridge::topic::filter::valid_filter(filter) {
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!("filter {filter:?} is not an MQTT topic filter (e.g. fb/conv1/#)"),
+        );
+    }
+    let limit = page
+        .limit
+        .unwrap_or(CLIENTS_PAGE)
+        .min(crate::clients::MAX_PAGE);
+    if limit == 0 {
+        return error(StatusCode::BAD_REQUEST, "limit must be at least 1".into());
+    }
+    let (listed, next) = state
+        .retained
+        .list(filter, page.after.as_deref().unwrap_or(""), limit);
+    axum::Json(serde_json::json!({
+        "retained": listed,
+        "total": state.retained.len(),
+        "next": next,
+    }))
+    .into_response()
 }
 
 /// `DELETE /api/v1/sessions/<client id>`: ends a kept offline session as its expiry

@@ -41,6 +41,7 @@ mod authenticator;
 #[cfg(feature = "bridge")]
 mod bridge;
 mod broker_publisher;
+mod clients;
 pub mod config;
 mod console;
 mod fd_budget;

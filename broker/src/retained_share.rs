@@ -18,8 +18,11 @@
 //! left to the router, which refuses it. At start the store's retained messages are
 //! charged back to the identities that published them ([`RetainedShares::restore`]).
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex, PoisonError};
+use std::time::SystemTime;
+
+use serde::Serialize;
 
 /// What one identity holds.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -30,9 +33,37 @@ struct Usage {
 
 #[derive(Default)]
 struct Table {
-    /// Topic -> the identity it is charged to and its size (topic and payload bytes).
-    topics: HashMap<Box<str>, (Arc<str>, usize)>,
+    /// Topic -> the identity it is charged to, its size (topic and payload bytes) and
+    /// when it was retained; in topic order, for the admin plane's listing ([`list`]).
+    ///
+    /// [`list`]: RetainedShares::list
+    topics: BTreeMap<Box<str>, Charged>,
     usage: HashMap<Arc<str>, Usage>,
+}
+
+/// One retained topic's charge.
+#[derive(Debug, Clone)]
+struct Charged {
+    owner: Arc<str>,
+    size: usize,
+    at: SystemTime,
+}
+
+/// Topics [`RetainedShares::list`] looks at per request at most: the table's lock is
+/// what retained publications take, so a listing holds it for a bounded time.
+pub const LIST_SCAN: usize = 10_000;
+
+/// One retained topic as the admin plane lists it.
+#[derive(Debug, Clone, Serialize)]
+pub struct Listed {
+    pub topic: String,
+    /// Topic and payload bytes.
+    pub bytes: usize,
+    /// The identity it is charged to (a username, or an anonymous client's address).
+    pub owner: String,
+    /// RFC 3339, UTC.
+    pub retained_at: String,
+    pub age_s: u64,
 }
 
 /// The retained shares of the line's identities.
@@ -65,7 +96,10 @@ impl RetainedShares {
             return true;
         }
         let mut table = self.table.lock().unwrap_or_else(PoisonError::into_inner);
-        let old = table.topics.get(topic).cloned();
+        let old = table
+            .topics
+            .get(topic)
+            .map(|c| (Arc::clone(&c.owner), c.size));
         if clear {
             if let Some((owner, old_size)) = old {
                 table.topics.remove(topic);
@@ -94,8 +128,67 @@ impl RetainedShares {
         let u = table.usage.entry(Arc::clone(&share)).or_default();
         u.messages += 1;
         u.bytes += size;
-        table.topics.insert(topic.into(), (share, size));
+        table.topics.insert(
+            topic.into(),
+            Charged {
+                owner: share,
+                size,
+                at: SystemTime::now(),
+            },
+        );
         true
+    }
+
+    /// The retained topics matching `filter` that sort after `after`, at most `limit`, in
+    /// topic order; and the topic to continue after, when the page is full or the scan
+    /// stopped at [`LIST_SCAN`] topics. Only the topics of the literal prefix of `filter`
+    /// (before its first wildcard) are scanned. The broker's own retained topics
+    /// (`fbbus/...`) are not charged, so not listed.
+    pub fn list(&self, filter: &str, after: &str, limit: usize) -> (Vec<Listed>, Option<String>) {
+        let prefix = filter
+            .find(['+', '#'])
+            .map_or(filter, |at| filter.get(..at).unwrap_or(""));
+        let start = if after >= prefix { after } else { prefix };
+        let now = SystemTime::now();
+        let table = self.table.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut page = Vec::new();
+        let mut last = None;
+        let range = table.topics.range::<str, _>((
+            if start == after && !after.is_empty() {
+                std::ops::Bound::Excluded(start)
+            } else {
+                std::ops::Bound::Included(start)
+            },
+            std::ops::Bound::Unbounded,
+        ));
+        for (scanned, (topic, charged)) in range.enumerate() {
+            if !topic.starts_with(prefix) {
+                return (page, None);
+            }
+            if scanned == LIST_SCAN || page.len() == limit {
+                return (page, last);
+            }
+            last = Some(topic.to_string());
+            if fb_bridge::topic::filter::matches(filter, topic) {
+                page.push(Listed {
+                    topic: topic.to_string(),
+                    bytes: charged.size,
+                    owner: charged.owner.to_string(),
+                    retained_at: humantime::format_rfc3339_millis(charged.at).to_string(),
+                    age_s: now.duration_since(charged.at).map_or(0, |d| d.as_secs()),
+                });
+            }
+        }
+        (page, None)
+    }
+
+    /// Retained topics charged, in all.
+    pub fn len(&self) -> usize {
+        self.table
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .topics
+            .len()
     }
 
     /// Charges the retained messages the store brought back to their identities, as they

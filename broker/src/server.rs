@@ -246,15 +246,16 @@ impl Broker {
             wills,
             fb,
             sessions,
+            clients: Arc::default(),
             redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(
                 config.broker.max_connections,
             )),
             store,
-            retained_shares: crate::retained_share::RetainedShares::new(
+            retained_shares: Arc::new(crate::retained_share::RetainedShares::new(
                 config.broker.max_retained_messages_per_identity.max(1),
                 config.broker.max_retained_bytes_per_identity.max(1),
                 config.broker.max_retained_messages,
-            ),
+            )),
             metrics: Arc::clone(&metrics),
             max_packet: config.broker.max_packet_bytes,
             max_inflight: config.broker.max_inflight,
@@ -399,6 +400,8 @@ impl Broker {
                     }),
                     console,
                     sessions: Arc::new(crate::session::control::SessionControl::new(&ctx)),
+                    clients: Arc::clone(&ctx.clients),
+                    retained: Arc::clone(&ctx.retained_shares),
                     writes: Arc::new(crate::admin_writes::WriteRules::new(
                         &config.admin.allowed_hosts,
                         Arc::clone(&metrics),

@@ -31,14 +31,16 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, SystemTime};
 
 use bytes::Bytes;
+use fb_bridge::codec::json;
 use fb_bridge::topic::{self, TypedTopic};
-use fb_bridge::Interface;
-use prometheus::{IntCounterVec, IntGaugeVec, Opts};
+use fb_bridge::{DataType, Interface, Message, OutputPort};
+use prometheus::{IntCounterVec, IntGauge, IntGaugeVec, Opts};
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::{Filter, Packet, QoS, RetainForwardRule, Subscribe};
 use serde::Serialize;
 use tokio::sync::broadcast;
 
+use super::history::{self, History, Kind, Point, Pushed};
 use crate::link;
 use crate::metrics::Metrics;
 use crate::registry::{Change, Registry, Status};
@@ -63,7 +65,14 @@ pub const EVENTS_CAPACITY: usize = 1024;
 pub struct Limits {
     pub max_port_values: usize,
     pub max_refusals: usize,
+    pub history: history::Limits,
 }
+
+/// Points of one port a live feed event carries at most (the page asks the history
+/// for more if it missed some).
+pub const FEED_POINTS: usize = 256;
+/// How often points older than the history's window are dropped from every series.
+pub const EXPIRE_EVERY: Duration = Duration::from_secs(10);
 
 /// One output port's last value.
 #[derive(Debug, Clone, Serialize)]
@@ -128,7 +137,6 @@ struct Device {
     status: Option<Status>,
 }
 
-#[derive(Default)]
 struct State {
     /// Every registered device's declared interface, from the registry's changes.
     interfaces: HashMap<String, Arc<Interface>>,
@@ -137,8 +145,10 @@ struct State {
     refusals: usize,
     /// Devices some page views, with how many pages.
     watched: HashMap<String, usize>,
-    /// Changed ports of watched devices since the last flush: device -> FB.PORT.
-    pending: HashMap<String, std::collections::BTreeSet<(String, String)>>,
+    /// Changed ports of watched devices since the last flush: device -> (FB, PORT) ->
+    /// the points its series had been given before the first change.
+    pending: HashMap<String, BTreeMap<(String, String), u64>>,
+    history: History,
 }
 
 /// The console's view of device activity, shared by its task and the admin routes.
@@ -148,6 +158,7 @@ pub struct Activity {
     limits: Limits,
     entries: IntGaugeVec,
     dropped: IntCounterVec,
+    history_bytes: IntGauge,
 }
 
 impl Activity {
@@ -155,7 +166,7 @@ impl Activity {
         let entries = IntGaugeVec::new(
             Opts::new(
                 "fbbus_console_entries",
-                "What the line console keeps: port_values, refusals",
+                "What the line console keeps: port_values, refusals, history_points, history_series",
             ),
             &["what"],
         )
@@ -163,23 +174,45 @@ impl Activity {
         let dropped = IntCounterVec::new(
             Opts::new(
                 "fbbus_console_dropped_total",
-                "Port values and refusals the line console did not keep ([console] limits)",
+                "Port values, refusals and port histories the line console did not keep ([console] limits)",
             ),
             &["what"],
         )
         .expect("valid metric");
-        for what in ["port_values", "refusals"] {
+        for what in [
+            "port_values",
+            "refusals",
+            "history_points",
+            "history_series",
+        ] {
             entries.with_label_values(&[what]);
+        }
+        for what in ["port_values", "refusals", "history_ports"] {
             dropped.with_label_values(&[what]);
         }
+        let history_bytes = IntGauge::new(
+            "fbbus_console_history_bytes",
+            "Memory of the line console's port history: its points' buffers ([console] history_max_points)",
+        )
+        .expect("valid metric");
+        metrics.register(Box::new(history_bytes.clone()));
         metrics.register(Box::new(entries.clone()));
         metrics.register(Box::new(dropped.clone()));
         Arc::new(Activity {
-            state: Mutex::new(State::default()),
+            state: Mutex::new(State {
+                interfaces: HashMap::new(),
+                devices: HashMap::new(),
+                port_values: 0,
+                refusals: 0,
+                watched: HashMap::new(),
+                pending: HashMap::new(),
+                history: History::new(limits.history),
+            }),
             events: broadcast::channel(EVENTS_CAPACITY).0,
             limits,
             entries,
             dropped,
+            history_bytes,
         })
     }
 
@@ -230,6 +263,7 @@ impl Activity {
             Change::Removed(id) => {
                 state.interfaces.remove(&**id);
                 state.pending.remove(&**id);
+                state.history.remove(id, |_, _, _| true);
                 if let Some(device) = state.devices.remove(&**id) {
                     state.port_values -= device.ports.values().map(HashMap::len).sum::<usize>();
                     state.refusals -= device.refusals.len();
@@ -257,6 +291,10 @@ impl Activity {
                         !ports.is_empty()
                     });
                     state.port_values -= removed;
+                    // A series whose port is gone or has another kind or type now.
+                    state.history.remove(&record.id, |fb, port, series| {
+                        !series.fits(interface.output(fb, port))
+                    });
                 }
                 let offline = matches!(record.status, Status::Offline | Status::Unreachable);
                 if offline && device.status != Some(record.status) {
@@ -302,6 +340,13 @@ impl Activity {
         self.entries
             .with_label_values(&["refusals"])
             .set(state.refusals as i64);
+        self.entries
+            .with_label_values(&["history_points"])
+            .set(state.history.points() as i64);
+        self.entries
+            .with_label_values(&["history_series"])
+            .set(state.history.series_count() as i64);
+        self.history_bytes.set(state.history.bytes() as i64);
     }
 
     /// One publication the console link received.
@@ -316,32 +361,93 @@ impl Activity {
         }
     }
 
+    /// A value on a typed topic: the port's last value and, for a plottable port, a
+    /// point of its history; an event's WITH data are the last values (and points) of
+    /// their data ports.
     fn port(&self, state: &mut State, t: TypedTopic<'_>, payload: &[u8], retained: bool) {
-        let declared = state
-            .interfaces
-            .get(t.device)
-            .is_some_and(|i| i.output(t.fb, t.port).is_some());
-        if !declared {
+        let Some(interface) = state.interfaces.get(t.device).map(Arc::clone) else {
             return;
+        };
+        let Some(output) = interface.output(t.fb, t.port) else {
+            return;
+        };
+        let at = SystemTime::now();
+        self.set_value(state, t.device, t.fb, t.port, payload, at, retained);
+        let ms = now_ms();
+        match &output {
+            OutputPort::Data(ty) if !retained && history::plottable(*ty) => {
+                if let Ok(Message::Data(value)) = json::decode(payload, &output) {
+                    if let Some(x) = history::number(&value) {
+                        let point = Point(ms, x);
+                        self.point(state, &t, t.port, Kind::Data, Some(*ty), point);
+                    }
+                }
+            }
+            OutputPort::Event(with) => {
+                let Ok(Message::Event(event)) = json::decode(payload, &output) else {
+                    return;
+                };
+                if !retained {
+                    let seq = Point(ms, event.seq.unwrap_or(0) as f64);
+                    self.point(state, &t, t.port, Kind::Event, None, seq);
+                }
+                for ((name, ty), value) in with.iter().zip(&event.data) {
+                    let text = json::value_to_json(value).to_string();
+                    self.set_value(state, t.device, t.fb, name, text.as_bytes(), at, retained);
+                    if let Some(x) = history::number(value).filter(|_| !retained) {
+                        self.point(state, &t, name, Kind::With, Some(*ty), Point(ms, x));
+                    }
+                }
+            }
+            OutputPort::Data(_) => {}
         }
+    }
+
+    /// Adds a point to the port's history.
+    fn point(
+        &self,
+        state: &mut State,
+        t: &TypedTopic<'_>,
+        port: &str,
+        kind: Kind,
+        ty: Option<DataType>,
+        point: Point,
+    ) {
+        if state.history.push(t.device, t.fb, port, kind, ty, point) == Pushed::NoRoom {
+            self.dropped.with_label_values(&["history_ports"]).inc();
+        }
+    }
+
+    /// The port's last value := `payload` (text); noted for the page watching the device.
+    #[allow(clippy::too_many_arguments)]
+    fn set_value(
+        &self,
+        state: &mut State,
+        device_id: &str,
+        fb: &str,
+        port: &str,
+        payload: &[u8],
+        at: SystemTime,
+        retained: bool,
+    ) {
         let State {
             devices,
             port_values,
             watched,
             pending,
+            history,
             ..
         } = state;
-        if !devices.contains_key(t.device) {
-            devices.insert(t.device.to_owned(), Device::default());
+        if !devices.contains_key(device_id) {
+            devices.insert(device_id.to_owned(), Device::default());
         }
-        let Some(device) = devices.get_mut(t.device) else {
+        let Some(device) = devices.get_mut(device_id) else {
             return;
         };
-        let at = SystemTime::now();
         let existing = device
             .ports
-            .get_mut(t.fb)
-            .and_then(|ports| ports.get_mut(t.port));
+            .get_mut(fb)
+            .and_then(|ports| ports.get_mut(port));
         match existing {
             Some(value) => {
                 value.truncated = set_text(&mut value.value, payload, VALUE_MAX_CHARS);
@@ -355,8 +461,8 @@ impl Activity {
             None => {
                 let mut value = String::new();
                 let truncated = set_text(&mut value, payload, VALUE_MAX_CHARS);
-                device.ports.entry(t.fb.to_owned()).or_default().insert(
-                    t.port.to_owned(),
+                device.ports.entry(fb.to_owned()).or_default().insert(
+                    port.to_owned(),
                     PortValue {
                         value,
                         truncated,
@@ -367,11 +473,15 @@ impl Activity {
                 *port_values += 1;
             }
         }
-        if watched.contains_key(t.device) {
+        if watched.contains_key(device_id) {
+            let seen = history
+                .get(device_id, fb, port)
+                .map_or(0, history::Series::pushed);
             pending
-                .entry(t.device.to_owned())
+                .entry(device_id.to_owned())
                 .or_default()
-                .insert((t.fb.to_owned(), t.port.to_owned()));
+                .entry((fb.to_owned(), port.to_owned()))
+                .or_insert(seen);
         }
     }
 
@@ -431,7 +541,8 @@ impl Activity {
         let _ = self.events.send(Event::Refusal { json });
     }
 
-    /// Sends the changed ports of the watched devices.
+    /// Sends the changed ports of the watched devices, with the points their series
+    /// were given since the last flush.
     fn flush(&self) {
         let mut state = self.lock();
         if state.pending.is_empty() {
@@ -442,15 +553,22 @@ impl Activity {
             let Some(device) = state.devices.get(&id) else {
                 continue;
             };
-            let values: BTreeMap<String, &PortValue> = ports
-                .iter()
-                .filter_map(|(fb, port)| {
-                    let value = device.ports.get(fb)?.get(port)?;
-                    Some((format!("{fb}.{port}"), value))
-                })
-                .collect();
-            let Ok(json) = serde_json::to_vec(&serde_json::json!({"device": id, "ports": values}))
-            else {
+            let mut values = BTreeMap::new();
+            let mut points = BTreeMap::new();
+            for ((fb, port), seen) in &ports {
+                let name = format!("{fb}.{port}");
+                if let Some(series) = state.history.get(&id, fb, port) {
+                    let new: Vec<&Point> = series.after(*seen, FEED_POINTS).collect();
+                    if !new.is_empty() {
+                        points.insert(name.clone(), new);
+                    }
+                }
+                if let Some(value) = device.ports.get(fb).and_then(|p| p.get(port)) {
+                    values.insert(name, value);
+                }
+            }
+            let body = serde_json::json!({"device": id, "ports": values, "points": points});
+            let Ok(json) = serde_json::to_vec(&body) else {
                 continue;
             };
             let _ = self.events.send(Event::Ports {
@@ -460,6 +578,54 @@ impl Activity {
         }
         self.count(&state);
     }
+
+    /// Drops the history's points older than its window.
+    fn expire(&self) {
+        let mut state = self.lock();
+        state.history.expire(now_ms());
+        self.count(&state);
+    }
+
+    /// The history's window, in seconds.
+    pub fn history_window_s(&self) -> u64 {
+        self.limits.history.window_ms / 1000
+    }
+
+    /// The port's history within `[from, to]` (ms since 1970), the newest `limit` points;
+    /// None when the port has no series (not declared, not plottable, or no value yet).
+    pub fn history(
+        &self,
+        device: &str,
+        fb: &str,
+        port: &str,
+        from: u64,
+        to: u64,
+        limit: usize,
+    ) -> Option<HistoryAnswer> {
+        let state = self.lock();
+        let series = state.history.get(device, fb, port)?;
+        Some(HistoryAnswer {
+            kind: series.kind,
+            capacity: state.history.capacity(),
+            points: series.range(from, to, limit),
+        })
+    }
+}
+
+/// A port's history, as `/api/v1/devices/{id}/ports/{FB.PORT}/history` answers it.
+#[derive(Debug, Serialize)]
+pub struct HistoryAnswer {
+    pub kind: Kind,
+    /// Points the series may hold now (its share of `history_max_points`).
+    pub capacity: usize,
+    pub points: Vec<Point>,
+}
+
+/// Now, in ms since 1970 UTC.
+pub fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
 /// A page's interest in one device's ports; dropping it ends the interest.
@@ -538,6 +704,8 @@ pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx
     }
     let mut tick = tokio::time::interval(FLUSH);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut expire = tokio::time::interval(EXPIRE_EVERY);
+    expire.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             change = changes.recv() => match change {
@@ -550,10 +718,12 @@ pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx
                 // Everything the router delivered at once, under one lock.
                 let taken = {
                     let mut state = activity.lock();
-                    link::take_batch(&mut rx, first, |forward| {
+                    let taken = link::take_batch(&mut rx, first, |forward| {
                         let p = &forward.publish;
                         activity.received(&mut state, &p.topic, &p.payload, p.retain);
-                    })
+                    });
+                    activity.count(&state);
+                    taken
                 };
                 let Ok(paused) = taken else { return };
                 // The router paused the link (its queue for it was full): wake it.
@@ -562,6 +732,7 @@ pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx
                 }
             }
             _ = tick.tick() => activity.flush(),
+            _ = expire.tick() => activity.expire(),
         }
     }
 }

@@ -5,6 +5,8 @@
 //! - `GET /api/v1/line`: the line's name, version, uptime, the last five minutes of its
 //!   rates ([`stats`]), the bridge's other lines;
 //! - `GET /api/v1/events`: the live feed ([`feed`]), server-sent events;
+//! - `GET /api/v1/devices/{id}/ports/{FB.PORT}/history`: a port's recent values, JSON or
+//!   CSV ([`trends`], kept by [`history`]);
 //! - `GET /api/v1/devices/{id}/activity`: a device's last port values, recent refusals,
 //!   offline times ([`activity`]), and its observed output periods (for the page's
 //!   "silent port" marker) and broker-side will.
@@ -17,7 +19,9 @@
 pub mod activity;
 pub mod assets;
 mod feed;
+pub mod history;
 pub mod stats;
+mod trends;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -48,6 +52,13 @@ pub struct ConsoleSection {
     /// Refusals (from `fbbus/diag/<device>`) kept at most, over every device (and at
     /// most `console::activity::REFUSALS_PER_DEVICE` per device).
     pub max_refusals: usize,
+    /// The trends ([`history`]): points older than this are dropped.
+    pub history_window_s: u64,
+    /// Points kept per port at most (3600: an hour at one value per second).
+    pub history_points_per_port: usize,
+    /// Points kept over every port at most, 16 bytes each; beyond, each port's share
+    /// shrinks to `history_max_points / ports`.
+    pub history_max_points: usize,
 }
 
 impl Default for ConsoleSection {
@@ -56,6 +67,9 @@ impl Default for ConsoleSection {
             enabled: true,
             max_port_values: 100_000,
             max_refusals: 20_000,
+            history_window_s: 3600,
+            history_points_per_port: 3600,
+            history_max_points: 2_000_000,
         }
     }
 }
@@ -94,6 +108,11 @@ impl Console {
             activity::Limits {
                 max_port_values: config.max_port_values,
                 max_refusals: config.max_refusals,
+                history: history::Limits {
+                    window_ms: config.history_window_s.saturating_mul(1000),
+                    points_per_port: config.history_points_per_port,
+                    max_points: config.history_max_points,
+                },
             },
             &metrics,
         );
@@ -135,6 +154,10 @@ pub fn routes<S: Clone + Send + Sync + 'static>(console: Option<Arc<Console>>) -
         .route("/api/v1/line", get(line))
         .route("/api/v1/events", get(feed::events))
         .route("/api/v1/devices/:id/activity", get(device_activity))
+        .route(
+            "/api/v1/devices/:id/ports/:port/history",
+            get(trends::history),
+        )
         .with_state(console)
 }
 

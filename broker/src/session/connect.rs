@@ -57,7 +57,7 @@ impl Session {
         mut io: Io,
         connect: Packet,
         peer: SocketAddr,
-        listener: &ListenerPolicy,
+        listener: &Arc<ListenerPolicy>,
         ctx: &Arc<Context>,
     ) -> Option<Session> {
         let Packet::Connect(connect, properties, will, will_properties, login) = connect else {
@@ -171,10 +171,19 @@ impl Session {
         if let Some(will) = &will {
             ctx.wills.arm(&client_id, linked.session, will);
         }
+        let client_id: Arc<str> = client_id.into();
+        let client = ctx.clients.connected(crate::clients::Client::new(
+            (Arc::clone(&client_id), linked.session),
+            username.as_deref(),
+            peer,
+            Arc::clone(listener),
+            if version == Version::V5 { 5 } else { 4 },
+            keep_alive_s,
+        ));
         let mut session = Session {
             io,
             peer,
-            client_id: client_id.into(),
+            client_id,
             username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off. So does a profile whose
@@ -215,6 +224,7 @@ impl Session {
             held_bytes: 0,
             wake_pending: false,
             subscriptions: BTreeMap::new(),
+            client,
             special_subscriptions: false,
             overlapping: false,
             fb,

@@ -33,11 +33,13 @@ pub struct Context {
     /// Typed topics and the device registry, shared with the policy's typed stage.
     pub fb: Arc<FbTopics>,
     pub sessions: SessionTable,
+    /// The connected clients, for the admin plane's list.
+    pub clients: Arc<crate::clients::Clients>,
     pub redeliveries: Redeliveries,
     /// What survives a restart; None with `[persistence] enabled = false`.
     pub store: Option<Arc<crate::store::Store>>,
     /// Each identity's share of the retained messages.
-    pub retained_shares: crate::retained_share::RetainedShares,
+    pub retained_shares: Arc<crate::retained_share::RetainedShares>,
     pub metrics: Arc<Metrics>,
     pub max_packet: usize,
     pub max_inflight: u16,

@@ -336,6 +336,7 @@ impl Session {
             }
             _ => {
                 self.ctx.metrics.messages_out.inc();
+                self.client.sent();
                 if qos == 0 {
                     self.qos0_unwritten = self.qos0_unwritten.saturating_add(1);
                 } else {

@@ -230,6 +230,7 @@ impl Session {
         }
         let retain = publish.retain;
         self.ctx.metrics.messages_in.inc();
+        self.client.received();
         let mut routes = routes.unwrap_or_default().into_iter();
         if let Some((topic, payload)) = routes.next() {
             // A typed message: the canonical encoding travels at the publication's QoS and
@@ -548,6 +549,7 @@ impl Session {
                 rare.subscription_ids.remove(path);
             }
         }
+        self.client.set_subscriptions(self.subscriptions.len());
         let own: Vec<&str> = self
             .subscriptions
             .keys()

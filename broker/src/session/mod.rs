@@ -253,6 +253,8 @@ struct Session {
     wake_pending: bool,
     /// The client's subscriptions by filter, with their MQTT 5 options.
     subscriptions: BTreeMap<String, Filter>,
+    /// This connection in the admin plane's list of clients, with its counters.
+    client: crate::clients::Entry,
     /// Some subscription uses No Local, Retain As Published or Retain Handling 2.
     special_subscriptions: bool,
     /// Two of the client's non-shared subscriptions overlap: a message may match several,

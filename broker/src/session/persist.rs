@@ -292,6 +292,7 @@ impl Session {
                         });
                     }
                     self.ctx.metrics.messages_out.inc();
+                    self.client.sent();
                 }
             }
             self.outstanding_out = self.outstanding_out.saturating_add(1);

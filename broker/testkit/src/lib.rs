@@ -25,6 +25,6 @@ mod process;
 
 pub use binary::fbbus_bin;
 pub use broker::{basic, metric_value, Broker, Options};
-pub use http::{http_get, http_get_as};
+pub use http::{http_get, http_get_as, http_request};
 pub use port::free_port;
 pub use process::{add_user, have, npm_file, require, require_paho, run, wait_until};
