@@ -17,8 +17,6 @@ use std::time::SystemTime;
 
 use serde::Serialize;
 
-use crate::session::ListenerPolicy;
-
 /// Clients listed per request at most.
 pub const MAX_PAGE: usize = 1000;
 
@@ -28,7 +26,8 @@ pub struct Client {
     pub client_id: Arc<str>,
     pub username: Option<Box<str>>,
     pub address: SocketAddr,
-    pub listener: Arc<ListenerPolicy>,
+    /// The listener's name.
+    pub listener: Arc<str>,
     /// The connection's session number (`session::table`).
     pub session: u64,
     /// MQTT protocol level: 4 (3.1.1) or 5.
@@ -45,7 +44,7 @@ impl Client {
         (client_id, session): (Arc<str>, u64),
         username: Option<&str>,
         address: SocketAddr,
-        listener: Arc<ListenerPolicy>,
+        listener: Arc<str>,
         protocol: u8,
         keep_alive_s: u16,
     ) -> Client {
@@ -135,7 +134,7 @@ impl Clients {
                 client_id: c.client_id.to_string(),
                 username: c.username.as_deref().map(str::to_owned),
                 address: c.address.to_string(),
-                listener: c.listener.name.clone(),
+                listener: c.listener.to_string(),
                 protocol: if c.protocol == 5 { "5" } else { "3.1.1" },
                 keep_alive_s: c.keep_alive_s,
                 connected_since: humantime::format_rfc3339_millis(c.since).to_string(),
@@ -178,11 +177,7 @@ mod tests {
             (id.into(), session),
             Some("u"),
             "127.0.0.1:1883".parse().unwrap(),
-            Arc::new(ListenerPolicy {
-                name: "main".into(),
-                anonymous: true,
-                transport: "mqtt",
-            }),
+            "main".into(),
             4,
             30,
         )

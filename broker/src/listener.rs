@@ -159,7 +159,7 @@ impl Listener {
                     Ok(a) => a,
                     Err(e) => {
                         // EMFILE and friends: log, breathe, and keep serving the others.
-                        tracing::error!(listener = self.policy.name, error = %e, "accept failed");
+                        tracing::error!(listener = &*self.policy.name, error = %e, "accept failed");
                         tokio::time::sleep(Duration::from_millis(50)).await;
                         continue;
                     }
@@ -175,7 +175,7 @@ impl Listener {
                 {
                     last_pending_warning = Some(Instant::now());
                     tracing::warn!(
-                        listener = self.policy.name,
+                        listener = &*self.policy.name,
                         %peer,
                         refused = pending_unlogged,
                         "too many connections from this address that have not sent CONNECT \
@@ -195,7 +195,7 @@ impl Listener {
                 if last_warning.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
                     last_warning = Some(Instant::now());
                     tracing::warn!(
-                        listener = self.policy.name,
+                        listener = &*self.policy.name,
                         %peer,
                         refused = refused_unlogged,
                         "connection limit reached (fbbus_connection_limit: [broker] \
@@ -275,7 +275,7 @@ struct Counted {
 
 impl Counted {
     fn new(metrics: &Metrics, policy: &session::ListenerPolicy, inner: Box<dyn Stream>) -> Self {
-        let labels = [policy.name.as_str(), policy.transport];
+        let labels = [&*policy.name, policy.transport];
         metrics.listener_accepted.with_label_values(&labels).inc();
         let open = metrics.listener_connections.with_label_values(&labels);
         open.inc();

@@ -316,7 +316,7 @@ impl Broker {
             let socket = bind(&section.name, section.bind)?;
             listeners.push(Listener {
                 policy: Arc::new(ListenerPolicy {
-                    name: section.name.clone(),
+                    name: section.name.as_str().into(),
                     anonymous: section.anonymous(&config.auth),
                     transport: section.kind.transport(tls.is_some()),
                 }),
@@ -341,11 +341,11 @@ impl Broker {
         let slots = Arc::new(Semaphore::new(budget.mqtt));
         let bound: Vec<_> = listeners
             .iter()
-            .map(|l| (l.policy.name.clone(), l.local_addr()))
+            .map(|l| (l.policy.name.to_string(), l.local_addr()))
             .collect();
         for listener in listeners {
             let path = listener.websocket.as_ref().map(|w| w.path.as_str());
-            tracing::info!(listener = listener.policy.name, addr = %listener.local_addr(),
+            tracing::info!(listener = &*listener.policy.name, addr = %listener.local_addr(),
                 transport = listener.policy.transport, path, tls = listener.tls.is_some(),
                 anonymous = listener.policy.anonymous, "listening (MQTT 3.1.1 and 5)");
             tasks.core(

@@ -6,13 +6,20 @@
 #   3. the broker's CPU (utime+stime of /proc/<pid>/stat) and peak RSS during a bounded
 #      `fbbus-loadtest pairs` run with no page open, then with 10 pages' live feeds open
 #      (each: the device list loaded, then /api/v1/events read; half of them watching a
-#      device as the device view does), and the ratio.
+#      device as the device view does, with the history of its plotted ports), and the
+#      ratio;
+#   4. (issue 37) the trends' memory: 1,000 devices x 10 INT outputs, each port one value
+#      a second for HISTORY_SECONDS (default 240: past the 200 s that fill each port's
+#      share of the default history_max_points), on a broker with the default history
+#      and on one without (history_max_points = 0): resident memory and CPU, and the
+#      history's own gauges.
 #
-# Usage: python3 console_cost.py FBBUS_BINARY FBBUS_LOADTEST_BINARY
+# Usage: python3 console_cost.py FBBUS_BINARY FBBUS_LOADTEST_BINARY [HISTORY_SECONDS]
 import gzip, json, os, socket, statistics, struct, subprocess, sys, tempfile, threading, time
 import urllib.request
 
 binary, loadtest = sys.argv[1], sys.argv[2]
+HISTORY_SECONDS = int(sys.argv[3]) if len(sys.argv) > 3 else 240
 d = tempfile.mkdtemp(prefix="console-cost-")
 port = 21000 + os.getpid() % 1000
 admin = f"127.0.0.1:{port + 1}"
@@ -163,6 +170,9 @@ def page(watch):
         get("/api/v1/devices?limit=1000")
         if watch:
             get("/api/v1/devices/dev-0001/activity")
+            # The device view's plots: each plottable output's history, once.
+            for port in ["CONV.MOVED", "CONV.POSITION", "CONV.SENSOR_IN"]:
+                get(f"/api/v1/devices/dev-0001/ports/{port}/history")
         s = socket.create_connection(("127.0.0.1", port + 1))
         path = "/api/v1/events" + ("?device=dev-0001" if watch else "")
         s.sendall(f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
@@ -224,3 +234,82 @@ print(f"10 pages vs none: CPU {(c1 / w1) / (c0 / w0):.2f}x, peak RSS {r1 - r0:+.
       f"feeds read {feed_bytes[0] / 1024:.0f} KiB")
 broker.terminate()
 broker.wait(timeout=10)
+
+
+# ------------------------------------------------------------ 4. the trends' memory
+TEN = json.dumps({"fbs": {"F": {"type": "T", "data_out": {f"P{p}": "INT" for p in range(10)}}}}).encode()
+
+
+def history_run(max_points, seconds):
+    """1,000 devices x 10 ports at one value a second on a fresh broker keeping at most
+    max_points: (RSS MiB before the values, RSS MiB at the end, CPU s, history gauges)."""
+    global broker, port, admin
+    port += 10
+    admin = f"127.0.0.1:{port + 1}"
+    conf = f"{d}/history-{max_points}.toml"
+    open(conf, "w").write(f"""[broker]
+line = "m"
+[fb]
+max_devices_per_identity = 100000
+[[listener]]
+name = "main"
+bind = "127.0.0.1:{port}"
+[admin]
+bind = "{admin}"
+[persistence]
+enabled = false
+[console]
+history_max_points = {max_points}
+""")
+    broker = subprocess.Popen([binary, "serve", "--config", conf], stdout=log, stderr=log)
+    for _ in range(200):
+        try:
+            if get("/readyz").startswith(b"ready"):
+                break
+        except OSError:
+            pass
+        time.sleep(0.05)
+    socks = []
+    for i in range(1000):
+        s = socket.create_connection(("127.0.0.1", port))
+        s.sendall(packet(0x10, mqtt_str("MQTT") + bytes([4, 2]) + struct.pack(">H", 0) + mqtt_str(f"ten-{i:04}")))
+        read_packet(s)
+        s.sendall(packet(0x32, mqtt_str(f"fbbus/declare/ten-{i:04}") + struct.pack(">H", 1) + TEN))
+        while read_packet(s)[0] >> 4 != 4:
+            pass
+        socks.append(s)
+    time.sleep(2)
+    before = rss_mib()
+    cpu0 = cpu_s()
+    start = time.time()
+    for tick in range(seconds):
+        for i, s in enumerate(socks):
+            s.sendall(b"".join(packet(0x30, mqtt_str(f"fb/ten-{i:04}/F/P{p}") + str(tick % 1000).encode())
+                               for p in range(10)))
+        time.sleep(max(0.0, start + tick + 1 - time.time()))
+    time.sleep(2)
+    after, cpu = rss_mib(), cpu_s() - cpu0
+    metrics = get("/metrics").decode()
+    gauges = {}
+    for line in metrics.splitlines():
+        for name in ['fbbus_console_entries{what="history_points"}', 'fbbus_console_entries{what="history_series"}',
+                     "fbbus_console_history_bytes", "fbbus_typed_messages_accepted_total"]:
+            if line.startswith(name + " "):
+                gauges[name] = float(line.split()[-1])
+    for s in socks:
+        s.close()
+    broker.terminate()
+    broker.wait(timeout=10)
+    return before, after, cpu, gauges
+
+
+if HISTORY_SECONDS > 0:
+    figures = {}
+    for max_points in [2_000_000, 0]:
+        before, after, cpu, gauges = history_run(max_points, HISTORY_SECONDS)
+        figures[max_points] = (before, after, cpu)
+        print(f"history_max_points = {max_points}: 1,000 devices x 10 ports at 1 value/s for {HISTORY_SECONDS} s: "
+              f"RSS {before:.1f} -> {after:.1f} MiB, broker CPU {cpu:.1f} s; {gauges}")
+    (b1, a1, c1), (b0, a0, c0) = figures[2_000_000], figures[0]
+    print(f"the history's cost: RSS {(a1 - b1) - (a0 - b0):+.1f} MiB, CPU {c1 / c0:.2f}x "
+          f"({c1:.1f} s against {c0:.1f} s)")

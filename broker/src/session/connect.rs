@@ -57,7 +57,7 @@ impl Session {
         mut io: Io,
         connect: Packet,
         peer: SocketAddr,
-        listener: &Arc<ListenerPolicy>,
+        listener: &ListenerPolicy,
         ctx: &Arc<Context>,
     ) -> Option<Session> {
         let Packet::Connect(connect, properties, will, will_properties, login) = connect else {
@@ -149,7 +149,7 @@ impl Session {
         }
         tracing::info!(
             %peer,
-            listener = listener.name,
+            listener = &*listener.name,
             client_id,
             username = username.as_deref().unwrap_or(""),
             version = ?version,
@@ -176,7 +176,7 @@ impl Session {
             (Arc::clone(&client_id), linked.session),
             username.as_deref(),
             peer,
-            Arc::clone(listener),
+            Arc::clone(&listener.name),
             if version == Version::V5 { 5 } else { 4 },
             keep_alive_s,
         ));

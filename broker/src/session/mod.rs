@@ -78,7 +78,8 @@ use close::End;
 /// `[[listener]]` section).
 #[derive(Debug)]
 pub struct ListenerPolicy {
-    pub name: String,
+    /// Shared with the connections' entries in the clients list (`clients`).
+    pub name: std::sync::Arc<str>,
     pub anonymous: bool,
     /// mqtt, mqtts, ws or wss: the label of the listener's metrics.
     pub transport: &'static str,
