@@ -204,6 +204,7 @@ impl Broker {
             )
             .with_fbdk_max_payload(config.fb.fbdk_max_payload)
             .with_max_packet(config.broker.max_packet_bytes)
+            .with_max_devices(config.fb.max_devices)
             .with_limits(config.fb.declaration_limits())
             .with_profiles(Arc::clone(&profiles)),
         );

@@ -9,18 +9,25 @@
 //! one budget; a client that invents device ids meets the registry's
 //! `max_devices_per_identity` and this table's bound.
 //!
-//! Bounded: at most [`MAX_IDENTITIES`] identities have buckets of their own. When the
-//! table is full, buckets that have filled up again (their identity idle long enough to
-//! have its whole budget back, so forgetting them changes nothing) are dropped; if none
-//! has, a new identity shares one overflow bucket with every other newcomer, so a flood
-//! of addresses cannot grow the table or get fresh budgets.
+//! Bounded: each kind holds at most its capacity of buckets: the registry's `[fb]
+//! max_devices` (every registered device may have one) plus [`MAX_NEWCOMERS`], ~100 bytes
+//! each. When a kind is full, buckets that have filled up again (their device idle long
+//! enough to have its whole budget back, so forgetting them changes nothing) are dropped,
+//! at most once a second; if none has, a newcomer shares one overflow bucket with every
+//! other newcomer, so a flood of invented ids cannot grow the table or get fresh budgets.
+//! Until 2026-11-29 both kinds shared one table of 10,000: a device's declaration and its
+//! answer take a bucket of each, so from 5,000 devices on, new devices from one gateway
+//! (or one loopback test line) shared the overflow bucket and 837 of 10,000 devices
+//! declaring at once were refused as "rate limited" (`fbbus-loadtest compare fb`).
 
 use std::collections::HashMap;
 use std::sync::{Mutex, PoisonError};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-/// Identities with buckets of their own, per kind.
-pub const MAX_IDENTITIES: usize = 10_000;
+/// Buckets beyond the registry's `max_devices`, per kind: devices not registered (yet).
+pub const MAX_NEWCOMERS: usize = 10_000;
+/// Sweeps of a full table at most this often.
+const SWEEP_EVERY: Duration = Duration::from_secs(1);
 
 /// What a budget is for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -62,46 +69,81 @@ impl Bucket {
     }
 }
 
-/// Every identity's buckets, shared by the line's connections.
+/// One kind's buckets.
 #[derive(Debug, Default)]
+struct Table {
+    buckets: HashMap<String, Bucket>,
+    /// When the full table was last swept.
+    swept: Option<Instant>,
+}
+
+/// Every identity's buckets, shared by the line's connections.
+#[derive(Debug)]
 pub struct Budgets {
-    buckets: Mutex<HashMap<(Kind, String), Bucket>>,
+    /// Buckets per kind at most (besides the overflow one).
+    capacity: usize,
+    declarations: Mutex<Table>,
+    diagnostics: Mutex<Table>,
 }
 
 /// The key every newcomer shares once the table is full.
 const OVERFLOW: &str = "";
 
 impl Budgets {
+    /// Room for a bucket per kind for each of `max_devices` devices, and
+    /// [`MAX_NEWCOMERS`] more.
+    pub fn new(max_devices: usize) -> Budgets {
+        Budgets {
+            capacity: max_devices.saturating_add(MAX_NEWCOMERS),
+            declarations: Mutex::default(),
+            diagnostics: Mutex::default(),
+        }
+    }
+
     /// Takes one token of `identity`'s `kind` budget (`rate` a second, `burst` at most),
     /// or says in how many seconds one will be there.
     pub fn take(&self, kind: Kind, identity: &str, rate: f64, burst: f64) -> Result<(), f64> {
         let now = Instant::now();
-        let mut buckets = self.buckets.lock().unwrap_or_else(PoisonError::into_inner);
-        let key = (kind, identity.to_owned());
-        if !buckets.contains_key(&key) && buckets.len() >= MAX_IDENTITIES {
-            buckets.retain(|(k, _), b| {
-                *k != kind || {
-                    b.refill(rate, burst, now);
-                    b.tokens < burst
-                }
+        let table = match kind {
+            Kind::Declarations => &self.declarations,
+            Kind::Diagnostics => &self.diagnostics,
+        };
+        let mut table = table.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(bucket) = table.buckets.get_mut(identity) {
+            return bucket.take(rate, burst, now);
+        }
+        let due = table
+            .swept
+            .is_none_or(|at| now.duration_since(at) >= SWEEP_EVERY);
+        if table.buckets.len() >= self.capacity && due {
+            table.swept = Some(now);
+            table.buckets.retain(|_, b| {
+                b.refill(rate, burst, now);
+                b.tokens < burst
             });
         }
-        let key = match buckets.contains_key(&key) || buckets.len() < MAX_IDENTITIES {
-            true => key,
-            false => (kind, OVERFLOW.to_owned()),
+        let key = match table.buckets.len() < self.capacity {
+            true => identity,
+            false => OVERFLOW,
         };
-        buckets
-            .entry(key)
+        table
+            .buckets
+            .entry(key.to_owned())
             .or_insert_with(|| Bucket::full(burst, now))
             .take(rate, burst, now)
     }
 
-    /// Identities with buckets now (for tests).
+    /// Buckets of `kind` now (for tests).
     #[cfg(test)]
-    fn len(&self) -> usize {
-        self.buckets
+    fn len(&self, kind: Kind) -> usize {
+        let table = match kind {
+            Kind::Declarations => &self.declarations,
+            Kind::Diagnostics => &self.diagnostics,
+        };
+        table
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
+            .buckets
             .len()
     }
 }
@@ -112,7 +154,7 @@ mod tests {
 
     #[test]
     fn an_identitys_connections_share_one_budget() {
-        let budgets = Budgets::default();
+        let budgets = Budgets::new(10);
         for _ in 0..3 {
             assert!(budgets
                 .take(Kind::Declarations, "user:a", 0.05, 3.0)
@@ -130,12 +172,25 @@ mod tests {
     }
 
     #[test]
+    fn every_device_of_a_full_registry_has_its_own_budgets() {
+        // Each device declares once and is answered once: a bucket of each kind.
+        let budgets = Budgets::new(20_000);
+        for i in 0..20_000 {
+            let key = format!("address:127.0.0.1/dev-{i}");
+            assert!(budgets.take(Kind::Declarations, &key, 0.5, 30.0).is_ok());
+            assert!(budgets.take(Kind::Diagnostics, &key, 10.0, 20.0).is_ok());
+        }
+        assert_eq!(budgets.len(Kind::Declarations), 20_000);
+        assert_eq!(budgets.len(Kind::Diagnostics), 20_000);
+    }
+
+    #[test]
     fn a_flood_of_identities_shares_the_overflow_bucket() {
-        let budgets = Budgets::default();
-        for i in 0..MAX_IDENTITIES {
+        let budgets = Budgets::new(0);
+        for i in 0..MAX_NEWCOMERS {
             let _ = budgets.take(Kind::Declarations, &format!("address:{i}"), 0.0001, 1.0);
         }
-        assert_eq!(budgets.len(), MAX_IDENTITIES);
+        assert_eq!(budgets.len(Kind::Declarations), MAX_NEWCOMERS);
         // Full table, none refilled: newcomers share one bucket of one token.
         assert!(budgets
             .take(Kind::Declarations, "address:new-1", 0.0001, 1.0)
@@ -143,6 +198,10 @@ mod tests {
         assert!(budgets
             .take(Kind::Declarations, "address:new-2", 0.0001, 1.0)
             .is_err());
-        assert_eq!(budgets.len(), MAX_IDENTITIES + 1);
+        assert_eq!(budgets.len(Kind::Declarations), MAX_NEWCOMERS + 1);
+        // The other kind is a table of its own.
+        assert!(budgets
+            .take(Kind::Diagnostics, "address:new-2", 0.0001, 1.0)
+            .is_ok());
     }
 }

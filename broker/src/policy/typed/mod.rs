@@ -212,7 +212,7 @@ impl FbTopics {
             max_packet: usize::MAX,
             limits: Limits::default(),
             profiles: Arc::new(Profiles::none()),
-            budgets: Budgets::default(),
+            budgets: Budgets::new(crate::registry::Limits::default().max_devices),
             speakers: Speakers::default(),
             publisher,
             metrics,
@@ -224,6 +224,13 @@ impl FbTopics {
     /// (0: no limit).
     pub fn with_fbdk_max_payload(mut self, bytes: usize) -> FbTopics {
         self.fbdk_max_payload = bytes;
+        self
+    }
+
+    /// The registry's `[fb] max_devices`: every device may have its own declaration and
+    /// diagnostics budgets (`budget`).
+    pub fn with_max_devices(mut self, max_devices: usize) -> FbTopics {
+        self.budgets = Budgets::new(max_devices);
         self
     }
 
