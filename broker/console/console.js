@@ -27,7 +27,15 @@
     activity: null,          // the viewed device's activity
     feed: null, feedDevice: undefined,
     renderPending: false,
+    trends: new Map(),       // the viewed device's 'FB.PORT' -> { kind, type, points: [[ms, value]] }
+    plotted: [],             // ports on the trend chart, in the order they were added
+    trendRange: 600,         // seconds shown by the sparklines and the chart
+    clients: null, clientsAfter: [], clientsAt: 0,
+    retained: null, retainedAfter: [],
   };
+  // Port types whose values are numbers (BOOL as 1/0): the history keeps and plots them.
+  const NUMERIC = new Set(['BOOL', 'SINT', 'INT', 'DINT', 'LINT', 'USINT', 'UINT', 'UDINT', 'ULINT',
+    'BYTE', 'WORD', 'DWORD', 'LWORD', 'REAL', 'LREAL']);
 
   const $ = (id) => document.getElementById(id);
   const el = (tag, attrs, text) => {
@@ -62,10 +70,46 @@
     if (s < 86400) return Math.floor(s / 3600) + ' h ago';
     return Math.floor(s / 86400) + ' d ago';
   }
+  // Local date and time of an RFC 3339 text or ms since 1970; the raw value goes in a title.
+  function localTime(t) {
+    const ms = typeof t === 'number' ? t : Date.parse(t);
+    if (!isFinite(ms)) return String(t);
+    const d = new Date(ms);
+    return d.toLocaleDateString() + ' ' + d.toLocaleTimeString();
+  }
+  function clockTime(ms, seconds) {
+    return new Date(ms).toLocaleTimeString([], seconds ? { hour: '2-digit', minute: '2-digit', second: '2-digit' } : { hour: '2-digit', minute: '2-digit' });
+  }
+  // An event's canonical JSON as words: "#17 at <local time>: POSITION 3, SENSOR_IN true".
+  function eventWords(raw, short) {
+    let e;
+    try { e = JSON.parse(raw); } catch (x) { return null; }
+    if (!e || typeof e !== 'object' || Array.isArray(e) || typeof e.ts !== 'number') return null;
+    if (short) return '#' + e.seq + ' at ' + clockTime(e.ts / 1000, true);
+    const data = e.data && typeof e.data === 'object' ? Object.keys(e.data).map((k) => k + ' ' + JSON.stringify(e.data[k])).join(', ') : '';
+    return '#' + e.seq + ' at ' + localTime(e.ts / 1000) + (data ? ': ' + data : '');
+  }
   function duration(s) {
     s = Math.floor(s);
     const d = Math.floor(s / 86400), h = Math.floor(s % 86400 / 3600), m = Math.floor(s % 3600 / 60);
     return (d ? d + ' d ' : '') + (d || h ? h + ' h ' : '') + m + ' min ' + (s % 60) + ' s';
+  }
+  // Every FB and port name of a record, lower case, for the search (kept per record object).
+  const portWords = new WeakMap();
+  function portNames(r) {
+    let w = portWords.get(r);
+    if (w === undefined) {
+      const fbs = (r.interface && r.interface.fbs) || {};
+      const names = [];
+      for (const fb of Object.keys(fbs)) {
+        for (const side of ['events_out', 'events_in', 'data_out', 'data_in']) {
+          for (const p of Object.keys(fbs[fb][side] || {})) names.push(fb + '.' + p);
+        }
+      }
+      w = names.join(' ').toLowerCase();
+      portWords.set(r, w);
+    }
+    return w;
   }
   function fbNames(r) {
     const fbs = (r.interface && r.interface.fbs) || {};
@@ -117,16 +161,77 @@
   async function loadActivity(id) {
     try {
       const a = await getJson('/api/v1/devices/' + encodeURIComponent(id) + '/activity');
-      if (S.deviceId === id) { S.activity = a; scheduleRender(); }
+      if (S.deviceId === id) { S.activity = a; scheduleRender(); loadTrends(id); }
     } catch (e) {
       if (S.deviceId === id) { S.activity = null; scheduleRender(); }
     }
+  }
+
+  // The viewed device's plottable outputs: its event outputs, and its numeric data outputs.
+  function plottablePorts(r) {
+    const out = [];
+    const fbs = (r && r.interface && r.interface.fbs) || {};
+    for (const fb of Object.keys(fbs)) {
+      for (const p of Object.keys(fbs[fb].events_out || {})) out.push(fb + '.' + p);
+      for (const p of Object.keys(fbs[fb].data_out || {})) if (NUMERIC.has(fbs[fb].data_out[p])) out.push(fb + '.' + p);
+    }
+    return out;
+  }
+  function historyPath(id, port, extra) {
+    return '/api/v1/devices/' + encodeURIComponent(id) + '/ports/' + encodeURIComponent(port) + '/history' + (extra || '');
+  }
+  async function loadTrends(id) {
+    const from = Math.floor(now() - S.trendRange * 1000);
+    const ports = plottablePorts(S.devices.get(id));
+    const fresh = new Map();
+    await Promise.all(ports.map(async (port) => {
+      try {
+        const h = await getJson(historyPath(id, port, '?from=' + from));
+        fresh.set(port, { kind: h.kind, type: h.type, points: h.points || [] });
+      } catch (e) { /* a port without history: no line drawn */ }
+    }));
+    if (S.deviceId !== id) return;
+    // Points the feed brought while the histories loaded are kept.
+    for (const [port, t] of S.trends) {
+      const f = fresh.get(port);
+      if (f) {
+        const last = f.points.length ? f.points[f.points.length - 1][0] : -1;
+        for (const p of t.points) if (p[0] > last) f.points.push(p);
+      }
+    }
+    S.trends = fresh;
+    scheduleRender();
+  }
+  function addPoints(points) {
+    const oldest = now() - S.trendRange * 1000;
+    for (const port of Object.keys(points || {})) {
+      let t = S.trends.get(port);
+      if (!t) { t = { kind: null, type: null, points: [] }; S.trends.set(port, t); }
+      for (const p of points[port]) t.points.push(p);
+      let cut = 0;
+      while (cut < t.points.length && t.points[cut][0] < oldest) cut++;
+      if (cut) t.points.splice(0, cut);
+    }
+  }
+
+  async function loadClients(after) {
+    const page = await getJson('/api/v1/clients?limit=100' + (after ? '&after=' + encodeURIComponent(after) : ''));
+    S.clients = page; S.clientsAt = Date.now();
+    scheduleRender();
+  }
+  async function loadRetained(after) {
+    const filter = $('retained-filter').value.trim() || '#';
+    const page = await getJson('/api/v1/retained?limit=100&filter=' + encodeURIComponent(filter) +
+      (after ? '&after=' + encodeURIComponent(after) : ''));
+    S.retained = page;
+    scheduleRender();
   }
 
   function resync() {
     loadDevices().catch(feedTrouble);
     loadLine().catch(feedTrouble);
     if (S.deviceId) loadActivity(S.deviceId);
+    if (S.view === 'clients') loadClients(S.clientsAfter[S.clientsAfter.length - 1]).catch(feedTrouble);
   }
 
   function feedTrouble() { $('feed-state').textContent = '⚠ broker unreachable, retrying'; }
@@ -181,6 +286,7 @@
     } else if (kind === 'ports') {
       if (S.activity && d.device === S.deviceId) {
         S.activity.ports = Object.assign(S.activity.ports || {}, d.ports);
+        addPoints(d.points);
         scheduleRender();
       }
     } else if (kind === 'refusal') {
@@ -200,6 +306,8 @@
     let view = 'line', id = null, params = new URLSearchParams();
     const m = /^#\/device\/(.+)$/.exec(hash);
     if (m) { view = 'device'; try { id = decodeURIComponent(m[1]); } catch (e) { id = m[1]; } }
+    else if (hash.startsWith('#/clients')) view = 'clients';
+    else if (hash.startsWith('#/retained')) view = 'retained';
     else if (hash.startsWith('#/devices')) {
       view = 'devices';
       const q = hash.indexOf('?');
@@ -207,11 +315,12 @@
     }
     const changedDevice = id !== S.deviceId;
     S.view = view; S.deviceId = id;
-    for (const v of ['line', 'devices', 'device']) $('view-' + v).hidden = v !== view;
-    $('nav-line').setAttribute('aria-current', view === 'line' ? 'page' : 'false');
-    $('nav-devices').setAttribute('aria-current', view === 'devices' ? 'page' : 'false');
+    for (const v of ['line', 'devices', 'device', 'clients', 'retained']) $('view-' + v).hidden = v !== view;
+    for (const v of ['line', 'devices', 'clients', 'retained']) $('nav-' + v).setAttribute('aria-current', view === v ? 'page' : 'false');
+    if (view === 'clients') { S.clientsAfter = []; loadClients(null).catch(feedTrouble); }
+    if (view === 'retained' && !S.retained) loadRetained(null).catch(feedTrouble);
     if (view === 'devices' && params.has('status')) { $('filter-status').value = params.get('status'); S.page = 0; }
-    if (view === 'device' && changedDevice) { S.activity = null; }
+    if (view === 'device' && changedDevice) { S.activity = null; S.trends = new Map(); S.plotted = []; clear($('ports-rows')); }
     openFeed();
     scheduleRender(true);
     const h1 = document.querySelector('#view-' + view + ' h1');
@@ -235,6 +344,8 @@
     if (S.view === 'line') renderLine();
     else if (S.view === 'devices') renderDevices();
     else if (S.view === 'device') renderDevice();
+    else if (S.view === 'clients') renderClients();
+    else if (S.view === 'retained') renderRetained();
   }
 
   function renderLine() {
@@ -335,7 +446,7 @@
       if (st && statusOf(r) !== st && !(st === 'online' && r.status === 'online')) continue;
       if (ln && r.line !== ln) continue;
       if (q && !(r.id.toLowerCase().includes(q) || fbNames(r).toLowerCase().includes(q) ||
-        (r.last_will_reason || '').toLowerCase().includes(q))) continue;
+        portNames(r).includes(q) || (r.last_will_reason || '').toLowerCase().includes(q))) continue;
       out.push(r);
     }
     const key = SORTERS[S.sort.key] || SORTERS.id, dir = S.sort.dir;
@@ -366,7 +477,7 @@
       tr.appendChild(td);
       tr.appendChild(el('td', null, r.line));
       const st = el('td', { class: 'st' }); st.appendChild(statusBadge(statusOf(r))); tr.appendChild(st);
-      tr.appendChild(el('td', { title: r.since }, ago(r.since)));
+      tr.appendChild(el('td', { title: localTime(r.since) + ' (' + r.since + ')' }, ago(r.since)));
       tr.appendChild(el('td', { class: 'num' }, r.session));
       tr.appendChild(el('td', null, r.last_will_reason || ''));
       tr.appendChild(el('td', null, fbNames(r)));
@@ -377,6 +488,7 @@
       ? document.activeElement.closest('tr').getAttribute('data-id') : null;
     clear(body);
     body.appendChild(frag);
+    labelCells($('devices-table'));
     if (focused !== null) {
       for (const tr of body.children) {
         if (tr.getAttribute('data-id') === focused) { tr.querySelector('a').focus({ preventScroll: true }); break; }
@@ -422,51 +534,68 @@
     const st = $('device-status'); clear(st); st.appendChild(statusBadge(statusOf(r)));
     if (r.silent && r.silent_since) st.appendChild(document.createTextNode(' since ' + r.silent_since));
     $('device-line').textContent = r.line + (r.line === S.line ? ' (this line)' : '');
-    $('device-since').textContent = r.since + ' (' + ago(r.since) + ')';
+    $('device-since').textContent = localTime(r.since) + ' (' + ago(r.since) + ')';
+    $('device-since').title = r.since;
     $('device-session').textContent = r.session;
     $('device-reason').textContent = r.last_will_reason || (r.status === 'online' ? '– (online)' : '–');
     const a = S.activity || {};
     const ports = a.ports || {};
     renderBoxes(r.interface || { fbs: {} }, ports);
-    // Output port table.
+    // Output port table. Rows are kept across redraws (a row per port, updated in place),
+    // so a click on a row's plot box is never lost to a redraw between press and release.
     const body = $('ports-rows');
-    const frag = document.createDocumentFragment();
     const fbs = (r.interface && r.interface.fbs) || {};
+    const kept = new Map(Array.from(body.rows).map((tr) => [tr.getAttribute('data-port'), tr]));
+    const order = [];
     for (const fb of Object.keys(fbs)) {
       const f = fbs[fb];
-      const outs = Object.keys(f.events_out || {}).map((p) => [p, 'event' + ((f.events_out[p].with || []).length ? ' WITH ' + f.events_out[p].with.join(', ') : '')])
-        .concat(Object.keys(f.data_out || {}).map((p) => [p, 'data ' + f.data_out[p]]));
-      for (const [port, kind] of outs) {
+      const carriedBy = {};
+      for (const ev of Object.keys(f.events_out || {})) for (const d of f.events_out[ev].with || []) (carriedBy[d] = carriedBy[d] || []).push(ev);
+      const outs = Object.keys(f.events_out || {}).map((p) => [p, 'event' + ((f.events_out[p].with || []).length ? ' WITH ' + f.events_out[p].with.join(', ') : ''), true])
+        .concat(Object.keys(f.data_out || {}).map((p) => [p, 'data ' + f.data_out[p] + (carriedBy[p] ? ' (with ' + carriedBy[p].join(', ') + ')' : ''), NUMERIC.has(f.data_out[p])]));
+      for (const [port, kind, plottable] of outs) {
         const key = fb + '.' + port;
+        let tr = kept.get(key);
+        if (!tr || tr.getAttribute('data-kind') !== kind) tr = portRow(id, key, kind, plottable);
+        order.push(tr);
         const v = ports[key];
-        const tr = el('tr', { 'data-port': key });
-        tr.appendChild(el('th', { scope: 'row' }, key));
-        tr.appendChild(el('td', null, kind));
-        tr.appendChild(el('td', { class: 'value' }, v ? v.value + (v.truncated ? ' …' : '') : '—'));
-        tr.appendChild(el('td', { title: v ? v.at : '' }, v ? (v.retained ? 'retained, ' : '') + ago(v.at) : 'never seen'));
-        const act = el('td');
-        const s = silentFor(fb, port, v);
+        const cells = tr.cells;
+        const words = v && kind.startsWith('event') ? eventWords(v.value) : null;
+        cells[2].textContent = v ? (words || v.value) + (v.truncated ? ' …' : '') : '—';
+        cells[2].title = v ? v.value : '';
+        cells[3].textContent = v ? (v.retained ? 'retained, ' : '') + localTime(v.at) + ' (' + ago(v.at) + ')' : 'never seen';
+        cells[3].title = v ? v.at : '';
+        const act = cells[4];
+        clear(act);
+        const quiet = silentFor(fb, port, v);
         const period = portPeriod(fb, port);
-        if (s) {
+        if (quiet) {
           const b = el('span', { class: 'status status-silent' });
           b.appendChild(el('span', { class: 'icon', 'aria-hidden': 'true' }, STATUS_ICON.silent));
-          b.appendChild(document.createTextNode(' silent for ' + Math.round(s.quiet) + ' s (usually every ' + s.period.toFixed(2) + ' s)'));
+          b.appendChild(document.createTextNode(' silent for ' + Math.round(quiet.quiet) + ' s (usually every ' + quiet.period.toFixed(2) + ' s)'));
           act.appendChild(b);
         } else {
           act.textContent = period ? 'publishing, usually every ' + period.toFixed(2) + ' s' : (v ? 'no regular period' : '');
         }
-        tr.appendChild(act);
-        frag.appendChild(tr);
+        const box = tr.querySelector('input.plot');
+        if (box) box.checked = S.plotted.includes(key);
       }
     }
-    clear(body); body.appendChild(frag);
+    // Rows in interface order; nodes moved only when the order changed.
+    const same = order.length === body.rows.length && order.every((tr, k) => body.rows[k] === tr);
+    if (!same) {
+      clear(body);
+      for (const tr of order) body.appendChild(tr);
+    }
+    labelCells($('ports-table'));
+    renderTrend(id);
     // Refusals, newest first.
     const refusals = (a.refusals || []).slice().reverse();
     $('refusals-none').hidden = refusals.length > 0;
     const list = $('refusals'); clear(list);
     for (const x of refusals) {
       const li = el('li', { class: 'refusal' });
-      li.appendChild(el('span', { class: 'when', title: x.at }, ago(x.at)));
+      li.appendChild(el('span', { class: 'when', title: x.at }, localTime(x.at) + ' (' + ago(x.at) + ')'));
       li.appendChild(el('span', { class: 'kind' }, x.kind + (x.reason ? ': ' + x.reason : '') + (x.code ? ' (0x' + x.code.toString(16) + ')' : '')));
       if (x.topic) li.appendChild(el('code', { class: 'topic' }, x.topic));
       if (x.detail) li.appendChild(el('span', { class: 'detail' }, x.detail));
@@ -489,10 +618,148 @@
     for (const o of (a.offline || []).slice().reverse()) {
       const li = el('li');
       li.appendChild(statusBadge(o.status));
-      li.appendChild(document.createTextNode(' ' + o.since + ' (' + ago(o.since) + ')' + (o.reason ? ' — ' + o.reason : '')));
+      li.title = o.since;
+      li.appendChild(document.createTextNode(' ' + localTime(o.since) + ' (' + ago(o.since) + ')' + (o.reason ? ' — ' + o.reason : '')));
       off.appendChild(li);
     }
     if (!off.firstChild) off.appendChild(el('li', null, 'Not offline since the broker started.'));
+  }
+
+  // One output port's row: name, kind, and (for a plottable port) its plot box and CSV
+  // link; the value, time and activity cells are filled by renderDevice.
+  function portRow(id, key, kind, plottable) {
+    const tr = el('tr', { 'data-port': key, 'data-kind': kind });
+    tr.appendChild(el('th', { scope: 'row' }, key));
+    tr.appendChild(el('td', null, kind));
+    tr.appendChild(el('td', { class: 'value' }));
+    tr.appendChild(el('td'));
+    tr.appendChild(el('td'));
+    const trend = el('td', { class: 'trend-cell' });
+    if (plottable) {
+      const label = el('label');
+      label.appendChild(el('input', { type: 'checkbox', class: 'plot', 'data-port': key }));
+      label.appendChild(document.createTextNode(' plot'));
+      trend.appendChild(label);
+      trend.appendChild(document.createTextNode(' · '));
+      trend.appendChild(el('a', { class: 'csv', 'data-port': key, download: id + '_' + key + '.csv', href: historyPath(id, key, '?format=csv') }, 'CSV'));
+    } else {
+      trend.textContent = '—';
+    }
+    tr.appendChild(trend);
+    return tr;
+  }
+
+  // A sparkline's points in the box (x, y, w, h): the trend range, or less if the port has
+  // not been seen for that long, newest at the right.
+  function sparkPoints(points, x, y, w, h) {
+    if (!points.length) return '';
+    const end = now(), start = Math.max(end - S.trendRange * 1000, points[0][0]);
+    let lo = Infinity, hi = -Infinity;
+    for (const p of points) { lo = Math.min(lo, p[1]); hi = Math.max(hi, p[1]); }
+    if (hi === lo) { hi += 1; lo -= 1; }
+    return points.filter((p) => p[0] >= start).map((p) => (x + (p[0] - start) / Math.max(1, end - start) * w).toFixed(1) + ',' +
+      (y + h - (p[1] - lo) / (hi - lo) * h).toFixed(1)).join(' ');
+  }
+
+  // The trend chart: the plotted ports over the range, one value axis, local times.
+  function renderTrend(id) {
+    const fig = $('trend-chart');
+    const shown = S.plotted.filter((p) => S.trends.has(p));
+    $('trend-none').hidden = shown.length > 0;
+    fig.hidden = shown.length === 0;
+    clear(fig);
+    if (!shown.length) return;
+    const W = 800, H = 260, L = 64, R = 12, T = 12, B = 30;
+    // The range, or from the oldest value shown if the ports are younger than that.
+    const end = now();
+    let start = end - S.trendRange * 1000;
+    const oldest = Math.min(...shown.map((p) => { const q = S.trends.get(p).points; return q.length ? q[0][0] : end; }));
+    start = Math.max(start, Math.min(oldest, end - 10000));
+    let lo = Infinity, hi = -Infinity;
+    for (const p of shown) for (const q of S.trends.get(p).points) if (q[0] >= start) { lo = Math.min(lo, q[1]); hi = Math.max(hi, q[1]); }
+    if (!isFinite(lo)) { lo = 0; hi = 1; }
+    if (hi === lo) { hi += 1; lo -= 1; }
+    const x = (t) => L + (t - start) / (end - start) * (W - L - R);
+    const y = (v) => T + (hi - v) / (hi - lo) * (H - T - B);
+    const g = svg('svg', { viewBox: '0 0 ' + W + ' ' + H, role: 'img', 'aria-labelledby': 'trend-title', preserveAspectRatio: 'none' });
+    g.appendChild(svg('title', { id: 'trend-title' }, 'Trend of ' + shown.join(', ') + ' over the last ' + Math.round(S.trendRange / 60) + ' minutes'));
+    for (let i = 0; i <= 4; i++) {
+      const v = lo + (hi - lo) * i / 4;
+      g.appendChild(svg('line', { x1: L, x2: W - R, y1: y(v), y2: y(v), class: 'grid-line' }));
+      g.appendChild(svg('text', { x: L - 6, y: y(v) + 4, class: 'tick', 'text-anchor': 'end' }, Math.abs(v) >= 1000 || v === Math.round(v) ? String(Math.round(v * 100) / 100) : v.toPrecision(4)));
+    }
+    for (let i = 0; i <= 5; i++) {
+      const t = start + (end - start) * i / 5;
+      g.appendChild(svg('text', { x: x(t), y: H - 8, class: 'tick', 'text-anchor': i === 0 ? 'start' : i === 5 ? 'end' : 'middle' }, clockTime(t, end - start <= 600000)));
+    }
+    g.appendChild(svg('line', { x1: L, x2: L, y1: T, y2: H - B, class: 'axis' }));
+    g.appendChild(svg('line', { x1: L, x2: W - R, y1: H - B, y2: H - B, class: 'axis' }));
+    const legend = el('ul', { class: 'legend' });
+    shown.forEach((port, i) => {
+      const t = S.trends.get(port);
+      const pts = t.points.filter((q) => q[0] >= start).map((q) => x(q[0]).toFixed(1) + ',' + y(q[1]).toFixed(1)).join(' ');
+      g.appendChild(svg('polyline', { class: 'series s' + (i % 4), 'data-port': port, points: pts }));
+      const li = el('li', { class: 's' + (i % 4), 'data-port': port });
+      li.appendChild(el('span', { class: 'swatch', 'aria-hidden': 'true' }));
+      const last = t.points[t.points.length - 1];
+      li.appendChild(document.createTextNode(port + ' (' + (t.type || 'event, seq') + ')' + (last ? ': ' + last[1] + ' at ' + clockTime(last[0], true) : '')));
+      legend.appendChild(li);
+    });
+    fig.appendChild(g);
+    fig.appendChild(legend);
+  }
+
+  // Narrow screens show table rows as cards: each cell says which column it is.
+  function labelCells(table) {
+    const heads = Array.from(table.querySelectorAll('thead th')).map((th) => th.textContent.trim());
+    for (const tr of table.tBodies[0].rows) {
+      Array.from(tr.cells).forEach((c, i) => { if (heads[i]) c.setAttribute('data-label', heads[i]); });
+    }
+  }
+
+  function renderClients() {
+    const page = S.clients;
+    const body = $('clients-rows');
+    clear(body);
+    if (!page) return;
+    for (const c of page.clients) {
+      const tr = el('tr', { 'data-client': c.client_id });
+      tr.appendChild(el('th', { scope: 'row' }, c.client_id));
+      tr.appendChild(el('td', null, c.username === null ? '–' : c.username));
+      tr.appendChild(el('td', null, c.address));
+      tr.appendChild(el('td', null, c.listener));
+      tr.appendChild(el('td', null, 'MQTT ' + c.protocol));
+      tr.appendChild(el('td', { class: 'num' }, c.keep_alive_s ? c.keep_alive_s + ' s' : 'off'));
+      tr.appendChild(el('td', { title: c.connected_since }, localTime(c.connected_since) + ' (' + ago(c.connected_since) + ')'));
+      tr.appendChild(el('td', { class: 'num' }, c.subscriptions));
+      tr.appendChild(el('td', { class: 'num' }, c.messages_in));
+      tr.appendChild(el('td', { class: 'num' }, c.messages_out));
+      body.appendChild(tr);
+    }
+    labelCells($('clients-table'));
+    const from = S.clientsAfter.length * 100;
+    $('clients-shown').textContent = page.clients.length ? (from + 1) + '–' + (from + page.clients.length) + ' of ' + page.total + ' connected' : 'No client connected.';
+    $('clients-first').disabled = S.clientsAfter.length === 0;
+    $('clients-next').disabled = !page.next;
+  }
+
+  function renderRetained() {
+    const page = S.retained;
+    const body = $('retained-rows');
+    clear(body);
+    if (!page) return;
+    for (const r of page.retained) {
+      const tr = el('tr', { 'data-topic': r.topic });
+      tr.appendChild(el('th', { scope: 'row' }, r.topic));
+      tr.appendChild(el('td', { class: 'num' }, r.bytes));
+      tr.appendChild(el('td', null, r.owner));
+      tr.appendChild(el('td', { title: r.retained_at }, localTime(r.retained_at) + ' (' + ago(r.retained_at) + ')'));
+      body.appendChild(tr);
+    }
+    labelCells($('retained-table'));
+    $('retained-shown').textContent = page.retained.length + ' shown of ' + page.total + ' retained topics held by clients';
+    $('retained-first').disabled = S.retainedAfter.length === 0;
+    $('retained-next').disabled = !page.next;
   }
 
   // IEC 61499 FB boxes: event inputs/outputs in the head, data below the neck, WITH
@@ -500,7 +767,7 @@
   function renderBoxes(iface, ports) {
     const box = $('fb-boxes');
     clear(box);
-    const ROW = 18, W = 200, LEFT = 90, RIGHT = 260;
+    const ROW = 18, W = 200, LEFT = 90, RIGHT = 330, SPARK = 60;
     for (const name of Object.keys(iface.fbs || {})) {
       const f = iface.fbs[name];
       const ei = Object.keys(f.events_in || {}), eo = Object.keys(f.events_out || {});
@@ -559,10 +826,18 @@
       // Output values beside the data outputs (and event outputs), beyond the WITH lines.
       const vx = x1 + 22 + kout * 7;
       const valueText = (key, y, cls) => {
-        const v = ports[name + '.' + key];
+        const full = name + '.' + key;
+        const trend = S.trends.get(full);
+        if (trend) {
+          const spark = svg('polyline', { class: 'spark', 'data-port': full, points: sparkPoints(trend.points, vx, y - 12, SPARK, 12) });
+          spark.appendChild(svg('title', null, full + ': the last ' + Math.round(S.trendRange / 60) + ' minutes, ' + trend.points.length + ' values'));
+          g.appendChild(spark);
+        }
+        const v = ports[full];
         if (!v) return;
-        const t = svg('text', { x: vx, y: y, class: 'pvalue ' + cls }, shortValue(v.value, 28));
-        t.appendChild(svg('title', null, name + '.' + key + ' = ' + v.value + ' at ' + v.at));
+        const words = cls === 'event' ? eventWords(v.value, true) : null;
+        const t = svg('text', { x: vx + SPARK + 6, y: y, class: 'pvalue ' + cls }, shortValue(words || v.value, 28));
+        t.appendChild(svg('title', null, full + ' = ' + v.value + ' at ' + localTime(v.at) + ' (' + v.at + ')'));
         g.appendChild(t);
       };
       dout.forEach((p, i) => { if (f.data_out[p]) { /* type shown in the table */ } valueText(p, yData(i), 'data'); });
@@ -594,6 +869,36 @@
     $('filter-line').addEventListener('change', () => { S.page = 0; renderDevices(); });
     $('page-prev').addEventListener('click', () => { if (S.page > 0) { S.page--; renderDevices(); } });
     $('page-next').addEventListener('click', () => { S.page++; renderDevices(); });
+    $('ports-rows').addEventListener('change', (e) => {
+      const port = e.target.getAttribute && e.target.getAttribute('data-port');
+      if (!port || !e.target.classList.contains('plot')) return;
+      S.plotted = S.plotted.filter((p) => p !== port);
+      if (e.target.checked) S.plotted.push(port);
+      scheduleRender(true);
+    });
+    for (const radio of document.querySelectorAll('input[name="trend-range"]')) {
+      radio.addEventListener('change', () => {
+        S.trendRange = Number(radio.value);
+        if (S.deviceId) loadTrends(S.deviceId);
+      });
+    }
+    $('clients-first').addEventListener('click', () => { S.clientsAfter = []; loadClients(null).catch(feedTrouble); });
+    $('clients-next').addEventListener('click', () => {
+      if (!S.clients || !S.clients.next) return;
+      S.clientsAfter.push(S.clients.next);
+      loadClients(S.clients.next).catch(feedTrouble);
+    });
+    $('retained-form').addEventListener('submit', (e) => { e.preventDefault(); S.retainedAfter = []; loadRetained(null).catch(feedTrouble); });
+    $('retained-first').addEventListener('click', () => { S.retainedAfter = []; loadRetained(null).catch(feedTrouble); });
+    $('retained-next').addEventListener('click', () => {
+      if (!S.retained || !S.retained.next) return;
+      S.retainedAfter.push(S.retained.next);
+      loadRetained(S.retained.next).catch(feedTrouble);
+    });
+    // The clients' counters move: the page shown is read again every 5 s.
+    setInterval(() => {
+      if (S.view === 'clients' && Date.now() - S.clientsAt >= 5000) loadClients(S.clientsAfter[S.clientsAfter.length - 1]).catch(feedTrouble);
+    }, 1000);
     window.addEventListener('hashchange', route);
     // Ages and silence markers move with time.
     setInterval(() => scheduleRender(), 1000);

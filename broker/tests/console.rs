@@ -3,7 +3,8 @@
 //! headless Chromium (`python/console_browser.py`, driven over WebDriver): the devices and
 //! their statuses, a killed device turning offline with its reason without a reload, a
 //! refusal with its reason, the FB box with its ports and last values, and another
-//! line's device turning unreachable when that line stops.
+//! line's device turning unreachable when that line stops; the trends, clients and
+//! retained views and the layout at 400 px (issue 37; their API: `console_history.rs`).
 
 mod common;
 
@@ -23,6 +24,12 @@ const CONV: &str = r#"{"fbs": {"CONV": {
     "events_in": {"START": {"with": ["SPEED"]}},
     "data_out": {"POSITION": "INT", "SENSOR_IN": "BOOL", "ID": "STRING"},
     "data_in": {"SPEED": "REAL"}
+}}}"#;
+
+/// An oven whose zone temperature only it has (search by port name).
+const OVEN: &str = r#"{"fbs": {"OVEN": {
+    "type": "OVEN_CTRL",
+    "data_out": {"T_ZONE1": "REAL"}
 }}}"#;
 
 /// (status code, head, body) of one HTTP/1.0 request.
@@ -351,7 +358,10 @@ fn expect(python: &Python, want: &str, within: Duration) {
 
 /// What a person sees, in headless Chromium: two lines on the bus, devices declared and
 /// publishing on line A, one killed (its will fires), one refused, one on line B; then
-/// line B stops. Screenshots of the three views with `FBBUS_CONSOLE_SCREENSHOTS=<dir>`.
+/// line B stops; and (issue 37) the trends: a sparkline and a chart that grow, an event's
+/// WITH data and local time, the CSV export, search by port, the clients and retained
+/// views, the layout at 400 px. Screenshots of each view with
+/// `FBBUS_CONSOLE_SCREENSHOTS=<dir>`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_console_in_a_browser_shows_the_line_live() {
     if !have_browser() {
@@ -363,6 +373,14 @@ async fn the_console_in_a_browser_shows_the_line_live() {
     let press = declared(a.port(), "press-1", false).await;
     let doomed = declared(a.port(), "press-2", true).await;
     let bad = declared(a.port(), "bad-1", false).await;
+    let mut oven = V4::connect(a.port(), "oven-1", None).await.unwrap();
+    oven.declare("oven-1", OVEN).await;
+    publish(&oven, "fb/oven-1/OVEN/T_ZONE1", "182.5").await;
+    // A retained topic for the retained view: "plant/line-a/shift" and "B", 19 bytes.
+    oven.client
+        .publish("plant/line-a/shift", rumqttc::QoS::AtLeastOnce, true, "B")
+        .await
+        .unwrap();
     let remote = bus::device_with(&b, "remote-1", CONV).await;
     a.wait_record("remote-1", "online", bus::PROPAGATION);
     publish(&bad, "fb/bad-1/CONV/POSITION", "7").await;
@@ -420,7 +438,7 @@ async fn the_console_in_a_browser_shows_the_line_live() {
     // first would leave both running.
     let exited = python.wait_exit(Duration::from_secs(30));
     publisher.abort();
-    drop((press, bad, remote));
+    drop((press, bad, remote, oven));
     if let Err(panic) = outcome {
         eprintln!("line A's log:\n{}", a.broker.log_text());
         std::panic::resume_unwind(panic);

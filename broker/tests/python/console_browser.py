@@ -14,6 +14,7 @@ A failed check prints "FAIL <what>" and exits non-zero. Every wait is bounded.
 """
 
 import os
+import re
 import sys
 import tempfile
 import shutil
@@ -102,14 +103,14 @@ def answer(want):
         fail("expected %r from the test, got %r" % (want, line))
 
 
-def shot(name):
+def shot(name, width=1280):
     if not SHOTS:
         return
     os.makedirs(SHOTS, exist_ok=True)
     # The whole page, not the window: the viewport made as tall as the content.
     height = driver.execute_script("return document.documentElement.scrollHeight")
     driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
-        "width": 1280, "height": max(600, min(int(height), 3000)),
+        "width": width, "height": max(600, min(int(height), 3000)),
         "deviceScaleFactor": 1, "mobile": False})
     try:
         driver.save_screenshot(os.path.join(SHOTS, name))
@@ -119,6 +120,19 @@ def shot(name):
 
 def go(hash_):
     driver.execute_script("location.hash = arguments[0]", hash_)
+
+
+def points(css):
+    """How many points the polyline `css` draws (0 if there is none)."""
+    return driver.execute_script(
+        "const p = document.querySelector(arguments[0]);"
+        "return p ? p.getAttribute('points').split(' ').filter(Boolean).length : 0", css)
+
+
+def fits_the_width(what):
+    """The page does not scroll sideways (a tablet on the line)."""
+    wait_for(what + " without a horizontal scroll at 400 px", lambda: driver.execute_script(
+        "const d = document.documentElement; return d.scrollWidth <= d.clientWidth"))
 
 
 try:
@@ -160,6 +174,12 @@ try:
     act("clearing the search", lambda: driver.find_element(By.ID, "search").clear())
     act("clearing the search", lambda: driver.find_element(By.ID, "search").send_keys(Keys.BACKSPACE))
     wait_for("the search cleared", lambda: row("press-1"))
+    # Search by port name (issue 37): only the oven has T_ZONE1.
+    act("the search", lambda: driver.find_element(By.ID, "search").send_keys("T_ZONE1"))
+    wait_for("the search by port", lambda: row("oven-1") and not row("press-1") and not row("remote-1"))
+    act("clearing the search", lambda: driver.find_element(By.ID, "search").clear())
+    act("clearing the search", lambda: driver.find_element(By.ID, "search").send_keys(Keys.BACKSPACE))
+    wait_for("the search cleared", lambda: row("press-1"))
     act("the id column's sort button", lambda: driver.find_element(By.CSS_SELECTOR, 'th[data-key="id"] button').click())
     wait_for("sorted by id, descending", lambda: driver.find_element(
         By.CSS_SELECTOR, "#devices-rows tr").get_attribute("data-id") == "remote-1")
@@ -193,6 +213,66 @@ try:
     wait_for("the value drawn beside the FB box", lambda: driver.find_elements(By.CSS_SELECTOR, box + "text.pvalue"))
     shot("device.png")
 
+    # Trends (issue 37): CONV.POSITION's sparkline in the FB box grows as values arrive.
+    spark = box + 'polyline.spark[data-port="CONV.POSITION"]'
+    first = wait_for("CONV.POSITION's sparkline", lambda: points(spark) or None)
+    wait_for("the sparkline growing", lambda: points(spark) > first)
+    # An event's WITH data: SENSOR_IN only ever arrives inside MOVED.
+    wait_for("CONV.SENSOR_IN's value from MOVED's WITH data",
+             lambda: text('#ports-rows tr[data-port="CONV.SENSOR_IN"] td.value') == "true")
+    wait_for("CONV.SENSOR_IN's sparkline", lambda: points(box + 'polyline.spark[data-port="CONV.SENSOR_IN"]'))
+    # An event's time as local date and time, its raw value on hover.
+    moved = '#ports-rows tr[data-port="CONV.MOVED"] td.value'
+    wait_for("MOVED's occurrence in words", lambda: re.match(r"^#\d+ at .*: POSITION \d+, SENSOR_IN true$", text(moved)))
+    raw = driver.find_element(By.CSS_SELECTOR, moved).get_attribute("title")
+    if '"ts":' not in raw or '"seq":' not in raw:
+        fail("MOVED's raw value on hover: %r" % raw)
+    # Two ports on one chart, growing live.
+    for port in ["CONV.POSITION", "CONV.SENSOR_IN"]:
+        act("plot " + port, lambda port=port: driver.find_element(
+            By.CSS_SELECTOR, 'input.plot[data-port="%s"]' % port).click())
+    line = '#trend-chart polyline[data-port="CONV.POSITION"]'
+    first = wait_for("CONV.POSITION on the chart", lambda: points(line) or None)
+    wait_for("the chart growing", lambda: points(line) > first)
+    wait_for("both ports in the legend with their types", lambda: "CONV.POSITION (INT)" in text("#trend-chart .legend")
+             and "CONV.SENSOR_IN (BOOL)" in text("#trend-chart .legend"))
+    wait_for("local times on the time axis", lambda: len(driver.find_elements(By.CSS_SELECTOR, "#trend-chart text.tick")) >= 6)
+    # A port's history as CSV, from its link.
+    href = driver.find_element(By.CSS_SELECTOR, 'a.csv[data-port="CONV.POSITION"]').get_attribute("href")
+    csv = driver.execute_async_script(
+        "fetch(arguments[0]).then(r => r.text()).then(arguments[1], e => arguments[1]('error ' + e))", href)
+    rows = csv.splitlines()
+    if len(rows) < 3 or rows[0] != "time,CONV.POSITION" or not all(
+            re.match(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z,\d+$", r) for r in rows[1:]):
+        fail("the CSV export: %r" % csv[:300])
+    if SHOTS:
+        # A chart worth looking at: 20 s of values.
+        wait_for("20 s of CONV.POSITION on the chart", lambda: points(line) >= 100, timeout=45)
+    shot("trends.png")
+
+    # The tablet on the line: 400 px wide, no sideways scroll of the page.
+    driver.set_window_size(400, 1000)
+    fits_the_width("the device view")
+    shot("device-400px.png", width=400)
+    go("#/devices")
+    wait_for("the devices list at 400 px", lambda: row("press-1"))
+    fits_the_width("the devices view")
+
+    # Connected clients, with a known client id; retained topics under a filter.
+    go("#/clients")
+    wait_for("press-1 among the connected clients",
+             lambda: "MQTT 3.1.1" in text('#clients-rows tr[data-client="press-1"]'))
+    fits_the_width("the clients view")
+    driver.set_window_size(1280, 1000)
+    wait_for("the clients' columns", lambda: "127.0.0.1:" in text('#clients-rows tr[data-client="press-1"]'))
+    shot("clients.png")
+    go("#/retained")
+    act("the retained filter", lambda: driver.find_element(By.ID, "retained-filter").clear())
+    act("the retained filter", lambda: driver.find_element(By.ID, "retained-filter").send_keys("plant/+/shift" + Keys.ENTER))
+    wait_for("the retained shift topic with its size",
+             lambda: "plant/line-a/shift" in text("#retained-rows") and "19" in text('#retained-rows tr[data-topic="plant/line-a/shift"]'))
+    shot("retained.png")
+
     # The killed device: its offline time and reason.
     go("#/device/press-2")
     wait_for("press-2's offline time with its reason", lambda: "connection lost" in text("#offline-times"))
@@ -202,7 +282,7 @@ try:
     wait_for("line-b reachable in the bridge links",
              lambda: "reachable" in text('#bridge-rows tr[data-line="line-b"]')
              and "unreachable" not in text('#bridge-rows tr[data-line="line-b"]'))
-    wait_for("the device counts", lambda: text("#count-offline") == "1" and text("#count-online") == "3")
+    wait_for("the device counts", lambda: text("#count-offline") == "1" and text("#count-online") == "4")
     wait_for("messages in the charts", lambda: text("#chart-msgs_in-value") not in ("", "–", "0/s"))
     if SHOTS:
         # Charts worth looking at: half a minute of samples.
