@@ -252,10 +252,22 @@ impl Metrics {
                 "Messages carried by the zenoh bridge, by direction (export: to other lines, import: from them)",
                 &["direction"],
             ),
-            bridge_dropped: counter_vec(
-                "fbbus_bridge_dropped_total",
-                "Bridged messages not delivered, by reason (duplicate, acl, type, filter, unbridgeable, zenoh_error)",
-                &["reason"],
+            // Exported from the start at 0, like every closed set of reasons a dashboard
+            // plots (deploy/grafana/fbbus.json): a quiet line shows 0, not "no data".
+            bridge_dropped: with_series(
+                counter_vec(
+                    "fbbus_bridge_dropped_total",
+                    "Bridged messages not delivered, by reason (duplicate, acl, type, filter, unbridgeable, zenoh_error)",
+                    &["reason"],
+                ),
+                &[
+                    &["duplicate"],
+                    &["acl"],
+                    &["type"],
+                    &["filter"],
+                    &["unbridgeable"],
+                    &["zenoh_error"],
+                ],
             ),
             bridge_refused: counter_vec(
                 "fbbus_bridge_refused_total",
@@ -405,10 +417,13 @@ impl Metrics {
                 "Connections ended, by reason",
                 &["reason"],
             ),
-            auth_failures: counter_vec(
-                "fbbus_auth_failures_total",
-                "Failed logins: bad_credentials (wrong password or unknown user) or missing_credentials",
-                &["reason"],
+            auth_failures: with_series(
+                counter_vec(
+                    "fbbus_auth_failures_total",
+                    "Failed logins: bad_credentials (wrong password or unknown user) or missing_credentials",
+                    &["reason"],
+                ),
+                &[&["bad_credentials"], &["missing_credentials"]],
             ),
             logins_throttled: counter(
                 "fbbus_logins_throttled_total",
@@ -423,10 +438,13 @@ impl Metrics {
                 "fbbus_passwords_rehashed_total",
                 "Mosquitto password entries rewritten as argon2id after a successful login",
             ),
-            acl_denied: counter_vec(
-                "fbbus_acl_denied_total",
-                "Operations refused by the access rules, by action (publish, subscribe, will, deliver)",
-                &["action"],
+            acl_denied: with_series(
+                counter_vec(
+                    "fbbus_acl_denied_total",
+                    "Operations refused by the access rules, by action (publish, subscribe, will, deliver)",
+                    &["action"],
+                ),
+                &[&["publish"], &["subscribe"], &["will"], &["deliver"]],
             ),
             messages_in: counter("fbbus_messages_received_total", "PUBLISH packets received"),
             messages_out: counter("fbbus_messages_sent_total", "PUBLISH packets sent"),

@@ -167,6 +167,10 @@ impl StoreMetrics {
             &["reason"],
         )
         .expect("valid metric");
+        // At 0 from the start, for the dashboards.
+        for reason in ["session_queue_full", "store_full", "retained_limit"] {
+            not_stored.with_label_values(&[reason]);
+        }
         metrics.register(Box::new(not_stored.clone()));
         let by_reason = |name: &str, help: &str| {
             let c = IntCounterVec::new(Opts::new(name, help), &["reason"]).expect("valid metric");
