@@ -103,7 +103,10 @@ impl Session {
     /// fires the will if the end calls for it, and meters the disconnect.
     pub(super) async fn close(mut self, end: End) {
         // Whether this connection still is its client id's newest (not taken over).
-        let current = self.ctx.sessions.is_current(&self.client_id, self.session);
+        let current = self
+            .ctx
+            .sessions
+            .is_current(&self.client.client_id, self.session);
         // First, so a reconnecting client's next connection, which may already wait for
         // it, gets this session's open exchanges at once (`redelivery`).
         let open = if self.lifetime.clean_link {
@@ -115,8 +118,11 @@ impl Session {
             }
             open
         };
-        let (redeliveries, client_id, session) =
-            (&self.ctx.redeliveries, &*self.client_id, self.session);
+        let (redeliveries, client_id, session) = (
+            &self.ctx.redeliveries,
+            &*self.client.client_id,
+            self.session,
+        );
         // A kept session with an expiry is ended by the expiry task (`session::lifetime`).
         let remains = self.lifetime.remains();
         self.ctx
@@ -128,7 +134,7 @@ impl Session {
         // the client sees its connection close: a client that reconnects at once finds no
         // session. Later expiries are the expiry task's (`lifetime::expire_sessions`).
         if self.lifetime.expires_after == Some(Duration::ZERO) {
-            end_idle_session(&self.ctx, &self.client_id, self.session).await;
+            end_idle_session(&self.ctx, &self.client.client_id, self.session).await;
         }
         // A client whose socket did not take its last write (slow consumer, keep-alive
         // expired while a write waited) would not take a DISCONNECT either: waiting for it
@@ -168,7 +174,7 @@ impl Session {
             self.return_backlog(true);
             if current {
                 self.journal.push(crate::store::Record::Offline {
-                    client: Arc::clone(&self.client_id),
+                    client: Arc::clone(&self.client.client_id),
                     at: crate::store::now(),
                     expiry: self
                         .lifetime
@@ -179,18 +185,18 @@ impl Session {
         }
         // Handed over without waiting: nothing here depends on it being written.
         if let Some(store) = &self.ctx.store {
-            store.submit_now(&self.client_id, &mut self.journal);
+            store.submit_now(&self.client.client_id, &mut self.journal);
         }
         if end.router_link_alive() {
             let _ = unlink(self.link_tx).await;
         }
         if self.will.is_some() {
-            self.ctx.wills.disarm(&self.client_id, self.session);
+            self.ctx.wills.disarm(&self.client.client_id, self.session);
         }
         let will = self.will.take().filter(|_| end.fires_will());
         let own_will = will.is_some();
         let (ctx, session) = (&self.ctx, self.session);
-        let (client_id, username) = (&*self.client_id, self.username.as_deref());
+        let (client_id, username) = (&*self.client.client_id, self.client.username.as_deref());
         if let Some(will) = will.map(|w| *w) {
             fire_will(ctx, &mut self.fb, client_id, session, username, will);
         }
@@ -214,15 +220,15 @@ impl Session {
             .profile()
             .is_some_and(|p| end.fires_will() || p.will_on_clean_disconnect);
         if offline && !own_will && fires {
-            let (ctx, client_id) = (&self.ctx, &*self.client_id);
+            let (ctx, client_id) = (&self.ctx, &*self.client.client_id);
             fire_profile_will(ctx, &mut self.fb, client_id, session, username);
         }
         // The gauge first: a scrape that sees the disconnect counted sees the gauge down.
         self.ctx.metrics.connections.dec();
         self.ctx.metrics.disconnected(end.reason());
         tracing::info!(
-            peer = %self.peer,
-            client_id = &*self.client_id,
+            peer = %self.client.address,
+            client_id = &*self.client.client_id,
             reason = end.reason().label(),
             "client disconnected"
         );

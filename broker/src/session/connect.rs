@@ -182,9 +182,6 @@ impl Session {
         ));
         let mut session = Session {
             io,
-            peer,
-            client_id,
-            username,
             version,
             // MQTT 3.1.2.10: 0 turns the keep-alive mechanism off. So does a profile whose
             // runtime never pings (`Session::relax_keep_alive`).

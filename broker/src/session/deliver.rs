@@ -82,9 +82,13 @@ impl Session {
     pub(super) async fn router_dropped(&mut self) -> End {
         // What was queued before the drop, briefly: the connection is ending anyway.
         let _ = tokio::time::timeout(std::time::Duration::from_secs(1), self.io.flush()).await;
-        if self.ctx.sessions.is_current(&self.client_id, self.session) {
+        if self
+            .ctx
+            .sessions
+            .is_current(&self.client.client_id, self.session)
+        {
             tracing::warn!(
-                client_id = &*self.client_id,
+                client_id = &*self.client.client_id,
                 "the router ended the connection"
             );
             End::Router
@@ -328,7 +332,7 @@ impl Session {
                     .with_label_values(&["client_max_packet_size"])
                     .inc();
                 tracing::debug!(
-                    client_id = &*self.client_id,
+                    client_id = &*self.client.client_id,
                     size,
                     max,
                     "delivery larger than the client's maximum packet size; dropped"
@@ -387,7 +391,7 @@ impl Session {
         let Some(origin) = publish.origin.as_ref().filter(|_| !publish.retain) else {
             return;
         };
-        let own = origin.publisher == self.client_id;
+        let own = origin.publisher == self.client.client_id;
         if let Some((copies, _)) = self.matching_copies(&publish.topic, own) {
             let (routed, _) = publish.qos_and_pkid();
             let seq = origin.seq;
@@ -406,7 +410,7 @@ impl Session {
         origin: Option<&origin::Origin>,
     ) -> Option<Option<Vec<usize>>> {
         let origin = origin.filter(|_| !publish.retain)?;
-        let own = origin.publisher == self.client_id;
+        let own = origin.publisher == self.client.client_id;
         let (copies, ids) = self.matching_copies(&publish.topic, own)?;
         let (routed, _) = publish.qos_and_pkid();
         let send =
@@ -464,7 +468,7 @@ impl Session {
         if matching.is_empty() {
             return (true, false);
         }
-        let own = origin.is_some_and(|o| o.publisher == self.client_id);
+        let own = origin.is_some_and(|o| o.publisher == self.client.client_id);
         if own && matching.iter().all(|f| f.nolocal) {
             return (false, false);
         }

@@ -127,7 +127,7 @@ impl Session {
                 if let Some(expiry) = expiry.filter(|_| self.version == Version::V5) {
                     let Some(lifetime) = self.lifetime.on_disconnect(expiry) else {
                         tracing::warn!(
-                            client_id = &*self.client_id,
+                            client_id = &*self.client.client_id,
                             session_expiry = expiry,
                             "DISCONNECT sets a Session Expiry Interval after CONNECT's 0; \
                              protocol error"
@@ -146,7 +146,7 @@ impl Session {
             }
             Packet::Connect(..) => {
                 tracing::warn!(
-                    client_id = &*self.client_id,
+                    client_id = &*self.client.client_id,
                     "second CONNECT; connection closed"
                 );
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
@@ -165,7 +165,10 @@ impl Session {
     ) -> Result<(), End> {
         let topic = self.resolve_topic(&publish, properties.as_ref())?;
         if self.ctx.test_panic_topic.as_deref() == Some(topic.as_str()) {
-            panic!("test_panic_topic: {} published on {topic}", self.client_id);
+            panic!(
+                "test_panic_topic: {} published on {topic}",
+                self.client.client_id
+            );
         }
 
         // The publish policy: access, typed check, origin mark (`policy`).
@@ -175,10 +178,12 @@ impl Session {
             qos,
             retain: publish.retain,
         };
-        let admission =
-            self.ctx
-                .policy
-                .admit(Door::Client, &mut self.fb, &self.client_id, publication);
+        let admission = self.ctx.policy.admit(
+            Door::Client,
+            &mut self.fb,
+            &self.client.client_id,
+            publication,
+        );
         // A publication may have made this connection a profiled device's (topics-only).
         if self.keep_alive.is_some() {
             self.relax_keep_alive();
@@ -202,7 +207,7 @@ impl Session {
         if qos > 0 {
             self.inflight_in = self.inflight_in.saturating_add(1);
             if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
-                tracing::warn!(client_id = &*self.client_id, receive_maximum = self.ctx.max_inflight,
+                tracing::warn!(client_id = &*self.client.client_id, receive_maximum = self.ctx.max_inflight,
                     "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
                 return Err(End::ProtocolError(
                     DisconnectReasonCode::ReceiveMaximumExceeded,
@@ -280,7 +285,7 @@ impl Session {
         static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
         if LOGGED.due() {
             tracing::warn!(
-                client_id = &*self.client_id,
+                client_id = &*self.client.client_id,
                 share = &*share,
                 "a retained publication was delivered but not retained: its identity holds \
                  [broker] max_retained_messages_per_identity or max_retained_bytes_per_identity \
@@ -347,7 +352,7 @@ impl Session {
         };
         if !filter::valid_topic(&topic) {
             tracing::warn!(
-                client_id = &*self.client_id,
+                client_id = &*self.client.client_id,
                 ?topic,
                 "invalid topic name in PUBLISH; connection closed"
             );
@@ -434,7 +439,7 @@ impl Session {
                     .insert(("max_subscriptions_per_client", String::new()));
                 if first {
                     tracing::warn!(
-                        client_id = &*self.client_id,
+                        client_id = &*self.client.client_id,
                         limit = self.ctx.max_subscriptions,
                         "SUBSCRIBE beyond [broker] max_subscriptions_per_client refused \
                          (logged once per connection; fbbus_limit_refusals_total)"
@@ -571,8 +576,8 @@ impl Session {
 
     pub(super) fn identity(&self) -> Identity<'_> {
         Identity {
-            username: self.username.as_deref(),
-            client_id: &self.client_id,
+            username: self.client.username.as_deref(),
+            client_id: &self.client.client_id,
         }
     }
 
@@ -586,7 +591,7 @@ impl Session {
 
     /// Whether this client connected from the broker's own host (the `$SYS` rule).
     pub(super) fn on_loopback(&self) -> bool {
-        self.peer.ip().to_canonical().is_loopback()
+        self.client.address.ip().to_canonical().is_loopback()
     }
 
     pub(super) fn log_denial(&mut self, action: &'static str, topic: &str) {
@@ -596,8 +601,8 @@ impl Session {
         }
         if logged.insert((action, topic.to_owned())) {
             tracing::warn!(
-                client_id = &*self.client_id,
-                username = self.username.as_deref().unwrap_or(""),
+                client_id = &*self.client.client_id,
+                username = self.client.username.as_deref().unwrap_or(""),
                 action,
                 topic = ?topic,
                 "denied by ACL (logged once per client and topic)"

@@ -66,7 +66,12 @@ impl Session {
         );
         let wait = !acknowledged.is_empty();
         let share = wait.then(|| self.share());
-        let answer = store.submit(&self.client_id, share.as_ref(), &mut self.journal, wait);
+        let answer = store.submit(
+            &self.client.client_id,
+            share.as_ref(),
+            &mut self.journal,
+            wait,
+        );
         if let Some(written) = answer.await {
             self.durable().submitted(&acknowledged, written);
         }
@@ -90,7 +95,7 @@ impl Session {
         static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
         if LOGGED.due() {
             tracing::warn!(
-                client_id = %self.client_id,
+                client_id = %self.client.client_id,
                 share = durable.share.as_deref().unwrap_or_default(),
                 refused = n,
                 "the store did not keep publications for persistent sessions (its \
@@ -107,8 +112,12 @@ impl Session {
         if let Some(share) = self.durable.as_ref().and_then(|d| d.share.clone()) {
             return share;
         }
-        let owner = self.ctx.identity.owner(self.username.as_deref());
-        let share: Arc<str> = self.ctx.identity.share(&owner, self.peer.ip()).into();
+        let owner = self.ctx.identity.owner(self.client.username.as_deref());
+        let share: Arc<str> = self
+            .ctx
+            .identity
+            .share(&owner, self.client.address.ip())
+            .into();
         self.durable().share = Some(Arc::clone(&share));
         share
     }
@@ -137,7 +146,7 @@ impl Session {
         }
         for f in filters {
             self.journal.push(Record::Subscribe {
-                client: Arc::clone(&self.client_id),
+                client: Arc::clone(&self.client.client_id),
                 filter: f.path.clone(),
                 options: Options {
                     qos: match f.qos {
@@ -164,7 +173,7 @@ impl Session {
         }
         for f in filters {
             self.journal.push(Record::Unsubscribe {
-                client: Arc::clone(&self.client_id),
+                client: Arc::clone(&self.client.client_id),
                 filter: f.clone(),
             });
         }
@@ -188,7 +197,7 @@ impl Session {
             .and_then(|d| d.stored_out.get(&router_pkid));
         if let Some((seq, client_pkid)) = sent {
             self.journal.push(Record::Qos2 {
-                client: Arc::clone(&self.client_id),
+                client: Arc::clone(&self.client.client_id),
                 seq: *seq,
                 state: Qos2::Sent(*client_pkid),
             });
@@ -212,7 +221,7 @@ impl Session {
             }
         } else if let Some((seq, client_pkid)) = stored_out.get(&router_pkid) {
             self.journal.push(Record::Qos2 {
-                client: Arc::clone(&self.client_id),
+                client: Arc::clone(&self.client.client_id),
                 seq: *seq,
                 state: Qos2::Received(*client_pkid),
             });
@@ -224,12 +233,12 @@ impl Session {
         let Some(store) = self.ctx.store.clone() else {
             return;
         };
-        let backlog = store.take_backlog(&self.client_id);
+        let backlog = store.take_backlog(&self.client.client_id);
         if backlog.is_empty() {
             return;
         }
         tracing::info!(
-            client_id = &*self.client_id,
+            client_id = &*self.client.client_id,
             messages = backlog.len(),
             "sending what was queued for this session before the broker restarted"
         );
@@ -286,7 +295,7 @@ impl Session {
                     }
                     if b.qos == 2 && b.qos2.is_none() {
                         self.journal.push(Record::Qos2 {
-                            client: Arc::clone(&self.client_id),
+                            client: Arc::clone(&self.client.client_id),
                             seq: b.seq,
                             state: Qos2::Sent(client_pkid),
                         });
@@ -310,7 +319,7 @@ impl Session {
         let Some(rare) = self.rare.as_mut().filter(|r| !r.backlog_out.is_empty()) else {
             return false;
         };
-        let client = Arc::clone(&self.client_id);
+        let client = Arc::clone(&self.client.client_id);
         match packet {
             Packet::PubAck(ack, _) => {
                 let Some(b) = rare.backlog_out.remove(&ack.pkid) else {
@@ -363,7 +372,7 @@ impl Session {
         rest.extend(std::mem::take(&mut rare.backlog));
         if kept && !rest.is_empty() {
             rest.sort_by_key(|b| b.seq);
-            store.give_back(&self.client_id, rest);
+            store.give_back(&self.client.client_id, rest);
         }
     }
 }

@@ -94,8 +94,8 @@ impl Session {
         // Topics are checked UTF-8 when published; anything else is not readable.
         let readable = std::str::from_utf8(topic).is_ok_and(|topic| {
             let who = Identity {
-                username: self.username.as_deref(),
-                client_id: &self.client_id,
+                username: self.client.username.as_deref(),
+                client_id: &self.client.client_id,
             };
             self.read_verdicts
                 .get_or_insert_with(Box::default)

@@ -64,7 +64,7 @@ impl Session {
 
     fn over_quota(&self, queued: usize) {
         tracing::warn!(
-            client_id = &*self.client_id,
+            client_id = &*self.client.client_id,
             queued,
             held = self.held_bytes,
             limit = self.ctx.max_queued_bytes,
@@ -121,14 +121,14 @@ impl Session {
             let unwritten = self.io.unwritten();
             match end {
                 End::SlowConsumer => tracing::warn!(
-                    client_id = &*self.client_id,
+                    client_id = &*self.client.client_id,
                     unwritten,
                     waited_ms = started.elapsed().as_millis() as u64,
                     "slow consumer: outgoing data not taken within \
                      broker.slow_consumer_timeout_ms; connection closed"
                 ),
                 End::KeepAlive => tracing::info!(
-                    client_id = &*self.client_id,
+                    client_id = &*self.client.client_id,
                     unwritten,
                     "keep-alive expired while a write to the client waited"
                 ),
