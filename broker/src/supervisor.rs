@@ -126,6 +126,31 @@ impl Tasks {
     }
 }
 
+/// Runs `task` on a thread and a current-thread runtime of its own, named `name`: work
+/// that reads every accepted typed message and would otherwise take turns with the
+/// sessions on the workers' runtime (the Sparkplug view, the console's activity and
+/// history). Logged if the thread or its runtime cannot start.
+pub fn spawn_apart<F>(name: &str, task: F)
+where
+    F: Future<Output = ()> + Send + 'static,
+{
+    let label = name.to_owned();
+    let thread = std::thread::Builder::new()
+        .name(name.to_owned())
+        .spawn(move || {
+            match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(runtime) => runtime.block_on(task),
+                Err(e) => tracing::error!(error = %e, thread = label, "cannot start its runtime"),
+            }
+        });
+    if let Err(e) = thread {
+        tracing::error!(error = %e, thread = name, "cannot start its thread");
+    }
+}
+
 /// The message of a panic payload (`panic!` makes a `&str` or a `String`).
 pub fn panic_message(panic: &(dyn Any + Send)) -> &str {
     panic

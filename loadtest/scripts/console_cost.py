@@ -171,8 +171,8 @@ def page(watch):
         if watch:
             get("/api/v1/devices/dev-0001/activity")
             # The device view's plots: each plottable output's history, once.
-            for port in ["CONV.MOVED", "CONV.POSITION", "CONV.SENSOR_IN"]:
-                get(f"/api/v1/devices/dev-0001/ports/{port}/history")
+            for name in ["CONV.MOVED", "CONV.POSITION", "CONV.SENSOR_IN"]:
+                get(f"/api/v1/devices/dev-0001/ports/{name}/history")
         s = socket.create_connection(("127.0.0.1", port + 1))
         path = "/api/v1/events" + ("?device=dev-0001" if watch else "")
         s.sendall(f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())

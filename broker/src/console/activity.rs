@@ -6,7 +6,8 @@
 //! come from the broker's own router link `fbbus:console` ([`CLIENT_ID`]), subscribed at
 //! QoS 0 to `fb/#` (every accepted typed publication, canonical JSON whatever the
 //! device's encoding) and `fbbus/diag/#` (the broker's own diagnostics), and read by one
-//! task ([`run`]). Tapping the typed stage instead would have cost a lock or a queue per
+//! task ([`run`]) on a thread of its own (`fbbus-console`): since it decodes values for
+//! the trends ([`super::history`]), it does not take turns with the sessions. Tapping the typed stage instead would have cost a lock or a queue per
 //! accepted publication on the sessions' threads; the link costs the router one more
 //! subscriber, and when this task falls behind the router pauses the link (it is woken
 //! again, the way the health probe's link is) — the devices never wait for the console.

@@ -123,11 +123,13 @@ impl Console {
         )
         .expect("valid metric");
         metrics.register(Box::new(feeds.clone()));
-        tasks.spawn(activity::run(
-            Arc::clone(&activity),
-            Arc::clone(&registry),
-            link,
-        ));
+        // A thread of its own: the activity decodes every accepted typed message for the
+        // trends (an event's WITH data, numbers), work that on the workers' runtime would
+        // take turns with the sessions.
+        crate::supervisor::spawn_apart(
+            "fbbus-console",
+            activity::run(Arc::clone(&activity), Arc::clone(&registry), link),
+        );
         tasks.spawn(Arc::clone(&stats).run(Arc::clone(&metrics), Arc::clone(&registry)));
         Arc::new(Console {
             registry,

@@ -141,20 +141,7 @@ pub fn start(
         published,
         Arc::clone(&readers),
     );
-    let thread = std::thread::Builder::new()
-        .name("fbbus-sparkplug".into())
-        .spawn(move || {
-            match tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-            {
-                Ok(runtime) => runtime.block_on(task),
-                Err(e) => tracing::error!(error = %e, "Sparkplug view: cannot start its runtime"),
-            }
-        });
-    if let Err(e) = thread {
-        tracing::error!(error = %e, "Sparkplug view: cannot start its thread");
-    }
+    crate::supervisor::spawn_apart("fbbus-sparkplug", task);
     Arc::new(View {
         aliases,
         stop,
