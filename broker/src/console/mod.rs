@@ -52,7 +52,7 @@ pub struct ConsoleSection {
     /// Refusals (from `fbbus/diag/<device>`) kept at most, over every device (and at
     /// most `console::activity::REFUSALS_PER_DEVICE` per device).
     pub max_refusals: usize,
-    /// The trends ([`history`]): points older than this are dropped.
+    /// The trends (`console::history`): points older than this are dropped.
     pub history_window_s: u64,
     /// Points kept per port at most (3600: an hour at one value per second).
     pub history_points_per_port: usize,
