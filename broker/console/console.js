@@ -77,6 +77,13 @@
     const d = new Date(ms);
     return d.toLocaleDateString() + ' ' + d.toLocaleTimeString();
   }
+  // The same, the date left out when it is today.
+  function shortTime(t) {
+    const ms = typeof t === 'number' ? t : Date.parse(t);
+    if (!isFinite(ms)) return String(t);
+    const d = new Date(ms);
+    return d.toDateString() === new Date().toDateString() ? d.toLocaleTimeString() : localTime(ms);
+  }
   function clockTime(ms, seconds) {
     return new Date(ms).toLocaleTimeString([], seconds ? { hour: '2-digit', minute: '2-digit', second: '2-digit' } : { hour: '2-digit', minute: '2-digit' });
   }
@@ -94,9 +101,10 @@
     const d = Math.floor(s / 86400), h = Math.floor(s % 86400 / 3600), m = Math.floor(s % 3600 / 60);
     return (d ? d + ' d ' : '') + (d || h ? h + ' h ' : '') + m + ' min ' + (s % 60) + ' s';
   }
-  // Every FB and port name of a record, lower case, for the search (kept per record object).
+  // Every port of a record as FB.PORT, and the same in lower case for the search (kept
+  // per record object).
   const portWords = new WeakMap();
-  function portNames(r) {
+  function portList(r) {
     let w = portWords.get(r);
     if (w === undefined) {
       const fbs = (r.interface && r.interface.fbs) || {};
@@ -106,10 +114,18 @@
           for (const p of Object.keys(fbs[fb][side] || {})) names.push(fb + '.' + p);
         }
       }
-      w = names.join(' ').toLowerCase();
+      w = { names, lower: names.map((n) => n.toLowerCase()) };
+      w.text = w.lower.join(' ');
       portWords.set(r, w);
     }
     return w;
+  }
+  function portNames(r) { return portList(r).text; }
+  // The ports whose name holds the search text (at most 3 named).
+  function portMatches(r, q) {
+    const w = portList(r);
+    const hits = w.names.filter((n, i) => w.lower[i].includes(q));
+    return hits.length > 3 ? hits.slice(0, 3).join(', ') + ' and ' + (hits.length - 3) + ' more' : hits.join(', ');
   }
   function fbNames(r) {
     const fbs = (r.interface && r.interface.fbs) || {};
@@ -320,7 +336,7 @@
     if (view === 'clients') { S.clientsAfter = []; loadClients(null).catch(feedTrouble); }
     if (view === 'retained' && !S.retained) loadRetained(null).catch(feedTrouble);
     if (view === 'devices' && params.has('status')) { $('filter-status').value = params.get('status'); S.page = 0; }
-    if (view === 'device' && changedDevice) { S.activity = null; S.trends = new Map(); S.plotted = []; clear($('ports-rows')); }
+    if (view === 'device' && changedDevice) { S.activity = null; S.trends = new Map(); S.plotted = []; clear($('ports-rows')); clear($('fb-boxes')); BOX.key = null; }
     openFeed();
     scheduleRender(true);
     const h1 = document.querySelector('#view-' + view + ' h1');
@@ -425,7 +441,7 @@
       td.appendChild(statusBadge(l.reachable ? 'online' : 'unreachable'));
       td.lastChild.lastChild.textContent = l.reachable ? ' reachable' : ' unreachable';
       tr.appendChild(td);
-      tr.appendChild(el('td', { title: l.since }, ago(l.since)));
+      tr.appendChild(el('td', { title: l.since }, shortTime(l.since) + ' (' + ago(l.since) + ')'));
       tr.appendChild(el('td', null, perLine[name] || 0));
       rows.appendChild(tr);
     }
@@ -465,6 +481,7 @@
     const have = new Set(Array.from(lineSel.options).map((o) => o.value));
     for (const l of Array.from(lines).sort()) if (!have.has(l)) lineSel.appendChild(el('option', { value: l }, l));
     const rows = filtered();
+    const q = $('search').value.trim().toLowerCase();
     const pages = Math.max(1, Math.ceil(rows.length / PAGE));
     if (S.page >= pages) S.page = pages - 1;
     const start = S.page * PAGE;
@@ -477,10 +494,15 @@
       tr.appendChild(td);
       tr.appendChild(el('td', null, r.line));
       const st = el('td', { class: 'st' }); st.appendChild(statusBadge(statusOf(r))); tr.appendChild(st);
-      tr.appendChild(el('td', { title: localTime(r.since) + ' (' + r.since + ')' }, ago(r.since)));
+      tr.appendChild(el('td', { title: localTime(r.since) + ' (' + r.since + ')' }, shortTime(r.since) + ' (' + ago(r.since) + ')'));
       tr.appendChild(el('td', { class: 'num' }, r.session));
       tr.appendChild(el('td', null, r.last_will_reason || ''));
-      tr.appendChild(el('td', null, fbNames(r)));
+      const fbCell = el('td', null, fbNames(r));
+      // A search that found the device by a port says which.
+      if (q && !r.id.toLowerCase().includes(q) && !fbNames(r).toLowerCase().includes(q) && portNames(r).includes(q)) {
+        fbCell.appendChild(el('span', { class: 'match' }, 'port ' + portMatches(r, q)));
+      }
+      tr.appendChild(fbCell);
       frag.appendChild(tr);
     }
     // Keep the keyboard's place across the redraw.
@@ -530,9 +552,9 @@
     $('device-title').textContent = 'Device ' + id;
     $('device-missing').hidden = !!r || S.loading;
     $('device-facts').hidden = !r;
-    if (!r) { clear($('fb-boxes')); clear($('ports-rows')); return; }
+    if (!r) { clear($('fb-boxes')); BOX.key = null; clear($('ports-rows')); return; }
     const st = $('device-status'); clear(st); st.appendChild(statusBadge(statusOf(r)));
-    if (r.silent && r.silent_since) st.appendChild(document.createTextNode(' since ' + r.silent_since));
+    if (r.silent && r.silent_since) st.appendChild(el('span', { title: r.silent_since }, ' since ' + localTime(r.silent_since)));
     $('device-line').textContent = r.line + (r.line === S.line ? ' (this line)' : '');
     $('device-since').textContent = localTime(r.since) + ' (' + ago(r.since) + ')';
     $('device-since').title = r.since;
@@ -588,7 +610,7 @@
       for (const tr of order) body.appendChild(tr);
     }
     labelCells($('ports-table'));
-    renderTrend(id);
+    renderTrend();
     // Refusals, newest first.
     const refusals = (a.refusals || []).slice().reverse();
     $('refusals-none').hidden = refusals.length > 0;
@@ -649,27 +671,107 @@
     return tr;
   }
 
+  // A port's IEC type from the viewed device's interface ('' for an event output).
+  function portType(key) {
+    const r = S.devices.get(S.deviceId);
+    const dot = key.indexOf('.');
+    const f = r && r.interface && r.interface.fbs && r.interface.fbs[key.slice(0, dot)];
+    return (f && f.data_out && f.data_out[key.slice(dot + 1)]) || '';
+  }
+  // The event outputs whose WITH list carries the data output `key`.
+  function carriers(key) {
+    const r = S.devices.get(S.deviceId);
+    const dot = key.indexOf('.');
+    const f = r && r.interface && r.interface.fbs && r.interface.fbs[key.slice(0, dot)];
+    const evs = (f && f.events_out) || {};
+    return Object.keys(evs).filter((e) => (evs[e].with || []).includes(key.slice(dot + 1)));
+  }
+  // Held values are drawn as steps (a value stands until the next one: BOOL, integers,
+  // an event's count); REAL and LREAL as lines between their samples.
+  function stepped(key) { const t = portType(key); return t !== 'REAL' && t !== 'LREAL'; }
+
+  // The polyline of `points` in the range [start, end], mapped by x(t) and y(v). More
+  // points than `cols` pixels are thinned to each pixel column's first, lowest, highest
+  // and last value, so an hour at 10 values a second stays a few hundred points, peaks kept.
+  function polyline(points, start, end, x, y, cols, step) {
+    const inRange = [];
+    for (const p of points) if (p[0] >= start && p[0] <= end) inRange.push(p);
+    let pts = inRange;
+    if (inRange.length > cols * 4) {
+      pts = [];
+      let col = null, bucket = [];
+      const flush = () => {
+        if (!bucket.length) return;
+        let lo = bucket[0], hi = bucket[0];
+        for (const p of bucket) { if (p[1] < lo[1]) lo = p; if (p[1] > hi[1]) hi = p; }
+        const keep = new Set([bucket[0], lo, hi, bucket[bucket.length - 1]]);
+        for (const p of bucket) if (keep.has(p)) pts.push(p);
+        bucket = [];
+      };
+      for (const p of inRange) {
+        const c = Math.floor((p[0] - start) / Math.max(1, end - start) * cols);
+        if (c !== col) { flush(); col = c; }
+        bucket.push(p);
+      }
+      flush();
+    }
+    const out = [];
+    let prev = null;
+    for (const p of pts) {
+      const px = x(p[0]).toFixed(1), py = y(p[1]).toFixed(1);
+      if (step && prev !== null) out.push(px + ',' + prev);
+      out.push(px + ',' + py);
+      prev = py;
+    }
+    return out.join(' ');
+  }
+
   // A sparkline's points in the box (x, y, w, h): the trend range, or less if the port has
   // not been seen for that long, newest at the right.
-  function sparkPoints(points, x, y, w, h) {
+  function sparkPoints(key, points, x, y, w, h) {
     if (!points.length) return '';
     const end = now(), start = Math.max(end - S.trendRange * 1000, points[0][0]);
     let lo = Infinity, hi = -Infinity;
-    for (const p of points) { lo = Math.min(lo, p[1]); hi = Math.max(hi, p[1]); }
+    for (const p of points) if (p[0] >= start) { lo = Math.min(lo, p[1]); hi = Math.max(hi, p[1]); }
+    if (!isFinite(lo)) return '';
     if (hi === lo) { hi += 1; lo -= 1; }
-    return points.filter((p) => p[0] >= start).map((p) => (x + (p[0] - start) / Math.max(1, end - start) * w).toFixed(1) + ',' +
-      (y + h - (p[1] - lo) / (hi - lo) * h).toFixed(1)).join(' ');
+    return polyline(points, start, end, (t) => x + (t - start) / Math.max(1, end - start) * w,
+      (v) => y + h - (v - lo) / (hi - lo) * h, w, stepped(key));
   }
 
-  // The trend chart: the plotted ports over the range, one value axis, local times.
-  function renderTrend(id) {
+  // Value axis ticks at round numbers (1, 2 or 5 times a power of ten), about n of them.
+  function niceTicks(lo, hi, n) {
+    const raw = (hi - lo) / n;
+    const mag = Math.pow(10, Math.floor(Math.log10(raw)));
+    const step = [1, 2, 5, 10].map((m) => m * mag).find((s) => s >= raw) || 10 * mag;
+    const first = Math.floor(lo / step) * step, last = Math.ceil(hi / step) * step;
+    const ticks = [];
+    for (let v = first; v <= last + step / 2; v += step) ticks.push(v);
+    const decimals = Math.max(0, -Math.floor(Math.log10(step)));
+    return { lo: first, hi: last, ticks, label: (v) => (Math.abs(v) < step / 2 ? 0 : v).toFixed(Math.min(decimals, 6)) };
+  }
+  // Time axis ticks at round local times, at most n of them.
+  const TIME_STEPS = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600].map((s) => s * 1000);
+  function timeTicks(start, end, n) {
+    const step = TIME_STEPS.find((s) => (end - start) / s <= n) || 3600000;
+    const zone = new Date(start).getTimezoneOffset() * 60000;   // round in local time
+    const ticks = [];
+    for (let t = Math.ceil((start - zone) / step) * step + zone; t <= end; t += step) ticks.push(t);
+    return { ticks, seconds: step < 60000 };
+  }
+
+  // The trend chart: the plotted ports over the range, one value axis, local times. Drawn
+  // at the width it is shown at (no stretching: its text stays readable at 400 px).
+  function renderTrend() {
     const fig = $('trend-chart');
     const shown = S.plotted.filter((p) => S.trends.has(p));
     $('trend-none').hidden = shown.length > 0;
     fig.hidden = shown.length === 0;
     clear(fig);
     if (!shown.length) return;
-    const W = 800, H = 260, L = 64, R = 12, T = 12, B = 30;
+    const cs = getComputedStyle(fig);
+    const W = Math.max(240, Math.floor(fig.clientWidth - parseFloat(cs.paddingLeft) - parseFloat(cs.paddingRight) - 2));
+    const H = W < 500 ? 200 : 260, R = 14, T = 10, B = 24;
     // The range, or from the oldest value shown if the ports are younger than that.
     const end = now();
     let start = end - S.trendRange * 1000;
@@ -679,36 +781,50 @@
     for (const p of shown) for (const q of S.trends.get(p).points) if (q[0] >= start) { lo = Math.min(lo, q[1]); hi = Math.max(hi, q[1]); }
     if (!isFinite(lo)) { lo = 0; hi = 1; }
     if (hi === lo) { hi += 1; lo -= 1; }
+    const vt = niceTicks(lo, hi, H < 240 ? 4 : 5);
+    const labels = vt.ticks.map(vt.label);
+    const L = 10 + 7 * Math.max(...labels.map((s) => s.length));
     const x = (t) => L + (t - start) / (end - start) * (W - L - R);
-    const y = (v) => T + (hi - v) / (hi - lo) * (H - T - B);
-    const g = svg('svg', { viewBox: '0 0 ' + W + ' ' + H, role: 'img', 'aria-labelledby': 'trend-title', preserveAspectRatio: 'none' });
-    g.appendChild(svg('title', { id: 'trend-title' }, 'Trend of ' + shown.join(', ') + ' over the last ' + Math.round(S.trendRange / 60) + ' minutes'));
-    for (let i = 0; i <= 4; i++) {
-      const v = lo + (hi - lo) * i / 4;
+    const y = (v) => T + (vt.hi - v) / (vt.hi - vt.lo) * (H - T - B);
+    const g = svg('svg', { viewBox: '0 0 ' + W + ' ' + H, width: W, height: H, role: 'img', 'aria-labelledby': 'trend-title' });
+    const minutes = Math.round((end - start) / 60000);
+    g.appendChild(svg('title', { id: 'trend-title' }, 'Trend of ' + shown.join(', ') + ' over the last ' + (minutes ? minutes + ' min' : Math.round((end - start) / 1000) + ' s')));
+    vt.ticks.forEach((v, i) => {
       g.appendChild(svg('line', { x1: L, x2: W - R, y1: y(v), y2: y(v), class: 'grid-line' }));
-      g.appendChild(svg('text', { x: L - 6, y: y(v) + 4, class: 'tick', 'text-anchor': 'end' }, Math.abs(v) >= 1000 || v === Math.round(v) ? String(Math.round(v * 100) / 100) : v.toPrecision(4)));
-    }
-    for (let i = 0; i <= 5; i++) {
-      const t = start + (end - start) * i / 5;
-      g.appendChild(svg('text', { x: x(t), y: H - 8, class: 'tick', 'text-anchor': i === 0 ? 'start' : i === 5 ? 'end' : 'middle' }, clockTime(t, end - start <= 600000)));
+      g.appendChild(svg('text', { x: L - 6, y: y(v) + 4, class: 'tick value-tick', 'text-anchor': 'end' }, labels[i]));
+    });
+    // Time ticks a label's width and a gap apart; a label that would cross the chart's
+    // edge is left out (its tick stays).
+    const labelW = 6.2 * clockTime(end, true).length;
+    const tt = timeTicks(start, end, Math.max(2, Math.floor((W - L - R) / (labelW + 40))));
+    for (const t of tt.ticks) {
+      const px = x(t);
+      g.appendChild(svg('line', { x1: px, x2: px, y1: H - B, y2: H - B + 4, class: 'axis' }));
+      if (px - labelW / 2 < 2 || px + labelW / 2 > W - 2) continue;
+      const label = svg('text', { x: px, y: H - 6, class: 'tick time-tick', 'text-anchor': 'middle' }, clockTime(t, tt.seconds));
+      label.appendChild(svg('title', null, localTime(t)));
+      g.appendChild(label);
     }
     g.appendChild(svg('line', { x1: L, x2: L, y1: T, y2: H - B, class: 'axis' }));
     g.appendChild(svg('line', { x1: L, x2: W - R, y1: H - B, y2: H - B, class: 'axis' }));
     const legend = el('ul', { class: 'legend' });
     shown.forEach((port, i) => {
       const t = S.trends.get(port);
-      const pts = t.points.filter((q) => q[0] >= start).map((q) => x(q[0]).toFixed(1) + ',' + y(q[1]).toFixed(1)).join(' ');
-      g.appendChild(svg('polyline', { class: 'series s' + (i % 4), 'data-port': port, points: pts }));
+      const type = t.type || portType(port) || 'event, occurrence #';
+      const line = svg('polyline', { class: 'series s' + (i % 4), 'data-port': port, points: polyline(t.points, start, end, x, y, W - L - R, stepped(port)) });
+      line.appendChild(svg('title', null, port + ' (' + type + ')'));
+      g.appendChild(line);
       const li = el('li', { class: 's' + (i % 4), 'data-port': port });
       li.appendChild(el('span', { class: 'swatch', 'aria-hidden': 'true' }));
       const last = t.points[t.points.length - 1];
-      li.appendChild(document.createTextNode(port + ' (' + (t.type || 'event, seq') + ')' + (last ? ': ' + last[1] + ' at ' + clockTime(last[0], true) : '')));
+      li.appendChild(document.createTextNode(port + ' (' + type + ')' + (carriers(port).length ? ', WITH data of ' + carriers(port).join(', ') : '') +
+        (last ? ': ' + last[1] + ' at ' + clockTime(last[0], true) : '')));
+      if (last) li.title = localTime(last[0]) + ' (' + last[0] + ' ms since 1970)';
       legend.appendChild(li);
     });
     fig.appendChild(g);
     fig.appendChild(legend);
   }
-
   // Narrow screens show table rows as cards: each cell says which column it is.
   function labelCells(table) {
     const heads = Array.from(table.querySelectorAll('thead th')).map((th) => th.textContent.trim());
@@ -763,11 +879,38 @@
   }
 
   // IEC 61499 FB boxes: event inputs/outputs in the head, data below the neck, WITH
-  // associations as vertical lines with a square at each associated port.
+  // associations as vertical lines with a square at each associated port. A box is drawn
+  // once per interface (and per narrow or wide screen), sized to its port names; the
+  // sparklines and values beside its outputs are then updated in place, so a click on one
+  // or the keyboard's focus is never lost to a redraw.
+  const BOX = { key: null, parts: new Map() };   // 'FB.PORT' -> its sparkline and value
   function renderBoxes(iface, ports) {
     const box = $('fb-boxes');
+    const narrow = box.clientWidth > 0 && box.clientWidth < 600;
+    const key = JSON.stringify(iface) + (narrow ? ' narrow' : '');
+    if (key !== BOX.key) { buildBoxes(box, iface, narrow); BOX.key = key; }
+    for (const [full, part] of BOX.parts) {
+      if (part.spark) {
+        const trend = S.trends.get(full);
+        const on = S.plotted.includes(full);
+        part.spark.setAttribute('points', trend ? sparkPoints(full, trend.points, part.sx, part.y - 12, part.sw, 12) : '');
+        part.hit.setAttribute('aria-pressed', on ? 'true' : 'false');
+        part.hitTitle.textContent = full + ': ' + (trend ? trend.points.length + ' values in the last ' +
+          Math.round(S.trendRange / 60) + ' min' : 'no history') + ' (click: ' + (on ? 'off' : 'on') + ' the trend chart)';
+      }
+      const v = ports[full];
+      const words = v && part.event ? eventWords(v.value, true) : null;
+      part.value.textContent = v ? shortValue(words || v.value, part.chars) : '';
+      part.valueTitle.textContent = v ? full + ' = ' + v.value + ' at ' + localTime(v.at) + ' (' + v.at + ')' : '';
+    }
+  }
+
+  function buildBoxes(box, iface, narrow) {
     clear(box);
-    const ROW = 18, W = 200, LEFT = 90, RIGHT = 330, SPARK = 60;
+    BOX.parts = new Map();
+    // px per character: port names (12 px), types and values (11 px).
+    const ROW = 18, CH = 7.4, TCH = 6.6, SPARK = narrow ? 40 : 60, CHARS = narrow ? 17 : 28;
+    const longest = (list) => Math.max(0, ...list.map((p) => p.length));
     for (const name of Object.keys(iface.fbs || {})) {
       const f = iface.fbs[name];
       const ei = Object.keys(f.events_in || {}), eo = Object.keys(f.events_out || {});
@@ -777,8 +920,16 @@
       const body = Math.max(di.length, dout.length, 1) * ROW + 10;
       const top = 24;
       const H = top + head + neck + body + 12;
+      // Events with WITH lines on each side (drawn between the box and the types/values).
+      const withIn = ei.filter((e) => ((f.events_in[e].with) || []).some((d) => d in (f.data_in || {}))).length;
+      const withOut = eo.filter((e) => ((f.events_out[e].with) || []).some((d) => d in (f.data_out || {}))).length;
+      const W = Math.round(Math.max(120, (Math.max(longest(ei), longest(di)) + Math.max(longest(eo), longest(dout))) * CH + 44,
+        name.length * 8 + 20, (f.type || '').length * 7 + 44));
+      const LEFT = Math.round(26 + withIn * 7 + longest(di.map((p) => f.data_in[p] || '')) * TCH);
+      const vx = LEFT + W + 22 + withOut * 7;                // sparklines, then values
+      const RIGHT = 22 + withOut * 7 + SPARK + 6 + Math.round(CHARS * TCH) + 4;
       const x0 = LEFT, x1 = LEFT + W;
-      const g = svg('svg', { class: 'fb', width: LEFT + W + RIGHT, height: H, viewBox: '0 0 ' + (LEFT + W + RIGHT) + ' ' + H, role: 'img', 'aria-label': 'Function block ' + name + (f.type ? ' of type ' + f.type : '') });
+      const g = svg('svg', { class: 'fb', width: LEFT + W + RIGHT, height: H, viewBox: '0 0 ' + (LEFT + W + RIGHT) + ' ' + H, role: 'group', 'aria-label': 'Function block ' + name + (f.type ? ' of type ' + f.type : '') });
       g.appendChild(svg('title', null, 'FB ' + name + (f.type ? ' : ' + f.type : '')));
       g.appendChild(svg('text', { x: x0 + W / 2, y: 16, class: 'fb-name', 'text-anchor': 'middle' }, name));
       const yHead = top, yNeck = top + head, yBody = yNeck + neck;
@@ -791,14 +942,11 @@
       const yEvent = (i) => yHead + 14 + i * ROW;
       const yData = (i) => yBody + 14 + i * ROW;
       const portY = {};
-      // Input types go left of the WITH lines.
-      const withIn = ei.filter((e) => ((f.events_in[e].with) || []).some((d) => d in (f.data_in || {}))).length;
       const addPort = (side, kind, label, y, type) => {
         const inSide = side === 'in';
         const x = inSide ? x0 : x1;
         g.appendChild(svg('line', { x1: inSide ? x - 12 : x, y1: y - 4, x2: inSide ? x : x + 12, y2: y - 4, class: kind === 'event' ? 'stub event' : 'stub data' }));
-        const t = svg('text', { x: inSide ? x + 6 : x - 6, y: y, class: 'port ' + kind, 'text-anchor': inSide ? 'start' : 'end' }, label);
-        g.appendChild(t);
+        g.appendChild(svg('text', { x: inSide ? x + 6 : x - 6, y: y, class: 'port ' + kind, 'text-anchor': inSide ? 'start' : 'end' }, label));
         if (type) g.appendChild(svg('text', { x: inSide ? x - 22 - withIn * 7 : x + 14, y: y, class: 'ptype', 'text-anchor': inSide ? 'end' : 'start' }, type));
       };
       ei.forEach((p, i) => { portY['ei:' + p] = yEvent(i); addPort('in', 'event', p, yEvent(i)); });
@@ -816,43 +964,53 @@
           const ys = [portY[evKey + ev]].concat(withs.map((d) => portY[dataKey + d]));
           g.appendChild(svg('line', { x1: x, y1: Math.min(...ys) - 4, x2: x, y2: Math.max(...ys) - 4, class: 'with' }));
           for (const y of ys) g.appendChild(svg('rect', { x: x - 3, y: y - 7, width: 6, height: 6, class: 'with-mark' }));
-          const assoc = svg('title', null, ev + ' WITH ' + withs.join(', '));
-          g.lastChild.appendChild(assoc);
+          g.lastChild.appendChild(svg('title', null, ev + ' WITH ' + withs.join(', ')));
         }
-        return k;
       };
-      const kin = withLines(ei, 'ei:', 'di:', true);
-      const kout = withLines(eo, 'eo:', 'do:', false);
-      // Output values beside the data outputs (and event outputs), beyond the WITH lines.
-      const vx = x1 + 22 + kout * 7;
-      const valueText = (key, y, cls) => {
-        const full = name + '.' + key;
-        const trend = S.trends.get(full);
-        if (trend) {
-          const spark = svg('polyline', { class: 'spark', 'data-port': full, points: sparkPoints(trend.points, vx, y - 12, SPARK, 12) });
-          spark.appendChild(svg('title', null, full + ': the last ' + Math.round(S.trendRange / 60) + ' minutes, ' + trend.points.length + ' values'));
-          g.appendChild(spark);
+      withLines(ei, 'ei:', 'di:', true);
+      withLines(eo, 'eo:', 'do:', false);
+      // Beside each output: its sparkline (a plottable one: a button that puts it on the
+      // trend chart) and its last value.
+      const output = (port, y, event, plottable) => {
+        const full = name + '.' + port;
+        const part = { y, event, chars: CHARS, sx: vx, sw: SPARK };
+        let parent = g;
+        if (plottable) {
+          part.hit = svg('g', { class: 'spark-hit', 'data-plot': full, tabindex: '0', role: 'button', 'aria-pressed': 'false', 'aria-label': 'Plot ' + full + ' on the trend chart' });
+          part.hitTitle = svg('title');
+          part.hit.appendChild(part.hitTitle);
+          part.hit.appendChild(svg('rect', { x: vx - 3, y: y - 14, width: SPARK + 9 + CHARS * TCH, height: 17, rx: 3 }));
+          part.spark = svg('polyline', { class: 'spark', 'data-port': full, points: '' });
+          part.hit.appendChild(part.spark);
+          g.appendChild(part.hit);
+          parent = part.hit;
         }
-        const v = ports[full];
-        if (!v) return;
-        const words = cls === 'event' ? eventWords(v.value, true) : null;
-        const t = svg('text', { x: vx + SPARK + 6, y: y, class: 'pvalue ' + cls }, shortValue(words || v.value, 28));
-        t.appendChild(svg('title', null, full + ' = ' + v.value + ' at ' + localTime(v.at) + ' (' + v.at + ')'));
-        g.appendChild(t);
+        const t = svg('text', { x: vx + SPARK + 6, y: y, class: 'pvalue ' + (event ? 'event' : 'data'), 'data-port': full });
+        part.value = svg('tspan');
+        part.valueTitle = svg('title');
+        t.appendChild(part.value);
+        t.appendChild(part.valueTitle);
+        parent.appendChild(t);
+        BOX.parts.set(full, part);
       };
-      dout.forEach((p, i) => { if (f.data_out[p]) { /* type shown in the table */ } valueText(p, yData(i), 'data'); });
-      eo.forEach((p, i) => valueText(p, yEvent(i), 'event'));
-      void kin;
+      dout.forEach((p, i) => output(p, yData(i), false, NUMERIC.has(f.data_out[p])));
+      eo.forEach((p, i) => output(p, yEvent(i), true, true));
       const fig = el('figure', { class: 'fb-box', 'data-fb': name });
       fig.appendChild(g);
-      const cap = el('figcaption', null, name + (f.type ? ' : ' + f.type : '') + ' — ' +
-        [ei.length + ' event in', eo.length + ' event out', di.length + ' data in', dout.length + ' data out'].join(', '));
-      fig.appendChild(cap);
+      fig.appendChild(el('figcaption', null, name + (f.type ? ' : ' + f.type : '') + ' — ' +
+        [ei.length + ' event in', eo.length + ' event out', di.length + ' data in', dout.length + ' data out'].join(', ')));
       box.appendChild(fig);
     }
     if (!box.firstChild) box.appendChild(el('p', null, 'No FB declared.'));
   }
 
+  // A port on or off the trend chart (from its plot box or its sparkline).
+  function setPlotted(port, on, reveal) {
+    S.plotted = S.plotted.filter((p) => p !== port);
+    if (on) S.plotted.push(port);
+    scheduleRender(true);
+    if (on && reveal) $('trend').scrollIntoView({ block: 'nearest' });
+  }
   // ------------------------------------------------------------------ wiring
 
   function init() {
@@ -872,10 +1030,22 @@
     $('ports-rows').addEventListener('change', (e) => {
       const port = e.target.getAttribute && e.target.getAttribute('data-port');
       if (!port || !e.target.classList.contains('plot')) return;
-      S.plotted = S.plotted.filter((p) => p !== port);
-      if (e.target.checked) S.plotted.push(port);
-      scheduleRender(true);
+      setPlotted(port, e.target.checked, false);
     });
+    // A sparkline in an FB box: a click (or Enter, Space) puts its port on the chart.
+    const plotFromBox = (e) => {
+      const hit = e.target.closest && e.target.closest('[data-plot]');
+      if (!hit) return false;
+      const port = hit.getAttribute('data-plot');
+      setPlotted(port, !S.plotted.includes(port), true);
+      return true;
+    };
+    $('fb-boxes').addEventListener('click', plotFromBox);
+    $('fb-boxes').addEventListener('keydown', (e) => {
+      if ((e.key === 'Enter' || e.key === ' ') && plotFromBox(e)) e.preventDefault();
+    });
+    // The boxes and the chart are drawn for the width they are shown at.
+    window.addEventListener('resize', () => scheduleRender());
     for (const radio of document.querySelectorAll('input[name="trend-range"]')) {
       radio.addEventListener('change', () => {
         S.trendRange = Number(radio.value);

@@ -358,10 +358,11 @@ fn expect(python: &Python, want: &str, within: Duration) {
 
 /// What a person sees, in headless Chromium: two lines on the bus, devices declared and
 /// publishing on line A, one killed (its will fires), one refused, one on line B; then
-/// line B stops; and (issue 37) the trends: a sparkline and a chart that grow, an event's
-/// WITH data and local time, the CSV export, search by port, the clients and retained
-/// views, the layout at 400 px. Screenshots of each view with
-/// `FBBUS_CONSOLE_SCREENSHOTS=<dir>`.
+/// line B stops; and (issue 37) the trends: a sparkline and a chart that grow, a port put
+/// on the chart by a click on its sparkline, an event's WITH data and its seq and ts in
+/// local time, the CSV export (content and file name), search by port, the clients and
+/// retained views, the layout at 400 px (no sideways scroll, text drawn at a readable
+/// size). Screenshots of each view with `FBBUS_CONSOLE_SCREENSHOTS=<dir>`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_console_in_a_browser_shows_the_line_live() {
     if !have_browser() {
@@ -404,8 +405,14 @@ async fn the_console_in_a_browser_shows_the_line_live() {
                         "fb/press-1/CONV/MOVED",
                         rumqttc::QoS::AtMostOnce,
                         false,
+                        // The device's own occurrence number and time (µs).
                         format!(
-                            r#"{{"data": {{"POSITION": {}, "SENSOR_IN": true}}}}"#,
+                            r#"{{"seq": {}, "ts": {}, "data": {{"POSITION": {}, "SENSOR_IN": true}}}}"#,
+                            i / 5 + 1,
+                            std::time::SystemTime::now()
+                                .duration_since(std::time::UNIX_EPOCH)
+                                .unwrap()
+                                .as_micros(),
                             100 + i % 900
                         ),
                     )

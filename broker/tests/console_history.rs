@@ -160,8 +160,12 @@ async fn a_port_history_is_bounded_ranged_exported_and_forgotten() {
     assert_eq!(sensor["type"], "BOOL", "{sensor}");
     let bools: Vec<f64> = points(&sensor).iter().map(|p| p.1).collect();
     assert_eq!(bools, [1.0, 0.0, 1.0]);
-    let position = points(&json(admin, path));
-    assert_eq!(position.last().map(|p| p.1), Some(103.0));
+    // POSITION came on its own topic and inside MOVED: one series, its older values kept.
+    let position = json(admin, path);
+    assert_eq!(position["kind"], "with", "{position}");
+    let values: Vec<f64> = points(&position).iter().map(|p| p.1).collect();
+    assert_eq!(values.len(), 50, "{position}");
+    assert_eq!(values[44..], [77.0, 78.0, 79.0, 101.0, 102.0, 103.0]);
     // The WITH data are the ports' last values too ("never seen" before issue 37).
     let activity = json(admin, "/api/v1/devices/belt-7/activity");
     assert_eq!(

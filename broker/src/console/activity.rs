@@ -380,7 +380,8 @@ impl Activity {
                 if let Ok(Message::Data(value)) = json::decode(payload, &output) {
                     if let Some(x) = history::number(&value) {
                         let point = Point(ms, x);
-                        self.point(state, &t, t.port, Kind::Data, Some(*ty), point);
+                        let kind = history::data_kind(&interface, t.fb, t.port);
+                        self.point(state, &t, t.port, kind, Some(*ty), point);
                     }
                 }
             }
@@ -396,7 +397,9 @@ impl Activity {
                     let text = json::value_to_json(value).to_string();
                     self.set_value(state, t.device, t.fb, name, text.as_bytes(), at, retained);
                     if let Some(x) = history::number(value).filter(|_| !retained) {
-                        self.point(state, &t, name, Kind::With, Some(*ty), Point(ms, x));
+                        // A WITH port is one series, whichever way its values come.
+                        let kind = history::data_kind(&interface, t.fb, name);
+                        self.point(state, &t, name, kind, Some(*ty), Point(ms, x));
                     }
                 }
             }

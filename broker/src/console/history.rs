@@ -22,7 +22,7 @@
 
 use std::collections::{HashMap, VecDeque};
 
-use fb_bridge::{DataType, ElementaryType, OutputPort, Value};
+use fb_bridge::{DataType, ElementaryType, Interface, OutputPort, Value};
 use serde::Serialize;
 
 /// The fewest points a series is ever cut to; series beyond `max_points / MIN_POINTS`
@@ -117,6 +117,22 @@ pub fn plottable(ty: DataType) -> bool {
                 | ElementaryType::TimeOfDay
                 | ElementaryType::DateAndTime
         ),
+    }
+}
+
+/// The kind of data output `fb.port`'s series: [`Kind::With`] when an event of its FB
+/// carries it (whether a value came on its own topic or inside the event: one series
+/// either way), else [`Kind::Data`].
+pub fn data_kind(interface: &Interface, fb: &str, port: &str) -> Kind {
+    let carried = interface.fbs.get(fb).is_some_and(|f| {
+        f.events_out
+            .values()
+            .any(|e| e.with.iter().any(|w| w == port))
+    });
+    if carried {
+        Kind::With
+    } else {
+        Kind::Data
     }
 }
 

@@ -73,12 +73,7 @@ pub async fn history(
         }
         Some(OutputPort::Event(_)) => (Kind::Event, None),
         Some(OutputPort::Data(ty)) if history::plottable(ty) => {
-            let with = record.interface.fbs.get(fb).is_some_and(|f| {
-                f.events_out
-                    .values()
-                    .any(|e| e.with.iter().any(|w| w == port))
-            });
-            (if with { Kind::With } else { Kind::Data }, Some(ty))
+            (history::data_kind(&record.interface, fb, port), Some(ty))
         }
         Some(OutputPort::Data(ty)) => {
             return refuse(

@@ -176,7 +176,9 @@ try:
     wait_for("the search cleared", lambda: row("press-1"))
     # Search by port name (issue 37): only the oven has T_ZONE1.
     act("the search", lambda: driver.find_element(By.ID, "search").send_keys("T_ZONE1"))
-    wait_for("the search by port", lambda: row("oven-1") and not row("press-1") and not row("remote-1"))
+    wait_for("the search by port, saying which", lambda: "port OVEN.T_ZONE1" in row("oven-1")
+             and not row("press-1") and not row("remote-1"))
+    shot("search-port.png")
     act("clearing the search", lambda: driver.find_element(By.ID, "search").clear())
     act("clearing the search", lambda: driver.find_element(By.ID, "search").send_keys(Keys.BACKSPACE))
     wait_for("the search cleared", lambda: row("press-1"))
@@ -227,6 +229,19 @@ try:
     raw = driver.find_element(By.CSS_SELECTOR, moved).get_attribute("title")
     if '"ts":' not in raw or '"seq":' not in raw:
         fail("MOVED's raw value on hover: %r" % raw)
+    # The occurrence's seq and ts (µs, the device's own) shown in this browser's local
+    # date and time.
+    def moved_in_local_time():
+        cell = driver.find_element(By.CSS_SELECTOR, moved)
+        raw = cell.get_attribute("title")
+        seq, ts = re.search(r'"seq":\s*(\d+)', raw), re.search(r'"ts":\s*(\d+)', raw)
+        if not seq or not ts:
+            return False
+        local = driver.execute_script(
+            "const d = new Date(arguments[0] / 1000); return d.toLocaleDateString() + ' ' + d.toLocaleTimeString()",
+            int(ts.group(1)))
+        return cell.text.startswith("#%s at %s: " % (seq.group(1), local))
+    wait_for("MOVED's seq and ts in local date and time", moved_in_local_time)
     # Two ports on one chart, growing live.
     for port in ["CONV.POSITION", "CONV.SENSOR_IN"]:
         act("plot " + port, lambda port=port: driver.find_element(
@@ -236,15 +251,42 @@ try:
     wait_for("the chart growing", lambda: points(line) > first)
     wait_for("both ports in the legend with their types", lambda: "CONV.POSITION (INT)" in text("#trend-chart .legend")
              and "CONV.SENSOR_IN (BOOL)" in text("#trend-chart .legend"))
-    wait_for("local times on the time axis", lambda: len(driver.find_elements(By.CSS_SELECTOR, "#trend-chart text.tick")) >= 6)
-    # A port's history as CSV, from its link.
+    wait_for("local times on the time axis", lambda: len(driver.find_elements(By.CSS_SELECTOR, "#trend-chart text.time-tick")) >= 3)
+    # A click on a sparkline in the FB box puts its port on the chart (an event: its
+    # occurrences' numbers); Enter on it, focused, takes it off.
+    hit = box + 'g.spark-hit[data-plot="CONV.MOVED"]'
+    act("a click on CONV.MOVED's sparkline", lambda: driver.find_element(By.CSS_SELECTOR, hit).click())
+    wait_for("CONV.MOVED on the chart from its sparkline",
+             lambda: points('#trend-chart polyline[data-port="CONV.MOVED"]') >= 2
+             and "CONV.MOVED (event" in text("#trend-chart .legend")
+             and driver.find_element(By.CSS_SELECTOR, hit).get_attribute("aria-pressed") == "true"
+             and driver.find_element(By.CSS_SELECTOR, 'input.plot[data-port="CONV.MOVED"]').is_selected())
+    act("Enter on CONV.MOVED's sparkline", lambda: driver.find_element(By.CSS_SELECTOR, hit).send_keys(Keys.ENTER))
+    wait_for("CONV.MOVED off the chart", lambda: "CONV.MOVED" not in text("#trend-chart .legend")
+             and driver.find_element(By.CSS_SELECTOR, hit).get_attribute("aria-pressed") == "false")
+    act("a click on CONV.MOVED's sparkline", lambda: driver.find_element(By.CSS_SELECTOR, hit).click())
+    wait_for("CONV.MOVED on the chart again", lambda: "CONV.MOVED (event" in text("#trend-chart .legend"))
+    # A port's history as CSV, from its link: a file named after the device and port,
+    # every value kept (press-1 publishes CONV.POSITION 5 times a second, on its own topic
+    # and as MOVED's WITH data: one series either way), in time order.
     href = driver.find_element(By.CSS_SELECTOR, 'a.csv[data-port="CONV.POSITION"]').get_attribute("href")
-    csv = driver.execute_async_script(
-        "fetch(arguments[0]).then(r => r.text()).then(arguments[1], e => arguments[1]('error ' + e))", href)
-    rows = csv.splitlines()
-    if len(rows) < 3 or rows[0] != "time,CONV.POSITION" or not all(
-            re.match(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z,\d+$", r) for r in rows[1:]):
-        fail("the CSV export: %r" % csv[:300])
+    got = {}
+
+    def csv_export():
+        csv, disposition = driver.execute_async_script(
+            "fetch(arguments[0]).then(r => r.text().then(t => [t, r.headers.get('content-disposition')]))"
+            ".then(arguments[1], e => arguments[1](['error ' + e, '']))", href)
+        got.update(csv=csv, disposition=disposition)
+        rows = csv.splitlines()
+        times = [r.split(",")[0] for r in rows[1:]]
+        return (rows[0] == "time,CONV.POSITION" and len(rows) > 10 and times == sorted(times)
+                and all(re.match(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z,\d+$", r) for r in rows[1:]))
+    try:
+        WebDriverWait(driver, 10, poll_frequency=0.5).until(lambda d: csv_export())
+    except TimeoutException:
+        fail("the CSV export (header, then more than 10 rows of time,value in time order): %r" % got.get("csv", "")[:400])
+    if 'filename="press-1_CONV.POSITION.csv"' not in (got.get("disposition") or ""):
+        fail("the CSV export's file name: %r" % got.get("disposition"))
     if SHOTS:
         # A chart worth looking at: 20 s of values.
         wait_for("20 s of CONV.POSITION on the chart", lambda: points(line) >= 100, timeout=45)
@@ -253,10 +295,21 @@ try:
     # The tablet on the line: 400 px wide, no sideways scroll of the page.
     driver.set_window_size(400, 1000)
     fits_the_width("the device view")
+    # Drawn for that width, not shrunk: the FB box's port names and the chart's ticks
+    # stay readable.
+    wait_for("readable port names and chart ticks at 400 px", lambda: driver.execute_script(
+        "const h = (css) => Math.min(...Array.from(document.querySelectorAll(css)).map(e => e.getBoundingClientRect().height));"
+        "return h('figure[data-fb=\"CONV\"] text.port') >= 10 && h('#trend-chart text.tick') >= 10"))
     shot("device-400px.png", width=400)
     go("#/devices")
     wait_for("the devices list at 400 px", lambda: row("press-1"))
     fits_the_width("the devices view")
+    go("#/")
+    wait_for("the line view at 400 px", lambda: text("#count-online") not in ("", "0"))
+    fits_the_width("the line view")
+    go("#/retained")
+    wait_for("the retained view at 400 px", lambda: text("#retained-shown"))
+    fits_the_width("the retained view")
 
     # Connected clients, with a known client id; retained topics under a filter.
     go("#/clients")
