@@ -303,6 +303,9 @@
       if (S.activity && d.device === S.deviceId) {
         S.activity.ports = Object.assign(S.activity.ports || {}, d.ports);
         addPoints(d.points);
+        // The broker sent only part of the new points (a fast device): read the history
+        // again, at most every 5 s.
+        if (d.points_cut && Date.now() - (S.trendsCutAt || 0) > 5000) { S.trendsCutAt = Date.now(); loadTrends(S.deviceId); }
         scheduleRender();
       }
     } else if (kind === 'refusal') {

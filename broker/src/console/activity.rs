@@ -69,9 +69,12 @@ pub struct Limits {
     pub history: history::Limits,
 }
 
-/// Points of one port a live feed event carries at most (the page asks the history
-/// for more if it missed some).
+/// Points of one port a live feed event carries at most, and of all its ports: a device
+/// of 512 ports each publishing fast would otherwise make every 250 ms event megabytes,
+/// and the feeds' channel holds up to [`EVENTS_CAPACITY`] of them for a lagging page.
+/// Beyond, the event says `points_cut` and the page reads the history again.
 pub const FEED_POINTS: usize = 256;
+pub const FEED_POINTS_PER_EVENT: usize = 2048;
 /// How often points older than the history's window are dropped from every series.
 pub const EXPIRE_EVERY: Duration = Duration::from_secs(10);
 
@@ -559,10 +562,13 @@ impl Activity {
             };
             let mut values = BTreeMap::new();
             let mut points = BTreeMap::new();
+            let (mut left, mut cut) = (FEED_POINTS_PER_EVENT, false);
             for ((fb, port), seen) in &ports {
                 let name = format!("{fb}.{port}");
                 if let Some(series) = state.history.get(&id, fb, port) {
-                    let new: Vec<&Point> = series.after(*seen, FEED_POINTS).collect();
+                    let new: Vec<&Point> = series.after(*seen, FEED_POINTS.min(left)).collect();
+                    cut |= series.pushed().saturating_sub(*seen) > new.len() as u64;
+                    left -= new.len();
                     if !new.is_empty() {
                         points.insert(name.clone(), new);
                     }
@@ -571,7 +577,12 @@ impl Activity {
                     values.insert(name, value);
                 }
             }
-            let body = serde_json::json!({"device": id, "ports": values, "points": points});
+            let body = serde_json::json!({
+                "device": id,
+                "ports": values,
+                "points": points,
+                "points_cut": cut,
+            });
             let Ok(json) = serde_json::to_vec(&body) else {
                 continue;
             };
@@ -744,6 +755,68 @@ pub async fn run(activity: Arc<Activity>, registry: Arc<Registry>, link: (LinkTx
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What the feed sends a page watching a device: every new point of a slow device, and
+    /// no more than [`FEED_POINTS_PER_EVENT`] of a fast one, saying so.
+    #[test]
+    fn a_feed_event_carries_a_bounded_number_of_points() {
+        let limits = Limits {
+            max_port_values: 1000,
+            max_refusals: 10,
+            history: history::Limits {
+                window_ms: 3_600_000,
+                points_per_port: 3600,
+                max_points: 1_000_000,
+            },
+        };
+        let activity = Activity::new(limits, &Metrics::new());
+        let ports: Vec<String> = (0..20).map(|p| format!("\"P{p}\":\"INT\"")).collect();
+        let declaration = format!(
+            "{{\"fbs\":{{\"F\":{{\"data_out\":{{{}}}}}}}}}",
+            ports.join(",")
+        );
+        let interface = fb_bridge::Declaration::from_json(declaration.as_bytes())
+            .unwrap()
+            .validate()
+            .unwrap();
+        activity
+            .lock()
+            .interfaces
+            .insert("d".into(), Arc::new(interface));
+        let _watch = activity.watch("d");
+        let mut events = activity.events();
+        let mut feed = |ports: usize, values: usize| {
+            {
+                let mut state = activity.lock();
+                for v in 0..values {
+                    for p in 0..ports {
+                        let topic = format!("fb/d/F/P{p}");
+                        activity.received(
+                            &mut state,
+                            topic.as_bytes(),
+                            v.to_string().as_bytes(),
+                            false,
+                        );
+                    }
+                }
+            }
+            activity.flush();
+            let Ok(Event::Ports { json, .. }) = events.try_recv() else {
+                panic!("no ports event");
+            };
+            let body: serde_json::Value = serde_json::from_slice(&json).unwrap();
+            let n: usize = body["points"]
+                .as_object()
+                .unwrap()
+                .values()
+                .map(|p| p.as_array().unwrap().len())
+                .sum();
+            (n, body["points_cut"] == true)
+        };
+        assert_eq!(feed(2, 10), (20, false));
+        let (n, cut) = feed(20, 200);
+        assert_eq!((n, cut), (FEED_POINTS_PER_EVENT, true));
+    }
 
     #[test]
     fn text_is_cut_at_a_character_boundary() {
