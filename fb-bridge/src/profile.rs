@@ -644,15 +644,7 @@ fn floats(interface: &Interface, fb: &str, port: &str) -> bool {
         return false;
     };
     shape.value_types().iter().any(|t| match t {
-        DataType::Elementary(e) => !matches!(
-            e,
-            ElementaryType::String
-                | ElementaryType::WString
-                | ElementaryType::Time
-                | ElementaryType::Date
-                | ElementaryType::TimeOfDay
-                | ElementaryType::DateAndTime
-        ),
+        DataType::Elementary(e) => e.reads_as_number(),
         DataType::Array(..) => false,
     })
 }

@@ -117,6 +117,20 @@ impl ElementaryType {
         )
     }
 
+    /// Whether a value of this type reads as a number: the integers, bit strings and reals,
+    /// and BOOL (1/0). Not the strings, nor the time types (text literals).
+    pub fn reads_as_number(self) -> bool {
+        !matches!(
+            self,
+            Self::String
+                | Self::WString
+                | Self::Time
+                | Self::Date
+                | Self::TimeOfDay
+                | Self::DateAndTime
+        )
+    }
+
     pub fn from_number(n: u8) -> Option<ElementaryType> {
         Self::ALL.into_iter().find(|t| t.number() == n)
     }

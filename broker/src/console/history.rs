@@ -22,7 +22,7 @@
 
 use std::collections::{HashMap, VecDeque};
 
-use fb_bridge::{DataType, ElementaryType, Interface, OutputPort, Value};
+use fb_bridge::{DataType, Interface, OutputPort, Value};
 use serde::Serialize;
 
 /// The fewest points a series is ever cut to; series beyond `max_points / MIN_POINTS`
@@ -108,15 +108,7 @@ impl Series {
 pub fn plottable(ty: DataType) -> bool {
     match ty {
         DataType::Array(..) => false,
-        DataType::Elementary(t) => !matches!(
-            t,
-            ElementaryType::String
-                | ElementaryType::WString
-                | ElementaryType::Time
-                | ElementaryType::Date
-                | ElementaryType::TimeOfDay
-                | ElementaryType::DateAndTime
-        ),
+        DataType::Elementary(t) => t.reads_as_number(),
     }
 }
 
@@ -393,6 +385,7 @@ impl History {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use fb_bridge::ElementaryType;
 
     const INT: Option<DataType> = Some(DataType::Elementary(ElementaryType::Int));
 
