@@ -14,10 +14,13 @@
 //!   sends the first copy whose QoS is the delivery QoS with the identifiers of all the
 //!   matching subscriptions; the others are acknowledged to the router for the client
 //!   and dropped. Copies of one router batch are announced before any is sent, so a
-//!   lower-QoS copy read first gives way to the higher one behind it. If the higher copy
-//!   comes in a later batch (its filter's in-flight window was full), the lower one was
-//!   already sent; the higher one is then sent too, so a copy at the maximum QoS always
-//!   arrives (two copies, as before, in that case only);
+//!   lower-QoS copy read first gives way to the higher one behind it. The router hands a
+//!   connection everything one scheduling round read, for all its filters, in one batch
+//!   (`Router::consume` in the router fork), so the copies of a message arrive
+//!   together. If the higher copy comes in a later batch (its filter's in-flight window
+//!   was full, or the connection's buffer), the lower one was already sent; the higher
+//!   one is then sent too, so a copy at the maximum QoS always arrives (two copies, as
+//!   before, in that case only);
 //! - options that differ between the matching subscriptions: No Local excludes a
 //!   subscription from the identifiers and the QoS of the client's own messages (the copy
 //!   is dropped only when every matching one has No Local); Retain As Published is

@@ -125,15 +125,17 @@ impl Outgoing {
     }
 
     /// Push packets to the outgoing buffer.
+    ///
+    /// fbbus: into `buffer`, the connection's buffer, which the router holds locked for
+    /// a whole scheduling round (`Router::consume`). Returns the number of notifications
+    /// in the buffer and the number in flight.
     pub fn push_forwards(
         &mut self,
         publishes: impl Iterator<Item = Forward>,
         qos: u8,
         filter_idx: usize,
+        buffer: &mut VecDeque<Notification>,
     ) -> (usize, usize) {
-        let mut buffer = self.data_buffer.lock();
-        let publishes = publishes;
-
         if qos == 0 {
             for p in publishes {
                 buffer.push_back(Notification::Forward(p));

@@ -1212,6 +1212,16 @@ impl Router {
         // We always try to ack when ever a connection is scheduled
         ack_device_data(ackslog, outgoing);
 
+        // fbbus: the connection's buffer stays locked for the whole round, and the
+        // connection is woken once, at its end: the connection then reads everything the
+        // round forwarded, for all its filters, in one batch. Forwards were pushed and
+        // announced one filter at a time upstream, so a connection could read the copies
+        // of one message for two of its overlapping subscriptions in two batches, and then
+        // could not choose one copy (`broker::session::copies`).
+        let buffer = outgoing.buffer();
+        let mut buffer = buffer.lock();
+        let mut forwarded = false;
+
         let connection = &mut self.connections[id];
 
         // Keep track of temporarily skipped DataRequest
@@ -1229,6 +1239,10 @@ impl Router {
                 // acks are completely caught up. Pending requests are registered
                 // in waiters and awaiting new notifications (device or replica data)
                 None => {
+                    drop(buffer);
+                    if forwarded {
+                        outgoing.handle.try_send(()).ok();
+                    }
                     if skipped_requests.is_empty() {
                         // if no requests is in skip list, that means
                         // we have nothing left to process, i.e. we caughtup
@@ -1248,7 +1262,7 @@ impl Router {
             match forward_device_data(
                 &mut request,
                 datalog,
-                outgoing,
+                (outgoing, &mut buffer, &mut forwarded),
                 connection,
                 shared_group,
                 &mut self.hooks.skipped,
@@ -1281,6 +1295,10 @@ impl Router {
             }
         }
 
+        drop(buffer);
+        if forwarded {
+            outgoing.handle.try_send(()).ok();
+        }
         // Add requests back to the tracker if there are any
         requests.extend(skipped_requests);
         self.scheduler.trackv(id, requests);
@@ -1739,10 +1757,13 @@ enum ConsumeStatus {
 /// 1. `busy`: whether the data request was completed or not.
 /// 2. `done`: whether the connection was busy or not.
 /// 3. `inflight_full`: whether the inflight requests were completely filled
+///
+/// fbbus: forwards go to `buffer`, the connection's buffer that `Router::consume` holds
+/// locked for its round, and set `forwarded`; `consume` wakes the connection at the end.
 fn forward_device_data(
     request: &mut DataRequest,
     datalog: &mut DataLog,
-    outgoing: &mut Outgoing,
+    (outgoing, buffer, forwarded): (&mut Outgoing, &mut VecDeque<Notification>, &mut bool),
     connection: &mut Connection,
     shared_group: Option<&mut SharedGroup>,
     on_skip: &mut Option<SkipHook>,
@@ -1943,7 +1964,8 @@ fn forward_device_data(
             }
         });
 
-    let (len, inflight) = outgoing.push_forwards(forwards, qos, filter_idx);
+    let (len, inflight) = outgoing.push_forwards(forwards, qos, filter_idx, buffer);
+    *forwarded = true;
 
     debug!(
         inflight_count = inflight,
@@ -1957,12 +1979,9 @@ fn forward_device_data(
 
     if len >= MAX_CHANNEL_CAPACITY - 1 {
         debug!("Outgoing channel reached its capacity");
-        outgoing.push_notification(Notification::Unschedule);
-        outgoing.handle.try_send(()).ok();
+        buffer.push_back(Notification::Unschedule);
         return ConsumeStatus::BufferFull;
     }
-
-    outgoing.handle.try_send(()).ok();
 
     // update the state of shared subscription
     if let Some(share) = shared_group {
