@@ -568,9 +568,24 @@ fn the_store_keeps_the_retained_messages_the_router_keeps() {
 
 /// 20 crashes while a QoS 1 publisher runs: every message the broker acknowledged reaches
 /// the persistent subscriber (duplicates are QoS 1's right, losses are not).
+///
+/// The session's queue limit is out of the way: at the default `max_queued_messages`
+/// (1,000), a subscriber that falls more than 1,000 messages behind gets the rest live only,
+/// not stored (by design, counted in `session_queue_full`, and the publisher is
+/// acknowledged: a full queue is its owner's loss). CI saw exactly that once under full
+/// load (a subscriber starved of CPU for half a second, then a crash), and a subscriber
+/// slowed to 1,400 msg/s loses thousands at 1,000 and none at 1,000,000.
+/// `a_session_queue_over_its_limit_keeps_the_first_messages_and_counts_the_rest` tests the
+/// limit.
 #[test]
 fn every_acknowledged_message_survives_twenty_crashes() {
-    let mut broker = Broker::start();
+    let mut broker = Broker::start_with(
+        Options {
+            extra: "[persistence]\nmax_queued_messages = 1000000\n".into(),
+            ..Options::default()
+        },
+        |_| {},
+    );
     let port = broker.port();
     {
         let (mut sub, _) = client(&broker, 4, "loop-sub", false);
@@ -698,7 +713,7 @@ fn every_acknowledged_message_survives_twenty_crashes() {
     subscriber.join().unwrap();
     let acked = acked.lock().unwrap();
     let received = received.lock().unwrap();
-    let missing: Vec<_> = acked.difference(&received).take(20).collect();
+    let missing: Vec<_> = acked.difference(&received).collect();
     eprintln!(
         "published {published}, acknowledged {}, received {}",
         acked.len(),
@@ -709,7 +724,12 @@ fn every_acknowledged_message_survives_twenty_crashes() {
         "the publisher got going: {}",
         acked.len()
     );
-    assert!(missing.is_empty(), "acknowledged and lost: {missing:?}");
+    assert!(
+        missing.is_empty(),
+        "{} acknowledged and lost, from: {:?}",
+        missing.len(),
+        &missing[..missing.len().min(20)]
+    );
 }
 
 /// A subscription's MQTT 5 options hold for the session after a reconnect and after a
