@@ -6,7 +6,9 @@
 //! point whose value is its `seq`), and every such data output carried as an event's WITH
 //! data. Strings, dates, times and arrays are shown as last values only. A point is the
 //! time the console received the value (ms since 1970, UTC) and the value as an `f64`:
-//! 16 bytes. The device's own `ts` of an event is not used as the time: it is whatever
+//! 16 bytes. A port gets a point per value the console reads, and of several values of a
+//! port in one read of its link (a burst: all within a millisecond or two), the newest
+//! (`activity::Newest`). The device's own `ts` of an event is not used as the time: it is whatever
 //! the device's clock says, and a series must stay in order to be cut by time.
 //!
 //! **Bounded, fairly.** A series holds at most `[console] history_points_per_port` points
@@ -252,8 +254,14 @@ impl History {
         // the last point's time, so ranges stay ordered.
         let at = series.points.back().map_or(point.0, |p| p.0.max(point.0));
         if series.points.len() == series.points.capacity() {
-            // Grow by doubling up to the cap, not past it.
-            let want = (series.points.len() * 2).max(MIN_POINTS).min(cap);
+            // Grow by doubling up to the cap, not past it; a small cap (a plant's fair
+            // share) at once: the whole line's series grow together, and each step
+            // leaves every series's old buffer behind as a hole of its size.
+            let want = if cap <= 2 * MIN_POINTS {
+                cap
+            } else {
+                (series.points.len() * 2).max(MIN_POINTS).min(cap)
+            };
             series
                 .points
                 .reserve_exact(want.saturating_sub(series.points.len()).max(1));
