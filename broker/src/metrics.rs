@@ -143,6 +143,8 @@ pub struct Metrics {
     /// Registry queries this line sent other lines (`bridge::federation`).
     pub bridge_record_queries: IntCounterVec,
     pub bridge_retained_replayed: IntCounter,
+    /// Messages of other lines that never arrived (gaps in a topic's numbering).
+    pub bridge_lost: IntCounter,
     /// Requests refused at a limit, by limit (`subscriptions_per_client`, ...).
     pub limit_refusals: IntCounterVec,
     /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
@@ -298,6 +300,12 @@ impl Metrics {
             bridge_retained_replayed: counter(
                 "fbbus_bridge_retained_replayed_total",
                 "Retained messages fetched from other lines when this line started importing a filter",
+            ),
+            bridge_lost: counter(
+                "fbbus_bridge_lost_total",
+                "Messages of other lines that never reached this line: gaps in the numbering \
+                 each line gives every topic it puts on the bus (a router that died with \
+                 messages queued, a cut link); see docs/device-contract.md, the bus",
             ),
             connections,
             limit_refusals: counter_vec(

@@ -345,6 +345,68 @@ async fn a_full_mesh_of_three_lines_delivers_exactly_once() {
     everyone_gets_everything_once(&[&a, &b, &c], 100).await;
 }
 
+/// Each line numbers what it puts on the bus per topic, and a line that takes a topic takes
+/// all of it, so a line counts the messages that never reached it
+/// (`fbbus_bridge_lost_total`): none when it takes one of two topics another line takes
+/// both of (a numbering per line, not per topic, would count the other topic's messages
+/// as lost), and the ones it missed when the topic went on flowing to another line while
+/// its own interest had lapsed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_line_counts_the_messages_of_a_topic_that_never_reached_it() {
+    const LOST: &str = "fbbus_bridge_lost_total";
+    let a = Line::start("line-a", &[], "");
+    let b = Line::start("line-b", &[&a.zenoh], "");
+    let c = Line::start("line-c", &[&a.zenoh, &b.zenoh], "");
+    let dev = device(&a, "conv-a").await;
+    for line in [&b, &c] {
+        line.wait_record("conv-a", "online", PROPAGATION);
+    }
+    let mut both = observe(&c, "watch-c", &["fb/conv-a/CONV/#"], &[&a]).await;
+    let mut one = observe(&b, "watch-b", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+    let send = |from: i64, to: i64| {
+        let dev = &dev;
+        async move {
+            for i in from..to {
+                publish(dev, "fb/conv-a/CONV/POSITION", i.to_string(), false).await;
+                publish(dev, "fb/conv-a/CONV/ID", format!("\"id-{i}\""), false).await;
+            }
+        }
+    };
+    send(0, 50).await;
+    let quiet = Duration::from_millis(1000);
+    let got = drain(&mut one, quiet).await;
+    assert_eq!(
+        positions(&got, "fb/conv-a/CONV/POSITION"),
+        (0..50).collect::<Vec<_>>()
+    );
+    assert_eq!(got.len(), 50, "line B takes POSITION only");
+    assert_eq!(drain(&mut both, quiet).await.len(), 100);
+    assert_eq!(b.broker.metric(LOST), 0.0, "{}", b.broker.log_text());
+    assert_eq!(c.broker.metric(LOST), 0.0, "{}", c.broker.log_text());
+
+    // B's interest lapses while C's goes on: the next 20 values of POSITION leave A for C
+    // only. Then B subscribes again: what it missed is counted.
+    let held = a.broker.metric("fbbus_bridge_remote_subscriptions");
+    one.client.disconnect().await.unwrap();
+    drop(one);
+    let deadline = Instant::now() + PROPAGATION;
+    while a.broker.metric("fbbus_bridge_remote_subscriptions") >= held {
+        assert!(Instant::now() < deadline, "B's interest never went");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    send(50, 70).await;
+    assert_eq!(drain(&mut both, quiet).await.len(), 40);
+    let mut one = observe(&b, "watch-b2", &["fb/conv-a/CONV/POSITION"], &[&a]).await;
+    send(70, 80).await;
+    let got = drain(&mut one, quiet).await;
+    assert_eq!(
+        positions(&got, "fb/conv-a/CONV/POSITION"),
+        (70..80).collect::<Vec<_>>()
+    );
+    assert_eq!(b.broker.metric(LOST), 20.0, "{}", b.broker.metrics());
+    assert_eq!(c.broker.metric(LOST), 0.0);
+}
+
 // ---------------------------------------------------------------- registry federation
 
 /// `fbbus devices` against `line`'s admin endpoint: the row of `id`.

@@ -43,6 +43,7 @@ pub(super) async fn export_loop(
         held: 0,
         is_event: HashMap::new(),
         shares,
+        exported: ctx.metrics.bridge_messages.with_label_values(&["export"]),
         ctx,
     };
     let mut forwards = Vec::new();
@@ -100,6 +101,8 @@ struct Exports {
     held: usize,
     is_event: HashMap<String, bool>,
     shares: Shares,
+    /// `fbbus_bridge_messages_total{direction="export"}`, looked up once.
+    exported: prometheus::IntCounter,
     ctx: Arc<Context>,
 }
 
@@ -230,10 +233,14 @@ impl Exports {
             && self.interest.keys().any(|f| filter::matches(f, &topic));
         if wanted {
             let ctx = &self.ctx;
-            let event = *self
-                .is_event
-                .entry(topic.clone())
-                .or_insert_with(|| event_port(ctx, &topic));
+            let event = match self.is_event.get(&topic) {
+                Some(&event) => event,
+                None => {
+                    let event = event_port(ctx, &topic);
+                    self.is_event.insert(topic.clone(), event);
+                    event
+                }
+            };
             let qos = origin
                 .as_ref()
                 .map_or(routed_qos, |o| o.qos.min(routed_qos));
@@ -245,7 +252,7 @@ impl Exports {
                 .export(&topic, payload, qos, retain, event)
                 .await
             {
-                Ok(true) => metrics.bridge_messages.with_label_values(&["export"]).inc(),
+                Ok(true) => self.exported.inc(),
                 Ok(false) => metrics
                     .bridge_dropped
                     .with_label_values(&["unbridgeable"])

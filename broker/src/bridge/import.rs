@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use fb_bridge::bus::link::{Import, Inbound, Inbox, Link, RouteKeys};
-use fb_bridge::bus::{BusConfig, Dedup};
+use fb_bridge::bus::{BusConfig, Dedup, Gaps};
 use fb_bridge::topic::TypedTopic;
 use rumqttd::local::{LinkRx, LinkTx};
 use rumqttd::protocol::Packet;
@@ -113,6 +113,7 @@ pub(super) async fn inject_loop(
     tokio::spawn(link::discard(rx));
     let mut injector = Injector {
         dedup: Dedup::default(),
+        gaps: Gaps::default(),
         route_keys,
         publisher: IMPORT_CLIENT_ID.into(),
         devices: HashMap::new(),
@@ -120,6 +121,7 @@ pub(super) async fn inject_loop(
         import,
         pkid: 0,
         packets: Vec::new(),
+        imported: ctx.metrics.bridge_messages.with_label_values(&["import"]),
     };
     while let Some(first) = inbox.recv().await {
         injector.take(&ctx, first);
@@ -152,6 +154,8 @@ const INJECT_BATCH: usize = 256;
 /// The importing side's state: what it has seen, and each remote device's typed check.
 struct Injector {
     dedup: Dedup,
+    /// Messages of other lines lost on the way (`fbbus_bridge_lost_total`).
+    gaps: Gaps,
     route_keys: RouteKeys,
     /// The origin's publisher of every message from the bus: the import link.
     publisher: Arc<str>,
@@ -161,6 +165,8 @@ struct Injector {
     import: Vec<String>,
     pkid: u16,
     packets: Vec<Packet>,
+    /// `fbbus_bridge_messages_total{direction="import"}`, looked up once.
+    imported: prometheus::IntCounter,
 }
 
 impl Injector {
@@ -191,6 +197,21 @@ impl Injector {
         // message), and each line a stranger invents would take a window.
         if !self.dedup.first_time(&message.stamp) {
             return dropped("duplicate");
+        }
+        let missing = self.gaps.missing(&message.stamp, &message.topic);
+        if missing > 0 {
+            ctx.metrics.bridge_lost.inc_by(missing);
+            static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
+            if LOGGED.due() {
+                tracing::warn!(
+                    line = message.stamp.line,
+                    topic = message.topic,
+                    missing,
+                    "messages of another line lost on the bus (a router or link failed \
+                     with them in flight; fbbus_bridge_lost_total, logged at most once a \
+                     minute)"
+                );
+            }
         }
         let entry = self.devices.entry(device.to_owned()).or_insert_with(|| {
             (
@@ -234,10 +255,7 @@ impl Injector {
             Admission::Consumed => return dropped("type"),
         };
         let routes = routes.unwrap_or_else(|| vec![(message.topic, payload)]);
-        ctx.metrics
-            .bridge_messages
-            .with_label_values(&["import"])
-            .inc();
+        self.imported.inc();
         let qos = message.stamp.qos.min(1);
         for (topic, payload) in routes {
             let pkid = if qos > 0 {

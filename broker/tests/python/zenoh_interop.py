@@ -51,9 +51,11 @@ def stamp(seq, qos=1, retain=False):
 
 
 def unstamp(raw):
+    """Version 2 (what fbbus puts) has the topic's own number after seq; version 1 not."""
     version, flags, epoch, seq = struct.unpack(">BBQQ", raw[:18])
-    assert version == 1
-    return raw[18:].decode(), flags & 0b11, seq
+    assert version in (1, 2), version
+    line = raw[26:] if version == 2 else raw[18:]
+    return line.decode(), flags & 0b11, seq
 
 
 def say(*words):

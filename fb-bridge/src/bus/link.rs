@@ -627,6 +627,7 @@ impl Link {
                 line: self.line.clone(),
                 epoch: self.epoch,
                 seq: 0,
+                topic_seq: 0,
                 qos: 1,
                 retain: true,
             };
@@ -646,7 +647,8 @@ pub struct Exporter {
     line: String,
     epoch: u64,
     seq: u64,
-    publishers: std::collections::HashMap<String, Publisher<'static>>,
+    /// Per topic: its publisher and the last `topic_seq` it put.
+    publishers: std::collections::HashMap<String, (Publisher<'static>, u64)>,
 }
 
 /// Publishers kept for repeated topics; past this many the cache starts over.
@@ -682,17 +684,21 @@ impl Exporter {
                 })
                 .await
                 .map_err(zerr)?;
-            self.publishers.insert(topic.to_owned(), publisher);
+            self.publishers.insert(topic.to_owned(), (publisher, 0));
         }
+        let Some((publisher, topic_seq)) = self.publishers.get_mut(topic) else {
+            return Ok(false);
+        };
         self.seq += 1;
+        *topic_seq += 1;
         let stamp = Stamp {
             line: self.line.clone(),
             epoch: self.epoch,
             seq: self.seq,
+            topic_seq: *topic_seq,
             qos,
             retain,
         };
-        let publisher = &self.publishers[topic];
         publisher
             .put(payload)
             .attachment(stamp.encode())

@@ -31,4 +31,4 @@ pub mod link;
 mod stamp;
 
 pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode};
-pub use stamp::{Dedup, Stamp, DEDUP_ORIGINS, DEDUP_WINDOW};
+pub use stamp::{Dedup, Gaps, Stamp, DEDUP_ORIGINS, DEDUP_WINDOW, GAP_TOPICS};

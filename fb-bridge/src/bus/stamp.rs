@@ -12,36 +12,48 @@ pub struct Stamp {
     pub epoch: u64,
     /// Per origin bridge, 1, 2, 3, ...; 0 for replies to a retained-message query.
     pub seq: u64,
+    /// Per origin bridge and topic, 1, 2, 3, ...: every line that takes a topic takes
+    /// all of its messages, so a gap is a message lost on the way ([`Gaps`]). 0: not
+    /// numbered (a retained-message reply, or a stamp of version 1).
+    pub topic_seq: u64,
     pub qos: u8,
     pub retain: bool,
 }
 
-const STAMP_VERSION: u8 = 1;
+/// Version 2 added `topic_seq`; version 1 stamps are still read.
+const STAMP_VERSION: u8 = 2;
 
 impl Stamp {
-    /// `[version, flags, epoch (8, BE), seq (8, BE), line (UTF-8)]`; flags: bits 0-1 QoS,
-    /// bit 2 RETAIN.
+    /// `[version, flags, epoch (8, BE), seq (8, BE), topic_seq (8, BE), line (UTF-8)]`;
+    /// flags: bits 0-1 QoS, bit 2 RETAIN. Version 1 had no `topic_seq`.
     pub fn encode(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(18 + self.line.len());
+        let mut out = Vec::with_capacity(26 + self.line.len());
         out.push(STAMP_VERSION);
         out.push(self.qos.min(2) | (self.retain as u8) << 2);
         out.extend_from_slice(&self.epoch.to_be_bytes());
         out.extend_from_slice(&self.seq.to_be_bytes());
+        out.extend_from_slice(&self.topic_seq.to_be_bytes());
         out.extend_from_slice(self.line.as_bytes());
         out
     }
 
     pub fn decode(bytes: &[u8]) -> Option<Stamp> {
-        if bytes.len() < 18 || bytes[0] != STAMP_VERSION {
-            return None;
-        }
+        let (topic_seq, line) = match bytes.first() {
+            Some(1) if bytes.len() >= 18 => (0, &bytes[18..]),
+            Some(2) if bytes.len() >= 26 => (
+                u64::from_be_bytes(bytes[18..26].try_into().ok()?),
+                &bytes[26..],
+            ),
+            _ => return None,
+        };
         let flags = bytes[1];
         Some(Stamp {
             qos: flags & 0b11,
             retain: flags & 0b100 != 0,
             epoch: u64::from_be_bytes(bytes[2..10].try_into().ok()?),
             seq: u64::from_be_bytes(bytes[10..18].try_into().ok()?),
-            line: std::str::from_utf8(&bytes[18..]).ok()?.to_owned(),
+            topic_seq,
+            line: std::str::from_utf8(line).ok()?.to_owned(),
         })
     }
 }
@@ -111,6 +123,65 @@ impl Dedup {
     }
 }
 
+/// Topics [`Gaps`] follows; past this many it starts over (and misses the gaps of
+/// messages in flight at that moment).
+pub const GAP_TOPICS: usize = 10_000;
+
+/// Messages of other lines that never arrived: per origin line and topic, the gaps in
+/// [`Stamp::topic_seq`] (a zenoh router that died with messages queued, a link cut).
+///
+/// Counted from the second message of a topic on (the first only starts the count), and
+/// again from scratch when the origin restarts (a new epoch) or numbers the topic anew
+/// (its bridge's cache of topics started over). A gap is also counted when this line's
+/// own interest in the topic lapsed and came back, since the origin went on numbering
+/// for the other lines meanwhile.
+#[derive(Debug, Default)]
+pub struct Gaps {
+    /// origin line -> topic -> (epoch, last topic_seq); looked up without allocating.
+    last: HashMap<String, HashMap<String, (u64, u64)>>,
+    topics: usize,
+}
+
+impl Gaps {
+    /// The messages missing before this one (0 if none); call once per message after
+    /// [`Dedup::first_time`].
+    pub fn missing(&mut self, stamp: &Stamp, topic: &str) -> u64 {
+        if stamp.topic_seq == 0 {
+            return 0;
+        }
+        let known = self
+            .last
+            .get_mut(&stamp.line)
+            .and_then(|t| t.get_mut(topic));
+        if let Some((epoch, last)) = known {
+            if *epoch == stamp.epoch {
+                if stamp.topic_seq > *last {
+                    let missing = stamp.topic_seq - *last - 1;
+                    *last = stamp.topic_seq;
+                    return missing;
+                }
+                if stamp.topic_seq + DEDUP_WINDOW > *last {
+                    // Late, within the dedup window: neither new nor a gap.
+                    return 0;
+                }
+            }
+            // The origin restarted, or numbers the topic anew: the count starts again.
+            (*epoch, *last) = (stamp.epoch, stamp.topic_seq);
+            return 0;
+        }
+        if self.topics >= GAP_TOPICS {
+            self.last.clear();
+            self.topics = 0;
+        }
+        self.topics += 1;
+        self.last
+            .entry(stamp.line.clone())
+            .or_default()
+            .insert(topic.to_owned(), (stamp.epoch, stamp.topic_seq));
+        0
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -120,6 +191,7 @@ mod tests {
             line: line.into(),
             epoch,
             seq,
+            topic_seq: seq,
             qos: 1,
             retain: true,
         }
@@ -130,6 +202,42 @@ mod tests {
         let s = stamp("line-a", 17, 99);
         assert_eq!(Stamp::decode(&s.encode()), Some(s));
         assert_eq!(Stamp::decode(b"short"), None);
+        // Version 1 (no topic_seq) is still read; a version 2 cut short is not.
+        let mut v1 = vec![1, 0b101];
+        v1.extend_from_slice(&17u64.to_be_bytes());
+        v1.extend_from_slice(&99u64.to_be_bytes());
+        v1.extend_from_slice("line-ä".as_bytes());
+        let old = Stamp::decode(&v1).unwrap();
+        assert_eq!(
+            (old.seq, old.topic_seq, old.qos, old.retain),
+            (99, 0, 1, true)
+        );
+        assert_eq!(old.line, "line-ä");
+        assert_eq!(Stamp::decode(&stamp("a", 1, 1).encode()[..25]), None);
+        assert_eq!(Stamp::decode(&[3; 40]), None);
+    }
+
+    #[test]
+    fn gaps_count_what_never_came_per_origin_and_topic() {
+        let mut g = Gaps::default();
+        let at = |epoch, topic_seq| Stamp {
+            topic_seq,
+            ..stamp("a", epoch, 1)
+        };
+        assert_eq!(g.missing(&at(1, 5), "t"), 0, "the first starts the count");
+        assert_eq!(g.missing(&at(1, 6), "t"), 0);
+        assert_eq!(g.missing(&at(1, 9), "t"), 2, "7 and 8");
+        assert_eq!(g.missing(&at(1, 1), "u"), 0, "another topic");
+        assert_eq!(g.missing(&at(1, 8), "t"), 0, "late, not a gap");
+        assert_eq!(g.missing(&at(1, 10), "t"), 0);
+        assert_eq!(g.missing(&at(2, 1), "t"), 0, "the origin restarted");
+        assert_eq!(g.missing(&at(2, 3), "t"), 1);
+        assert_eq!(g.missing(&at(2, 0), "t"), 0, "not numbered");
+        for i in 0..GAP_TOPICS * 2 {
+            g.missing(&at(2, 1), &format!("t{i}"));
+            assert!(g.topics <= GAP_TOPICS);
+            assert!(g.last.values().map(HashMap::len).sum::<usize>() <= GAP_TOPICS);
+        }
     }
 
     #[test]

@@ -450,7 +450,29 @@ async fn plant(
     }
 
     if let Some(routers) = routers.as_mut() {
-        router_dies(routers, &admins, (p.lines * p.devices) as f64, t).await?;
+        // Router 1 dies while the neighbour pattern runs: what was in flight through it is
+        // lost, and counted twice, by the harness and by the lines that missed it.
+        let lost_before = bus_lost(&admins).await;
+        let neighbour: Vec<Flow> = (1..=n).map(|i| ((i, 3), vec![i % n + 1])).collect();
+        let (figures, died) = tokio::join!(matrix(&lines, &held, &neighbour, epoch, p), async {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            router_dies(routers, &admins, (p.lines * p.devices) as f64, t).await
+        });
+        died?;
+        let figures = figures?;
+        let counted = bus_lost(&admins).await - lost_before;
+        t.line(format!(
+            "neighbour while router 1 dies: sent {}, delivered {}, lost {} (counted by the \
+             lines that missed them, fbbus_bridge_lost_total: {counted}), duplicated {}; \
+             p50 / p99 / max {} / {} / {} ms",
+            figures.sent,
+            figures.delivered,
+            figures.sent.saturating_sub(figures.delivered),
+            figures.duplicated,
+            ms(figures.latency.value_at_quantile(0.5)),
+            ms(figures.latency.value_at_quantile(0.99)),
+            ms(figures.latency.max()),
+        ));
         pings.abort();
         return Ok(control);
     }
@@ -478,6 +500,15 @@ async fn plant(
 }
 
 const ONLINE: &str = "fbbus_registry_devices{status=\"online\"}";
+
+/// Messages the lines counted as lost on the bus, all lines together.
+async fn bus_lost(admins: &[SocketAddr]) -> f64 {
+    let mut sum = 0.0;
+    for admin in admins {
+        sum += metric(*admin, "fbbus_bridge_lost_total").await;
+    }
+    sum
+}
 
 /// Topology zenohd: router 1 dies, no line does. Every line is polled every 50 ms for 8 s
 /// (the 3 s lease and as much again): whether any listed fewer than `want` devices online,
