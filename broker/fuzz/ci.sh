@@ -18,7 +18,7 @@ cd "$here"
 
 seconds=${FUZZ_SECONDS:-20}
 jobs=${FUZZ_JOBS:-2}
-targets=(mqtt_decode topic_match typed_codec declaration acl_parse password_file_parse config_load profile_parse fboot_import store_replay sparkplug_metric)
+targets=(mqtt_decode topic_match typed_codec declaration acl_parse password_file_parse config_load profile_parse fboot_import store_replay sparkplug_metric bus_stamp)
 
 if ! cargo +nightly --version >/dev/null 2>&1; then
   echo "fuzz ci: SKIPPED: the nightly toolchain is not installed (cargo-fuzz needs it:" \

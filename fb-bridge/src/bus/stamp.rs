@@ -47,6 +47,10 @@ impl Stamp {
             _ => return None,
         };
         let flags = bytes[1];
+        // MQTT has no QoS 3: not a stamp a line writes.
+        if flags & 0b11 == 3 {
+            return None;
+        }
         Some(Stamp {
             qos: flags & 0b11,
             retain: flags & 0b100 != 0,
@@ -109,7 +113,7 @@ impl Dedup {
                 ..Window::default()
             };
         }
-        if stamp.seq + DEDUP_WINDOW <= w.highest || !w.seen.insert(stamp.seq) {
+        if w.highest.saturating_sub(stamp.seq) >= DEDUP_WINDOW || !w.seen.insert(stamp.seq) {
             return false;
         }
         w.highest = w.highest.max(stamp.seq);
@@ -160,7 +164,7 @@ impl Gaps {
                     *last = stamp.topic_seq;
                     return missing;
                 }
-                if stamp.topic_seq + DEDUP_WINDOW > *last {
+                if last.saturating_sub(stamp.topic_seq) < DEDUP_WINDOW {
                     // Late, within the dedup window: neither new nor a gap.
                     return 0;
                 }
@@ -215,6 +219,9 @@ mod tests {
         assert_eq!(old.line, "line-ä");
         assert_eq!(Stamp::decode(&stamp("a", 1, 1).encode()[..25]), None);
         assert_eq!(Stamp::decode(&[3; 40]), None);
+        let mut qos3 = stamp("a", 1, 1).encode();
+        qos3[1] |= 0b11;
+        assert_eq!(Stamp::decode(&qos3), None, "QoS 3");
     }
 
     #[test]
@@ -233,6 +240,16 @@ mod tests {
         assert_eq!(g.missing(&at(2, 1), "t"), 0, "the origin restarted");
         assert_eq!(g.missing(&at(2, 3), "t"), 1);
         assert_eq!(g.missing(&at(2, 0), "t"), 0, "not numbered");
+        // Numbers near the end of u64 (a hostile line's) do not overflow.
+        assert_eq!(g.missing(&at(2, u64::MAX - 1), "t"), u64::MAX - 5);
+        assert_eq!(
+            g.missing(&at(2, 3), "t"),
+            0,
+            "far behind: the count starts again"
+        );
+        let mut d = Dedup::default();
+        assert!(d.first_time(&stamp("a", 1, u64::MAX)));
+        assert!(d.first_time(&stamp("a", 1, u64::MAX - 1)));
         for i in 0..GAP_TOPICS * 2 {
             g.missing(&at(2, 1), &format!("t{i}"));
             assert!(g.topics <= GAP_TOPICS);

@@ -904,6 +904,11 @@ async fn metric(admin: SocketAddr, series: &str) -> f64 {
     let text = scrape::get(&format!("http://{admin}/metrics"), Duration::from_secs(10))
         .await
         .unwrap_or_default();
+    series_value(&text, series)
+}
+
+/// The value of `series` in a `/metrics` page (0 when it has none).
+fn series_value(text: &str, series: &str) -> f64 {
     text.lines()
         .find_map(|l| l.strip_prefix(series)?.trim().parse::<f64>().ok())
         .unwrap_or(0.0)
