@@ -435,16 +435,14 @@ async fn plant(
             .zip(&after)
             .map(|(b, a)| format!("{}", a.saturating_sub(*b) * 1000 / ticks_per_second()))
             .collect();
+        let [p50, p99, max] = figures.latencies();
         t.line(format!(
-            "{:<12} {:>8} {:>9} {:>6} {:>5} {:>9} {:>9} {:>9}  {}",
+            "{:<12} {:>8} {:>9} {:>6} {:>5} {p50:>9} {p99:>9} {max:>9}  {}",
             name,
             figures.sent,
             figures.delivered,
-            figures.sent.saturating_sub(figures.delivered),
+            figures.lost(),
             figures.duplicated,
-            ms(figures.latency.value_at_quantile(0.5)),
-            ms(figures.latency.value_at_quantile(0.99)),
-            ms(figures.latency.max()),
             cpu_ms.join(" ")
         ));
     }
@@ -461,17 +459,15 @@ async fn plant(
         died?;
         let figures = figures?;
         let counted = bus_lost(&admins).await - lost_before;
+        let [p50, p99, max] = figures.latencies();
         t.line(format!(
             "neighbour while router 1 dies: sent {}, delivered {}, lost {} (counted by the \
              lines that missed them, fbbus_bridge_lost_total: {counted}), duplicated {}; \
-             p50 / p99 / max {} / {} / {} ms",
+             p50 / p99 / max {p50} / {p99} / {max} ms",
             figures.sent,
             figures.delivered,
-            figures.sent.saturating_sub(figures.delivered),
+            figures.lost(),
             figures.duplicated,
-            ms(figures.latency.value_at_quantile(0.5)),
-            ms(figures.latency.value_at_quantile(0.99)),
-            ms(figures.latency.max()),
         ));
         pings.abort();
         return Ok(control);
@@ -686,6 +682,22 @@ struct Figures {
     delivered: u64,
     duplicated: u64,
     latency: Histogram<u64>,
+}
+
+impl Figures {
+    fn lost(&self) -> u64 {
+        self.sent.saturating_sub(self.delivered)
+    }
+
+    /// p50, p99 and max, in ms as printed.
+    fn latencies(&self) -> [String; 3] {
+        let l = &self.latency;
+        [
+            ms(l.value_at_quantile(0.5)),
+            ms(l.value_at_quantile(0.99)),
+            ms(l.max()),
+        ]
+    }
 }
 
 /// A publisher (line, device) and the lines whose subscribers read it.
