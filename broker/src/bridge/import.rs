@@ -125,8 +125,10 @@ pub(super) async fn inject_loop(
     };
     while let Some(first) = inbox.recv().await {
         injector.take(&ctx, first);
+        let mut taken = 1;
         for message in inbox.try_iter().take(INJECT_BATCH) {
             injector.take(&ctx, message);
+            taken += 1;
         }
         // QoS 1 and retained messages from the bus are stored like local ones: a
         // persistent session offline now gets them when it returns (issue 32).
@@ -144,6 +146,13 @@ pub(super) async fn inject_loop(
                 tracing::error!("router gone: the bridge stops importing");
                 return;
             }
+        }
+        // A full batch: more is waiting. The inbox (flume), unlike tokio's channels, never
+        // makes a task yield, so a bus that keeps it full would hold the worker thread and
+        // every local session would wait behind it (issue 32). One batch is at most a
+        // millisecond of work.
+        if taken > INJECT_BATCH {
+            tokio::task::yield_now().await;
         }
     }
 }

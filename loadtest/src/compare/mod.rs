@@ -138,6 +138,12 @@ enum FbbusOnly {
         /// deploy/plant/check.sh does), else `zenohd` on PATH.
         #[arg(long, value_name = "PATH")]
         zenohd: Option<PathBuf>,
+        /// Line 3 (the local probe's line) on a core of its own, every other process (the
+        /// other lines, the routers, this harness and its devices) on the other cores: a
+        /// line on its own host, as in a plant, so that its local p99 shows what its own
+        /// share of the bus costs it, not the other lines' work on the same cores.
+        #[arg(long)]
+        isolate: bool,
     },
     /// fbbus's store (issue 17) beside Mosquitto's persistence: QoS 1 burst throughput and
     /// steady latency into a persistent subscriber with fbbus's persistence off and with
@@ -365,6 +371,7 @@ pub async fn run(args: CompareArgs, out: &Path, inflight: u16) -> Result<()> {
             topology,
             traffic_secs,
             zenohd,
+            isolate,
         }) => {
             let fbbus = existing_fbbus(fbbus.unwrap_or(default_fbbus))?;
             let mut params = if quick {
@@ -384,6 +391,7 @@ pub async fn run(args: CompareArgs, out: &Path, inflight: u16) -> Result<()> {
             if let Some(s) = traffic_secs {
                 params.traffic = Duration::from_secs(s.max(1));
             }
+            params.isolate = isolate;
             plant::run(&fbbus, &params, out).await
         }
         Some(FbbusOnly::Persistence {
