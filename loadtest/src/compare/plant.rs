@@ -1006,7 +1006,6 @@ fn ratio(a: u64, b: u64) -> String {
     format!("{:.2}x", a as f64 / b as f64)
 }
 
-/// user + system CPU ticks of each line's process so far.
 /// Line 3 (the local probe's) on the last core alone; the other lines, the zenohd
 /// routers and this harness (its devices and probes) on the others. Every thread of each
 /// process is pinned; threads started later inherit their creator's cores.
@@ -1120,6 +1119,7 @@ impl Drop for ProbeThread {
     }
 }
 
+/// user + system CPU ticks of each line's process so far.
 fn cpu(lines: &[Running]) -> Vec<u64> {
     lines
         .iter()
