@@ -144,7 +144,7 @@ const LATENCY_DEADLINE: Duration = Duration::from_secs(120);
 /// A safety net around one setup's whole measurement (start-up waits included).
 const SETUP_DEADLINE: Duration = Duration::from_secs(300);
 /// Linux's USER_HZ: the unit of utime and stime in `/proc/<pid>/stat`.
-const TICKS_PER_SECOND: f64 = 100.0;
+pub(super) const TICKS_PER_SECOND: f64 = 100.0;
 
 /// What one setup measured in one round.
 #[derive(Clone, Debug)]

@@ -169,7 +169,8 @@ impl Scenario {
             ),
             Scenario::ConnRate => format!(
                 "{} connections, CONNECT -> CONNACK, {} in flight at a time, kept open; \
-                 conns/s = connected / (last CONNACK - start).",
+                 conns/s = connected / (last CONNACK - start); broker CPU/conn = the broker process's \
+                 user + system CPU during the wave (/proc, 10 ms ticks) / connected.",
                 p.connrate_connections, p.connrate_inflight
             ),
             Scenario::AuthStorm => format!(
@@ -191,7 +192,7 @@ impl Scenario {
             Scenario::Latency => &["p50 ms", "p99 ms", "max ms", "received", "lost"],
             Scenario::IdleMem => &["RSS before", "RSS after", "KB/conn", "connected"],
             Scenario::MsgMem => &["RSS before", "RSS after", "delivered", "msg/s"],
-            Scenario::ConnRate => &["conns/s", "connected", "time"],
+            Scenario::ConnRate => &["conns/s", "connected", "time", "broker CPU/conn"],
             Scenario::AuthStorm => &["all CONNACK", "p50", "p99", "connected", "password store"],
         }
     }

@@ -10,6 +10,7 @@ use loadtest::scenario::connections::{self, Wave};
 use loadtest::target::Target;
 
 use super::{add_note, mb, Login, Outcome, Params, STORM_USER_PREFIX};
+use crate::compare::bridge::{cpu_ticks, TICKS_PER_SECOND};
 
 /// The broker as the harness's client stack addresses it, optionally with a login.
 fn target(broker: &Running, login: Option<(&str, &str)>) -> Result<Target> {
@@ -75,6 +76,7 @@ pub(super) async fn idle_memory(broker: &Running, p: &Params) -> Result<Outcome>
 }
 
 pub(super) async fn connection_rate(broker: &Running, p: &Params) -> Result<Outcome> {
+    let cpu_before = cpu_ticks(broker.pid());
     let wave = connections::connect_many(
         &target(broker, None)?,
         "bench-rate",
@@ -83,17 +85,28 @@ pub(super) async fn connection_rate(broker: &Running, p: &Params) -> Result<Outc
         p.deadline,
     )
     .await;
+    let cpu_after = cpu_ticks(broker.pid());
     let n = wave.clients.len();
     let rate = (n > 0).then(|| wave.rate());
     let took = wave.took;
     let note = wave_note(&wave);
     close(wave);
+    // The broker's own CPU per connection: steadier than the rate on a machine the harness
+    // shares, where the rate also measures how the two split the cores.
+    let cpu_per_connection = match (cpu_before, cpu_after) {
+        (Some(before), Some(after)) if n > 0 => {
+            let us = (after - before) as f64 * 1e6 / TICKS_PER_SECOND / n as f64;
+            format!("{us:.0} us")
+        }
+        _ => "-".into(),
+    };
     Ok(Outcome {
         cells: vec![
             rate.map(|r| format!("{r:.0}"))
                 .unwrap_or_else(|| "-".into()),
             format!("{n}/{}", p.connrate_connections),
             format!("{:.3} s", took.as_secs_f64()),
+            cpu_per_connection,
         ],
         keys: vec![rate],
         lost: None,
