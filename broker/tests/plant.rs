@@ -17,11 +17,18 @@
 //! `zenohd` 1.10 (CI cannot build zenohd; `deploy/plant/check.sh` runs the real one).
 //! Either router killed in turn: every line lists every device online again within the
 //! lease, and a stream of messages across the failovers arrives once each, in order.
+//!
+//! And the link between the two routers cut and healed ([`Cable`]), with two real zenoh
+//! routers (Python's zenoh): lines that are peers of each other and of both routers lose
+//! nothing; lines that are zenoh clients of different routers are split until the link
+//! heals (a zenoh client session has one router at a time), then whole again.
 
 mod common;
 
 use std::path::Path;
 use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::bus::*;
@@ -269,4 +276,273 @@ async fn the_deploy_plant_survives_either_router() {
     eprintln!("router-2 killed: every line listed every device online again after {took:?}");
     once_in_order(publisher, &mut sub, &topic, 41..=60).await;
     drop((devices, router_1));
+}
+
+/// The cable between the two routers: a loopback relay the test can cut. Cut, it is a
+/// pulled cable: bytes vanish both ways and nothing is closed, so each router notices only
+/// when its lease runs out, as on a plant. A connection that saw the cut is closed once
+/// the cable is back (its peer gave it up meanwhile), and the routers connect again.
+struct Cable {
+    port: u16,
+    cut: Arc<AtomicBool>,
+}
+
+impl Cable {
+    /// A cable from a port of its own to `to` on 127.0.0.1.
+    async fn lay(to: u16) -> Cable {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let cut = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&cut);
+        tokio::spawn(async move {
+            while let Ok((near, _)) = listener.accept().await {
+                let cut = Arc::clone(&flag);
+                tokio::spawn(async move {
+                    let Ok(far) = tokio::net::TcpStream::connect(("127.0.0.1", to)).await else {
+                        return;
+                    };
+                    let ((near_rx, near_tx), (far_rx, far_tx)) =
+                        (near.into_split(), far.into_split());
+                    tokio::join!(
+                        carry(near_rx, far_tx, Arc::clone(&cut)),
+                        carry(far_rx, near_tx, cut)
+                    );
+                });
+            }
+        });
+        Cable { port, cut }
+    }
+
+    fn endpoint(&self) -> String {
+        format!("tcp/127.0.0.1:{}", self.port)
+    }
+
+    fn set_cut(&self, cut: bool) {
+        self.cut.store(cut, Ordering::SeqCst);
+    }
+}
+
+/// One direction of the cable (bounded: it ends with either socket, or after a cut).
+async fn carry(
+    mut from: tokio::net::tcp::OwnedReadHalf,
+    mut to: tokio::net::tcp::OwnedWriteHalf,
+    cut: Arc<AtomicBool>,
+) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut buf = vec![0u8; 64 * 1024];
+    let mut saw_cut = false;
+    loop {
+        // Woken at least every 100 ms, so a cable healed under an idle link closes it.
+        let n = match tokio::time::timeout(Duration::from_millis(100), from.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => return,
+            Ok(Ok(n)) => n,
+            Err(_) => 0,
+        };
+        if cut.load(Ordering::SeqCst) {
+            saw_cut = true;
+            continue;
+        }
+        if saw_cut || (n > 0 && to.write_all(&buf[..n]).await.is_err()) {
+            return;
+        }
+    }
+}
+
+/// A plain zenoh router in Python's zenoh (the zenoh of zenohd 1.10), listening on
+/// `listen`, linking to `connect`, with the lines' lease.
+fn plain_router(dir: &Path, name: &str, listen: &str, connect: &[String]) -> Python {
+    let config = dir.join(format!("{name}.json5"));
+    let text = serde_json::json!({
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "connect": {"endpoints": connect},
+        "scouting": {"multicast": {"enabled": false}},
+        "transport": {"link": {"tx": {"lease": 3000}}},
+    });
+    std::fs::write(&config, text.to_string()).unwrap();
+    // The last four arguments serve the script's "stranger" command, not used here.
+    let router = Python::spawn(
+        "zenoh_router.py",
+        &[config.to_str().unwrap(), "tcp/127.0.0.1:1", "-", "-", "-"],
+    );
+    assert_eq!(
+        router.next_line(Duration::from_secs(20)).as_deref(),
+        Some("ready"),
+        "{name} did not start"
+    );
+    router
+}
+
+/// How many devices each line lists as `status`.
+fn listed(lines: &[Line], status: &str) -> Vec<f64> {
+    let series = format!("fbbus_registry_devices{{status=\"{status}\"}}");
+    lines.iter().map(|l| l.broker.metric(&series)).collect()
+}
+
+/// Five lines on two zenoh routers linked by a [`Cable`]; `bridge(n)` is line n's
+/// `[bridge]` (mode and endpoints). Each line has 4 devices, all online everywhere before
+/// this returns; also a subscriber on line 5 to line 1's first device.
+struct CutPlant {
+    _dir: tempfile::TempDir,
+    routers: Vec<Python>,
+    cable: Cable,
+    lines: Vec<Line>,
+    devices: Vec<V4>,
+    sub: V4,
+    topic: String,
+}
+
+impl CutPlant {
+    async fn start(
+        attach: impl Fn(usize, &str, &str) -> (String, Vec<String>, &'static str),
+    ) -> CutPlant {
+        let dir = tempfile::tempdir().unwrap();
+        let (port_1, port_2) = (free_port(), free_port());
+        let (r1, r2) = (
+            format!("tcp/127.0.0.1:{port_1}"),
+            format!("tcp/127.0.0.1:{port_2}"),
+        );
+        let cable = Cable::lay(port_1).await;
+        let routers = vec![
+            plain_router(dir.path(), "router-1", &r1, &[]),
+            plain_router(dir.path(), "router-2", &r2, &[cable.endpoint()]),
+        ];
+        let mut lines = Vec::new();
+        for n in 1..=LINES {
+            let (listen, connect, mode) = attach(n, &r1, &r2);
+            let connect: Vec<&str> = connect.iter().map(String::as_str).collect();
+            lines.push(Line::start_on(
+                &format!("line-{n}"),
+                &listen,
+                &connect,
+                &format!("mode = \"{mode}\"\n"),
+                None,
+            ));
+        }
+        let mut devices = Vec::new();
+        for (n, line) in lines.iter().enumerate() {
+            for d in 0..4 {
+                devices.push(device(line, &id(n + 1, d)).await);
+            }
+        }
+        all_online(&lines, LINES * 4, Duration::from_secs(30)).await;
+        let topic = format!("fb/{}/CONV/POSITION", id(1, 0));
+        let mut sub = V4::connect(lines[LINES - 1].port(), "hmi", None)
+            .await
+            .unwrap();
+        sub.subscribe(&topic).await;
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        let mut plant = CutPlant {
+            _dir: dir,
+            routers,
+            cable,
+            lines,
+            devices,
+            sub,
+            topic,
+        };
+        plant.stream(1..=20).await;
+        plant
+    }
+
+    /// Line 1's device publishes `range`; line 5's subscriber gets each once, in order.
+    async fn stream(&mut self, range: std::ops::RangeInclusive<i64>) {
+        once_in_order(&self.devices[0], &mut self.sub, &self.topic, range).await;
+    }
+}
+
+/// Longer than the lease (3 s) and zenoh's reconnection: what a cut has done by then, it
+/// does for as long as it lasts.
+const CUT_SETTLES: Duration = Duration::from_secs(5);
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_that_are_peers_of_both_routers_lose_nothing_when_the_routers_link_is_cut() {
+    if !python_zenoh() {
+        return;
+    }
+    // Each line a peer that listens and connects to both routers: zenoh links the lines
+    // to each other as well (gossip), and routes each message once.
+    let mut plant =
+        CutPlant::start(|_, r1, r2| (tcp_endpoint(), vec![r1.to_owned(), r2.to_owned()], "peer"))
+            .await;
+    let everyone = LINES as f64 * 4.0;
+    plant.cable.set_cut(true);
+    // Every 100 ms for longer than the lease: no line ever lists a device otherwise.
+    let cut = Instant::now();
+    while cut.elapsed() < CUT_SETTLES {
+        assert_eq!(
+            listed(&plant.lines, "online"),
+            vec![everyone; LINES],
+            "while cut"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(listed(&plant.lines, "unreachable"), vec![0.0; LINES]);
+    plant.stream(21..=40).await;
+    plant.cable.set_cut(false);
+    tokio::time::sleep(CUT_SETTLES).await;
+    assert_eq!(
+        listed(&plant.lines, "online"),
+        vec![everyone; LINES],
+        "healed"
+    );
+    plant.stream(41..=60).await;
+    // The routers only introduced the lines to each other: both may go.
+    plant.routers.clear();
+    tokio::time::sleep(CUT_SETTLES).await;
+    assert_eq!(
+        listed(&plant.lines, "online"),
+        vec![everyone; LINES],
+        "no router"
+    );
+    plant.stream(61..=80).await;
+    for line in &plant.lines {
+        let dropped = line
+            .broker
+            .metric("fbbus_bridge_dropped_total{reason=\"duplicate\"}");
+        assert_eq!(
+            dropped, 0.0,
+            "{}: zenoh delivered a message twice",
+            line.name
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_that_are_clients_of_different_routers_are_split_by_a_cut_and_whole_when_it_heals() {
+    if !python_zenoh() {
+        return;
+    }
+    // Lines 1-3 prefer router 1, lines 4-5 router 2: a zenoh client is on one router
+    // at a time, the first of its list that answers.
+    let mut plant = CutPlant::start(|n, r1, r2| {
+        let order = if n <= 3 { [r1, r2] } else { [r2, r1] };
+        (String::new(), order.map(str::to_owned).to_vec(), "client")
+    })
+    .await;
+    plant.cable.set_cut(true);
+    // The documented limit (docs/device-contract.md, "What the federation guarantees"):
+    // the lines of router 1 see those of router 2 unreachable, and the other way round.
+    let cut = Instant::now();
+    while listed(&plant.lines, "online") != [12.0, 12.0, 12.0, 8.0, 8.0] {
+        assert!(
+            cut.elapsed() < 2 * CUT_SETTLES,
+            "not split: {:?} online",
+            listed(&plant.lines, "online")
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(
+        listed(&plant.lines, "unreachable"),
+        vec![8.0, 8.0, 8.0, 12.0, 12.0],
+        "while cut"
+    );
+    plant.cable.set_cut(false);
+    let healed = Instant::now();
+    all_online(&plant.lines, LINES * 4, Duration::from_secs(15)).await;
+    eprintln!(
+        "the cable healed: every line listed every device online again after {:?}",
+        healed.elapsed()
+    );
+    plant.stream(21..=40).await;
 }

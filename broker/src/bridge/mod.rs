@@ -240,6 +240,9 @@ async fn start(
     interest_rx: mpsc::UnboundedReceiver<Interest>,
 ) -> Result<(), BridgeError> {
     let line = ctx.fb.registry.line().to_owned();
+    if let Some(note) = config.reach_note() {
+        tracing::info!(connect = ?config.connect, "{note}");
+    }
     if config.mode != Mode::Client {
         let opened = Link::open(config, &line).await?;
         return run(bridge, opened, config, ctx, interest_rx).await;

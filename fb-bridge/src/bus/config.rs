@@ -270,6 +270,20 @@ impl BusConfig {
         Ok(())
     }
 
+    /// Said once when the bridge starts: a peer that connects somewhere but does not
+    /// listen can be reached only by the bridges it connects to itself. That is right for
+    /// the second of two lines; but zenoh routers do not pass messages between peers, so
+    /// through a router such a line federates with nothing but the router (issue 32,
+    /// `tests/plant.rs`), and nothing else says so.
+    pub fn reach_note(&self) -> Option<&'static str> {
+        (self.mode == Mode::Peer && self.listen.is_empty() && !self.connect.is_empty()).then_some(
+            "[bridge] mode = \"peer\" without `listen`: only the bridges this line connects to \
+             can reach it. zenoh routers do not pass messages between peers: behind zenoh \
+             routers, use mode = \"client\", or give the line a `listen` endpoint the other \
+             lines can reach (they then link to it directly)",
+        )
+    }
+
     /// Whether both sides of every TLS link present certificates, which is what zenoh's
     /// access control identifies peers by.
     pub fn mutual_tls(&self) -> bool {
@@ -285,6 +299,27 @@ impl BusConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_peer_that_does_not_listen_is_told_how_it_is_reached() {
+        let connect = vec!["tcp/127.0.0.1:7447".to_owned()];
+        let peer = BusConfig {
+            connect: connect.clone(),
+            ..BusConfig::default()
+        };
+        assert!(peer.reach_note().is_some());
+        let listening = BusConfig {
+            listen: vec!["tcp/127.0.0.1:7448".into()],
+            ..peer.clone()
+        };
+        assert!(listening.reach_note().is_none());
+        let client = BusConfig {
+            mode: Mode::Client,
+            ..peer
+        };
+        assert!(client.reach_note().is_none());
+        assert!(BusConfig::default().reach_note().is_none());
+    }
 
     #[test]
     fn config_defaults_are_valid_and_loopback_quiet() {
