@@ -445,6 +445,16 @@ impl CutPlant {
         plant
     }
 
+    /// Every line lists every device of the plant online, now.
+    fn everyone_online(&self, when: &str) {
+        let everyone = (LINES * 4) as f64;
+        assert_eq!(
+            listed(&self.lines, "online"),
+            vec![everyone; LINES],
+            "{when}"
+        );
+    }
+
     /// Line 1's device publishes `range`; line 5's subscriber gets each once, in order.
     async fn stream(&mut self, range: std::ops::RangeInclusive<i64>) {
         once_in_order(&self.devices[0], &mut self.sub, &self.topic, range).await;
@@ -465,36 +475,23 @@ async fn lines_that_are_peers_of_both_routers_lose_nothing_when_the_routers_link
     let mut plant =
         CutPlant::start(|_, r1, r2| (tcp_endpoint(), vec![r1.to_owned(), r2.to_owned()], "peer"))
             .await;
-    let everyone = LINES as f64 * 4.0;
     plant.cable.set_cut(true);
     // Every 100 ms for longer than the lease: no line ever lists a device otherwise.
     let cut = Instant::now();
     while cut.elapsed() < CUT_SETTLES {
-        assert_eq!(
-            listed(&plant.lines, "online"),
-            vec![everyone; LINES],
-            "while cut"
-        );
+        plant.everyone_online("while cut");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     assert_eq!(listed(&plant.lines, "unreachable"), vec![0.0; LINES]);
     plant.stream(21..=40).await;
     plant.cable.set_cut(false);
     tokio::time::sleep(CUT_SETTLES).await;
-    assert_eq!(
-        listed(&plant.lines, "online"),
-        vec![everyone; LINES],
-        "healed"
-    );
+    plant.everyone_online("healed");
     plant.stream(41..=60).await;
     // The routers only introduced the lines to each other: both may go.
     plant.routers.clear();
     tokio::time::sleep(CUT_SETTLES).await;
-    assert_eq!(
-        listed(&plant.lines, "online"),
-        vec![everyone; LINES],
-        "no router"
-    );
+    plant.everyone_online("no router");
     plant.stream(61..=80).await;
     for line in &plant.lines {
         let dropped = line
