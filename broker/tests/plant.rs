@@ -165,6 +165,28 @@ fn zenoh_router(dir: &Path, name: &str) -> Python {
     router
 }
 
+/// Four declared devices on each line, all listed online everywhere, and a subscriber on
+/// the last line to the first device's topic (returned), its interest given a second to
+/// reach the first line.
+async fn four_devices_and_an_hmi(lines: &[Line]) -> (Vec<V4>, V4, String) {
+    let mut devices = Vec::new();
+    for (n, line) in lines.iter().enumerate() {
+        for d in 0..4 {
+            devices.push(device(line, &id(n + 1, d)).await);
+        }
+    }
+    let everyone = lines.len() * 4;
+    let took = all_online(lines, everyone, Duration::from_secs(30)).await;
+    eprintln!("every line listed all {everyone} devices online after {took:?}");
+    let topic = format!("fb/{}/CONV/POSITION", id(1, 0));
+    let mut sub = V4::connect(lines[lines.len() - 1].port(), "hmi", None)
+        .await
+        .unwrap();
+    sub.subscribe(&topic).await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    (devices, sub, topic)
+}
+
 /// How long until every line lists `want` devices online, all at once.
 async fn all_online(lines: &[Line], want: usize, within: Duration) -> Duration {
     let started = Instant::now();
@@ -239,22 +261,8 @@ async fn the_deploy_plant_survives_either_router() {
             zenoh: String::new(),
         });
     }
-    let mut devices = Vec::new();
-    for (n, line) in lines.iter().enumerate() {
-        for d in 0..4 {
-            devices.push(device(line, &id(n + 1, d)).await);
-        }
-    }
+    let (devices, mut sub, topic) = four_devices_and_an_hmi(&lines).await;
     let everyone = LINES * 4;
-    let took = all_online(&lines, everyone, Duration::from_secs(30)).await;
-    eprintln!("every line listed all {everyone} devices online after {took:?}");
-
-    let topic = format!("fb/{}/CONV/POSITION", id(1, 0));
-    let mut sub = V4::connect(lines[LINES - 1].port(), "hmi", None)
-        .await
-        .unwrap();
-    sub.subscribe(&topic).await;
-    tokio::time::sleep(Duration::from_secs(1)).await;
     let publisher = &devices[0];
     once_in_order(publisher, &mut sub, &topic, 1..=20).await;
 
@@ -419,19 +427,7 @@ impl CutPlant {
                 None,
             ));
         }
-        let mut devices = Vec::new();
-        for (n, line) in lines.iter().enumerate() {
-            for d in 0..4 {
-                devices.push(device(line, &id(n + 1, d)).await);
-            }
-        }
-        all_online(&lines, LINES * 4, Duration::from_secs(30)).await;
-        let topic = format!("fb/{}/CONV/POSITION", id(1, 0));
-        let mut sub = V4::connect(lines[LINES - 1].port(), "hmi", None)
-            .await
-            .unwrap();
-        sub.subscribe(&topic).await;
-        tokio::time::sleep(Duration::from_secs(1)).await;
+        let (devices, sub, topic) = four_devices_and_an_hmi(&lines).await;
         let mut plant = CutPlant {
             _dir: dir,
             routers,
