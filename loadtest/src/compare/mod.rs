@@ -189,7 +189,7 @@ enum FbbusOnly {
 #[derive(Args)]
 struct RunArgs {
     /// Scenarios to run, comma-separated: fanin, fanin1, pairs, latency, idlemem, msgmem,
-    /// connrate, authstorm. Default: all.
+    /// connrate, connect1, authstorm. Default: all.
     #[arg(long, value_delimiter = ',', value_name = "LIST")]
     scenarios: Vec<String>,
     /// Brokers to run, comma-separated: fbbus (every --fbbus binary), mosquitto, rumqttd,

@@ -6,7 +6,7 @@
 //! The bursts (`fanin`, `fanin1`, `pairs`, `latency`, `msgmem`) write raw PUBLISH packets
 //! ([`loadtest::raw_client`]): 200,000 messages into one subscriber are beyond what a
 //! client library generates on a shared 2-core machine. The connection scenarios
-//! (`idlemem`, `connrate`, `authstorm`) are the harness's own connection wave and
+//! (`idlemem`, `connrate`, `connect1`, `authstorm`) are the harness's own connection wave and
 //! idle-memory measurement ([`loadtest::scenario::connections`]).
 //!
 //! Here: the scenarios, their parameters and outcome, and the figures' formatting; the
@@ -24,7 +24,7 @@ mod bursts;
 mod waves;
 
 use bursts::{latency, message_memory, throughput, Shape};
-use waves::{auth_storm, connection_rate, idle_memory};
+use waves::{auth_storm, connect_latency, connection_rate, idle_memory};
 
 /// How the storm's devices log in: user `<STORM_USER_PREFIX><i>` for device `i`, all
 /// with one password (each user's hash has its own salt, so every login costs the broker
@@ -52,11 +52,13 @@ pub enum Scenario {
     IdleMem,
     MsgMem,
     ConnRate,
+    /// One connection at a time: how long one device waits for its CONNACK.
+    Connect1,
     AuthStorm,
 }
 
 impl Scenario {
-    pub const ALL: [Scenario; 8] = [
+    pub const ALL: [Scenario; 9] = [
         Scenario::Fanin,
         Scenario::Fanin1,
         Scenario::Pairs,
@@ -64,6 +66,7 @@ impl Scenario {
         Scenario::IdleMem,
         Scenario::MsgMem,
         Scenario::ConnRate,
+        Scenario::Connect1,
         Scenario::AuthStorm,
     ];
 
@@ -76,6 +79,7 @@ impl Scenario {
             Scenario::IdleMem => "idlemem",
             Scenario::MsgMem => "msgmem",
             Scenario::ConnRate => "connrate",
+            Scenario::Connect1 => "connect1",
             Scenario::AuthStorm => "authstorm",
         }
     }
@@ -118,6 +122,10 @@ impl Scenario {
             Scenario::ConnRate => format!(
                 "connections per second ({} anonymous, {} in flight)",
                 p.connrate_connections, p.connrate_inflight
+            ),
+            Scenario::Connect1 => format!(
+                "one connection at a time ({} anonymous, each kept open)",
+                p.connect1_connections
             ),
             Scenario::AuthStorm => format!(
                 "authenticated reconnect storm ({} devices at once, fresh broker)",
@@ -173,6 +181,11 @@ impl Scenario {
                  user + system CPU during the wave (/proc, 10 ms ticks) / connected.",
                 p.connrate_connections, p.connrate_inflight
             ),
+            Scenario::Connect1 => format!(
+                "{} connections one after the other, each TCP connect + CONNECT -> CONNACK alone \
+                 (the next starts after its CONNACK), all kept open; p50/p99 of one connection's time.",
+                p.connect1_connections
+            ),
             Scenario::AuthStorm => format!(
                 "{} devices with passwords start TCP connect + CONNECT at the same instant against a broker \
                  process started for this scenario; time until the last CONNACK. Password stores: fbbus argon2id \
@@ -193,6 +206,7 @@ impl Scenario {
             Scenario::IdleMem => &["RSS before", "RSS after", "KB/conn", "connected"],
             Scenario::MsgMem => &["RSS before", "RSS after", "delivered", "msg/s"],
             Scenario::ConnRate => &["conns/s", "connected", "time", "broker CPU/conn"],
+            Scenario::Connect1 => &["p50 ms", "p99 ms", "connected"],
             Scenario::AuthStorm => &["all CONNACK", "p50", "p99", "connected", "password store"],
         }
     }
@@ -220,6 +234,10 @@ impl Scenario {
             Scenario::IdleMem => or_na(k(0).map(|v| format!("{v:.2} KB/conn"))),
             Scenario::MsgMem => or_na(k(0).map(|v| format!("{v:.1} MB"))),
             Scenario::ConnRate => or_na(k(0).map(|v| format!("{v:.0} conn/s"))),
+            Scenario::Connect1 => match (k(0), k(1)) {
+                (Some(a), Some(b)) => format!("p50/p99 {a:.3}/{b:.3} ms"),
+                _ => "n/a".into(),
+            },
             Scenario::AuthStorm => or_na(k(0).map(|v| format!("{v:.2} s"))),
         }
     }
@@ -234,6 +252,7 @@ impl Scenario {
             Scenario::IdleMem => "idlemem KB/conn",
             Scenario::MsgMem => "msgmem RSS MB",
             Scenario::ConnRate => "connrate conn/s",
+            Scenario::Connect1 => "connect1 p50/p99 ms",
             Scenario::AuthStorm => "authstorm s",
         }
     }
@@ -251,6 +270,10 @@ impl Scenario {
             Scenario::IdleMem => or_na(k(0).map(|v| format!("{v:.2}"))),
             Scenario::MsgMem => or_na(k(0).map(|v| format!("{v:.1}"))),
             Scenario::ConnRate => or_na(k(0).map(|v| format!("{v:.0}"))),
+            Scenario::Connect1 => match (k(0), k(1)) {
+                (Some(a), Some(b)) => format!("{a:.3}/{b:.3}"),
+                _ => "n/a".into(),
+            },
             Scenario::AuthStorm => or_na(k(0).map(|v| format!("{v:.2}"))),
         }
     }
@@ -264,6 +287,7 @@ impl Scenario {
             Scenario::IdleMem => idle_memory(broker, p).await,
             Scenario::MsgMem => message_memory(broker, p).await,
             Scenario::ConnRate => connection_rate(broker, p).await,
+            Scenario::Connect1 => connect_latency(broker, p).await,
             Scenario::AuthStorm => match storm {
                 Some(login) => auth_storm(broker, p, login).await,
                 None => Err(anyhow::anyhow!("no users were prepared")),
@@ -292,6 +316,8 @@ pub struct Params {
     pub msgmem_per_publisher: usize,
     pub connrate_connections: usize,
     pub connrate_inflight: usize,
+    /// Connections of `connect1`, one at a time.
+    pub connect1_connections: usize,
     pub storm_devices: usize,
     /// Each scenario's own time limit (the latency scenario adds its duration).
     pub deadline: Duration,
@@ -312,6 +338,7 @@ impl Params {
             msgmem_per_publisher: 100_000,
             connrate_connections: 2_000,
             connrate_inflight: 64,
+            connect1_connections: 500,
             storm_devices: 1_045,
             deadline: Duration::from_secs(60),
         }
@@ -331,6 +358,7 @@ impl Params {
             msgmem_per_publisher: 10_000,
             connrate_connections: 200,
             connrate_inflight: 64,
+            connect1_connections: 50,
             storm_devices: 100,
             deadline: Duration::from_secs(20),
         }

@@ -1,7 +1,8 @@
-//! The connection scenarios (`idlemem`, `connrate`, `authstorm`): the harness's own
-//! connection wave and idle-memory measurement ([`loadtest::scenario::connections`]).
+//! The connection scenarios (`idlemem`, `connrate`, `connect1`, `authstorm`): the
+//! harness's own connection wave and idle-memory measurement
+//! ([`loadtest::scenario::connections`]).
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, Result};
 
@@ -112,6 +113,51 @@ pub(super) async fn connection_rate(broker: &Running, p: &Params) -> Result<Outc
         lost: None,
         note,
         timed_out: false,
+    })
+}
+
+/// `connect1`: one device connecting at a time, as a line's devices come back one by one
+/// after a power cut or a cable is plugged back. A wave of one connection per step, so the
+/// time is TCP connect + CONNECT -> CONNACK of that one connection; every connection stays
+/// open to the end, like the devices.
+pub(super) async fn connect_latency(broker: &Running, p: &Params) -> Result<Outcome> {
+    let target = target(broker, None)?;
+    let mut latency = hdrhistogram::Histogram::<u64>::new(3).context("histogram")?;
+    let mut waves = Vec::with_capacity(p.connect1_connections);
+    let mut failed = Vec::new();
+    let start = Instant::now();
+    let mut timed_out = false;
+    for i in 0..p.connect1_connections {
+        if start.elapsed() > p.deadline {
+            timed_out = true;
+            break;
+        }
+        let wave =
+            connections::connect_many(&target, &format!("bench-one-{i}"), 1, 1, p.deadline).await;
+        if wave.clients.is_empty() {
+            failed.extend(wave.errors.first().cloned());
+        } else {
+            latency.saturating_record((wave.took.as_micros() as u64).max(1));
+        }
+        waves.push(wave);
+    }
+    let connected = latency.len() as usize;
+    waves.into_iter().for_each(close);
+    let ms = |q: f64| (connected > 0).then(|| latency.value_at_quantile(q) as f64 / 1000.0);
+    let cell = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "-".into());
+    let (p50, p99) = (ms(0.5), ms(0.99));
+    Ok(Outcome {
+        cells: vec![
+            cell(p50),
+            cell(p99),
+            format!("{connected}/{}", p.connect1_connections),
+        ],
+        keys: vec![p50, p99],
+        lost: None,
+        note: failed
+            .first()
+            .map(|first| format!("{} failed: {first}", failed.len())),
+        timed_out,
     })
 }
 
