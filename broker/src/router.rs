@@ -177,19 +177,27 @@ impl RouterHandle {
             })),
             panic_on_topic: crate::supervisor::test_panic_topic("FBBUS_TEST_ROUTER_PANIC_TOPIC"),
         };
-        let router_tx = Router::new(0, config).with_hooks(hooks).spawn();
+        let router = Router::new(0, config).with_hooks(hooks);
+        let ids = router.connection_ids();
+        let router_tx = router.spawn();
         RouterHandle {
-            builder: Arc::new(move |client_id| LinkBuilder::new(client_id, router_tx.clone())),
+            builder: Arc::new(move |client_id| {
+                LinkBuilder::new(client_id, router_tx.clone(), ids.clone())
+            }),
         }
     }
 
     /// Registers a connection with the router. A connection with the same client id is
     /// dropped by the router (its `LinkRx` fails), which is how takeover reaches it.
-    /// Waits (without blocking the thread) until the router answers, within its next
-    /// event loop turn.
+    ///
+    /// A clean session's link is ready at once: its connection id comes from the pool the
+    /// router shares with its links, and what it sends next reaches the router after its
+    /// Connect. A session the router may hold waits (without blocking the thread) for the
+    /// router's answer, within its next event loop turn: whether the session was there,
+    /// and its pending PUBRELs.
     pub async fn link(&self, client_id: &str, clean_session: bool, topic_alias_max: u16) -> Linked {
         self.builder(client_id, clean_session, topic_alias_max)
-            .build_async()
+            .build_linked()
             .await
             .map_err(|e| LinkRefused(e.to_string()))
     }

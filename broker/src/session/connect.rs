@@ -542,7 +542,9 @@ struct Linked {
 }
 
 /// Links the claimed session (`claim`) to the router, which takes over an older session
-/// with the same id. Also returns the router's CONNACK.
+/// with the same id. Also returns the CONNACK: the router's for a session it may hold,
+/// made by the link for a clean one, which does not wait for the router
+/// (`RouterHandle::link`).
 async fn link(
     ctx: &Context,
     client_id: &str,

@@ -22,6 +22,7 @@ pub use router::{
 };
 use segments::Storage;
 
+pub use self::router::ids::ConnectionIds; // fbbus
 pub use self::router::shared_subs::Strategy;
 
 mod freer; // fbbus

@@ -41,6 +41,9 @@ pub struct Connection {
     /// false for an observer such as fbbus's line console, which must never make a
     /// device wait: it skips what it was too slow to read instead.
     pub holds_publishers: bool,
+    /// fbbus: the link answered its client without waiting for the router
+    /// (`LinkBuilder::build_linked`): the router sends it no ConnAck.
+    pub(crate) acked_by_link: bool,
 }
 
 impl Connection {
@@ -75,6 +78,7 @@ impl Connection {
             broker_topic_aliases: None,
             subscription_ids: BTreeMap::new(),
             holds_publishers: true,
+            acked_by_link: false,
         }
     }
 

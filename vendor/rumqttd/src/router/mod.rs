@@ -15,6 +15,7 @@ use crate::{
 mod connection;
 mod graveyard;
 mod holds;
+pub mod ids; // fbbus
 pub mod iobufs;
 mod logs;
 mod retained; // fbbus
@@ -27,6 +28,7 @@ pub use connection::Connection;
 pub use graveyard::{SavedSessions, DEFAULT_MAX_SAVED_SESSIONS};
 pub use retained::{RetainLimit, RetainedStats};
 pub use routing::Router;
+pub(crate) use routing::TOPIC_ALIAS_MAX; // fbbus: `LinkBuilder::build_linked`
 pub use waiters::Waiters;
 
 /// fbbus: called for every skip (`RouterHooks::skipped`).

@@ -9,7 +9,6 @@ use crate::router::{ConnectionEvents, Forward};
 use crate::segments::Position;
 use crate::*;
 use flume::{bounded, Receiver, RecvError, RecvTimeoutError, Sender, TryRecvError};
-use slab::Slab;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::str::Utf8Error;
 use std::thread;
@@ -18,6 +17,7 @@ use tracing::{debug, error, info, trace, warn};
 
 use super::graveyard::Graveyard;
 use super::holds::Holds;
+use super::ids::{ConnectionIds, IdTable};
 use super::iobufs::{Incoming, Outgoing};
 use super::logs::{AckLog, DataLog};
 use super::retained; // fbbus
@@ -49,7 +49,7 @@ pub enum RouterError {
 }
 
 // TODO: set this to some appropriate value
-const TOPIC_ALIAS_MAX: u16 = 4096;
+pub(crate) const TOPIC_ALIAS_MAX: u16 = 4096;
 
 /// fbbus: how long the router waits for an event while publishers are held (`holds`).
 const HELD_POLL: std::time::Duration = std::time::Duration::from_millis(1);
@@ -73,19 +73,19 @@ pub struct Router {
     /// Saved state of dead persistent connections
     graveyard: Graveyard,
     /// List of connections
-    connections: Slab<Connection>,
+    connections: IdTable<Connection>,
     /// Connection map from device id to connection id
     connection_map: HashMap<String, ConnectionId>,
     /// Subscription map to interested connection ids
     subscription_map: HashMap<Filter, HashSet<ConnectionId>>,
     /// Incoming data grouped by connection
-    ibufs: Slab<Incoming>,
+    ibufs: IdTable<Incoming>,
     /// Outgoing data grouped by connection
-    obufs: Slab<Outgoing>,
+    obufs: IdTable<Outgoing>,
     /// Data log of all the subscriptions
     datalog: DataLog,
     /// Acks log per connection
-    ackslog: Slab<AckLog>,
+    ackslog: IdTable<AckLog>,
     /// Scheduler to schedule connections
     scheduler: Scheduler,
     /// Parked requests that are ready because of new data on the subscription
@@ -110,16 +110,18 @@ pub struct Router {
     last_release: std::time::Instant,
     /// fbbus: publishers held back for readers that would lose messages (`holds`).
     holds: Holds,
+    /// fbbus: the connection ids links take before they connect (`ids`).
+    ids: ConnectionIds,
 }
 
 impl Router {
     pub fn new(router_id: RouterId, config: RouterConfig) -> Router {
         let (router_tx, router_rx) = bounded(1000);
 
-        let connections = Slab::with_capacity(config.max_connections);
-        let ibufs = Slab::with_capacity(config.max_connections);
-        let obufs = Slab::with_capacity(config.max_connections);
-        let ackslog = Slab::with_capacity(config.max_connections);
+        let connections = IdTable::with_capacity(config.max_connections);
+        let ibufs = IdTable::with_capacity(config.max_connections);
+        let obufs = IdTable::with_capacity(config.max_connections);
+        let ackslog = IdTable::with_capacity(config.max_connections);
 
         let max_connections = config.max_connections;
         Router {
@@ -143,7 +145,14 @@ impl Router {
             dirty: false,
             last_release: std::time::Instant::now(),
             holds: Holds::new(std::time::Duration::ZERO),
+            ids: ConnectionIds::new(max_connections),
         }
+    }
+
+    /// fbbus: the pool links take their connection ids from (`LinkBuilder::new`): get it
+    /// before [`Router::spawn`].
+    pub fn connection_ids(&self) -> ConnectionIds {
+        self.ids.clone()
     }
 
     /// fbbus: whether `publish` is a retained publication the retained store will not
@@ -303,7 +312,7 @@ impl Router {
                 connection,
                 incoming,
                 outgoing,
-            } => self.handle_new_connection(connection, incoming, outgoing),
+            } => self.handle_new_connection(id, connection, incoming, outgoing),
             Event::DeviceData => self.handle_device_payload(id),
             Event::Disconnect => self.handle_disconnection(id, None),
             Event::Ready => self.scheduler.reschedule(id, ScheduleReason::Ready),
@@ -318,8 +327,12 @@ impl Router {
         }
     }
 
+    /// fbbus: `connection_id` is the id the link took from [`ConnectionIds`]; when the
+    /// connection is refused, it is given back and the link's `outgoing` dropped (its
+    /// `LinkRx` fails).
     fn handle_new_connection(
         &mut self,
+        connection_id: ConnectionId,
         mut connection: Connection,
         incoming: Incoming,
         mut outgoing: Outgoing,
@@ -327,8 +340,14 @@ impl Router {
         let client_id = outgoing.client_id.clone();
         if let Err(err) = validate_clientid(&client_id) {
             error!("Invalid client_id: {}", err);
+            self.ids.give_back(connection_id);
             return;
         };
+        if self.connections.contains(connection_id) {
+            // Only a link that did not take its id from `ids` gets here.
+            error!(connection_id, "connection id in use; connection refused");
+            return;
+        }
 
         let span = tracing::info_span!("incoming_connect", client_id);
         let _guard = span.enter();
@@ -336,19 +355,17 @@ impl Router {
         // Check if same client_id already exists and if so, replace it with this new connection
         // ref: https://docs.oasis-open.org/mqtt/mqtt/v3.1.1/os/mqtt-v3.1.1-os.html#_Toc398718032
 
-        let connection_id = self.connection_map.get(&client_id);
-        if let Some(connection_id) = connection_id {
+        if let Some(&previous) = self.connection_map.get(&client_id) {
             error!(
                 "Duplicate client_id, dropping previous connection with connection_id: {}",
-                connection_id
+                previous
             );
-            self.handle_disconnection(*connection_id, None);
+            self.handle_disconnection(previous, None);
         }
 
         if self.connections.len() >= self.config.max_connections {
             error!("no space for new connection");
-            // let ack = ConnectionAck::Failure("No space for new connection".to_owned());
-            // let message = Notification::ConnectionAck(ack);
+            self.ids.give_back(connection_id);
             return;
         }
 
@@ -398,32 +415,17 @@ impl Router {
             );
         }
 
-        // fbbus: the invariant these assertions rely on is stated in their messages.
-        let connection_id = self.connections.insert(connection);
-        assert_eq!(
-            self.ibufs.insert(incoming),
-            connection_id,
-            "{SLABS_IN_STEP}"
-        );
-        assert_eq!(
-            self.obufs.insert(outgoing),
-            connection_id,
-            "{SLABS_IN_STEP}"
-        );
+        // fbbus: at the id the link took (checked free above, in every table together).
+        let acked_by_link = connection.acked_by_link;
+        self.connections.insert_at(connection_id, connection);
+        self.ibufs.insert_at(connection_id, incoming);
+        self.obufs.insert_at(connection_id, outgoing);
 
         self.connection_map.insert(client_id.clone(), connection_id);
         info!(connection_id, "Client connection registered");
 
-        assert_eq!(
-            self.ackslog.insert(ackslog),
-            connection_id,
-            "{SLABS_IN_STEP}"
-        );
-        assert_eq!(
-            self.scheduler.add(tracker),
-            connection_id,
-            "{SLABS_IN_STEP}"
-        );
+        self.ackslog.insert_at(connection_id, ackslog);
+        self.scheduler.add(connection_id, tracker);
 
         // Check if there are multiple data requests on same filter.
         debug_assert!(self
@@ -442,7 +444,11 @@ impl Router {
         };
 
         let ackslog = self.ackslog.get_mut(connection_id).expect(SLABS_IN_STEP);
-        ackslog.connack(connection_id, ack, Some(properties));
+        // fbbus: a link that did not wait for the router answered its client already
+        // (`LinkBuilder::build_linked`).
+        if !acked_by_link {
+            ackslog.connack(connection_id, ack, Some(properties));
+        }
 
         pending_acks.into_iter().for_each(|pkid| {
             // NOTE: will it be better if we store the whole PubRel
@@ -506,12 +512,14 @@ impl Router {
         }
 
         // Remove connection from router
-        let connection = self.connections.remove(id);
+        let connection = self.connections.remove(id).expect(SLABS_IN_STEP);
         let _incoming = self.ibufs.remove(id);
-        let outgoing = self.obufs.remove(id);
-        let mut tracker = self.scheduler.remove(id);
+        let outgoing = self.obufs.remove(id).expect(SLABS_IN_STEP);
+        let mut tracker = self.scheduler.remove(id).expect(SLABS_IN_STEP);
         self.connection_map.remove(&client_id);
         self.ackslog.remove(id);
+        // fbbus: the id is free for the next link once it is in no table.
+        self.ids.give_back(id);
 
         // Don't remove connection id from readyqueue with index. This will
         // remove wrong connection from readyqueue. Instead just leave disconnected
@@ -1222,7 +1230,7 @@ impl Router {
         let mut buffer = buffer.lock();
         let mut forwarded = false;
 
-        let connection = &mut self.connections[id];
+        let connection = self.connections.get_mut(id).expect(SLABS_IN_STEP);
 
         // Keep track of temporarily skipped DataRequest
         // NOTE: VecDeque::new() doesn't allocate memory until elements are pushed
@@ -1535,7 +1543,7 @@ fn append_to_commitlog(
     mut properties: Option<PublishProperties>,
     datalog: &mut DataLog,
     notifications: &mut VecDeque<(ConnectionId, DataRequest)>,
-    connections: &mut Slab<Connection>,
+    connections: &mut IdTable<Connection>,
 ) -> Result<Offset, RouterError> {
     let connection = connections.get_mut(id).expect(SLABS_IN_STEP);
 
@@ -2811,8 +2819,9 @@ mod fbbus_tests {
             outgoing: outgoing.buffer(),
             _wakeups: wakeups,
         };
-        router.handle_new_connection(connection, incoming, outgoing);
-        let id = router.connection_map[client_id];
+        let id = router.ids.take().expect("a free connection id");
+        router.handle_new_connection(id, connection, incoming, outgoing);
+        assert_eq!(router.connection_map[client_id], id);
         run(router);
         Client { id, ..client }
     }
@@ -2897,7 +2906,8 @@ mod fbbus_tests {
             let incoming = Incoming::new("reader".to_owned());
             let (outgoing, _wakeups) = Outgoing::new("reader".to_owned());
             let (reader_in, reader_out) = (incoming.buffer(), outgoing.buffer());
-            router.handle_new_connection(connection, incoming, outgoing);
+            let id = router.ids.take().expect("a free connection id");
+            router.handle_new_connection(id, connection, incoming, outgoing);
             let reader = Client {
                 id: router.connection_map["reader"],
                 incoming: reader_in,

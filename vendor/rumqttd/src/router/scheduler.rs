@@ -1,9 +1,9 @@
 use std::collections::{HashSet, VecDeque};
 
 use serde::{Deserialize, Serialize};
-use slab::Slab;
 use tracing::{debug, trace};
 
+use super::ids::IdTable;
 use super::DataRequest;
 use crate::{ConnectionId, Filter};
 
@@ -13,7 +13,7 @@ const LIVE_CONNECTION: &str = "invariant: only a registered connection is tracke
 
 pub struct Scheduler {
     /// Subscriptions and matching topics maintained per connection
-    pub trackers: Slab<Tracker>,
+    pub trackers: IdTable<Tracker>,
     /// Connections with more pending requests and ready to make progress
     pub readyqueue: VecDeque<ConnectionId>,
 }
@@ -21,16 +21,17 @@ pub struct Scheduler {
 impl Scheduler {
     pub fn with_capacity(capacity: usize) -> Scheduler {
         Scheduler {
-            trackers: Slab::with_capacity(capacity),
+            trackers: IdTable::with_capacity(capacity),
             readyqueue: VecDeque::with_capacity(capacity),
         }
     }
 
-    pub fn add(&mut self, tracker: Tracker) -> ConnectionId {
-        self.trackers.insert(tracker)
+    /// fbbus: at the connection's id, which its link chose (`ids`).
+    pub fn add(&mut self, id: ConnectionId, tracker: Tracker) {
+        self.trackers.insert_at(id, tracker);
     }
 
-    pub fn remove(&mut self, id: ConnectionId) -> Tracker {
+    pub fn remove(&mut self, id: ConnectionId) -> Option<Tracker> {
         self.trackers.remove(id)
     }
 
@@ -272,7 +273,8 @@ mod tests {
     use super::*;
 
     fn busy_connection(scheduler: &mut Scheduler, client_id: &str) -> ConnectionId {
-        let id = scheduler.add(Tracker::new(client_id.to_owned()));
+        let id = scheduler.trackers.len();
+        scheduler.add(id, Tracker::new(client_id.to_owned()));
         scheduler.reschedule(id, ScheduleReason::Init);
         id
     }
@@ -299,12 +301,16 @@ mod tests {
         scheduler.reschedule(id, ScheduleReason::Ready);
         assert!(scheduler.readyqueue.is_empty());
         assert_eq!(
-            scheduler.trackers[id].status,
+            scheduler.trackers.get(id).unwrap().status,
             Status::Paused(PauseReason::Caughtup)
         );
 
         assert_eq!(scheduler.poll(), None);
-        scheduler.trackers[id].pause(PauseReason::Busy);
+        scheduler
+            .trackers
+            .get_mut(id)
+            .unwrap()
+            .pause(PauseReason::Busy);
         scheduler.reschedule(id, ScheduleReason::Ready);
         assert_eq!(scheduler.readyqueue, [id]);
     }
