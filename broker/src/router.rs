@@ -46,8 +46,8 @@ use crate::metrics::Metrics;
 /// file they come from.
 #[derive(Debug, Clone, Copy)]
 pub struct Settings {
-    /// Client connections at once (`max_connections`); the router gets one slot more,
-    /// for the broker's internal link.
+    /// Client connections at once (`max_connections`); the router gets
+    /// [`INTERNAL_LINKS`] slots more, for the broker's own links.
     pub max_connections: usize,
     /// Messages queued towards one connection before the router pauses delivery to it.
     pub max_outgoing_packets: u64,
@@ -60,6 +60,14 @@ pub struct Settings {
     /// Longest time publishers are held back for a lagging subscriber; zero: never.
     pub slow_subscriber_hold: Duration,
 }
+
+/// Router connections beyond `max_connections` for the broker's own links: its publisher,
+/// the readiness probe, the console's and the Sparkplug view's observers, the bus
+/// bridge's, and the short-lived ones (a retained query over the bus, a session purged
+/// before its client's link). With one slot, as before, a full line refused its last
+/// clients in the router, each with an error line, instead of at the listener, counted
+/// under `max_connections` and logged once.
+pub const INTERNAL_LINKS: usize = 64;
 
 /// Offline persistent sessions kept at most, by the router and by the broker's session
 /// table alike (the oldest closed is dropped beyond): every client that can be connected
@@ -103,8 +111,7 @@ impl RouterHandle {
     /// (a panic, or its loop ending), `health` is told: the broker is dead without it.
     pub fn spawn(settings: &Settings, metrics: Arc<Metrics>, health: &Arc<Health>) -> RouterHandle {
         let config = RouterConfig {
-            // One extra for the broker's internal link.
-            max_connections: settings.max_connections + 1,
+            max_connections: settings.max_connections + INTERNAL_LINKS,
             max_outgoing_packet_count: settings.max_outgoing_packets,
             max_segment_size: settings.segment_bytes,
             max_segment_count: settings.segment_count,

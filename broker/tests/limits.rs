@@ -366,3 +366,43 @@ fn sessions_are_counted_per_username() {
     );
     drop(held);
 }
+
+/// `max_connections` clients all get in, however many router links the broker holds for
+/// itself (its publisher, the readiness probe, the console's observer): the next one is
+/// closed at the listener, counted under `max_connections`. With one router slot beyond
+/// `max_connections`, as before, the last clients were refused in the router instead,
+/// each with an error line and no count.
+#[test]
+fn max_connections_clients_all_get_in_and_the_next_is_refused_at_the_listener() {
+    const MAX: usize = 12;
+    let broker = Broker::start_with(
+        Options {
+            extra: format!("max_connections = {MAX}\n"),
+            ..Options::default()
+        },
+        |_| {},
+    );
+    let clients: Vec<RawClient> = (0..MAX)
+        .map(|i| {
+            let mut c = RawClient::connect(broker.port());
+            let id = format!("c{i:02}");
+            let code = c.handshake(&Connect {
+                client_id: &id,
+                ..Default::default()
+            });
+            assert_eq!(code, 0, "{id}, one of the {MAX} allowed");
+            c
+        })
+        .collect();
+    let mut extra = RawClient::connect(broker.port());
+    assert!(extra.closed_by_broker(), "client {} is closed", MAX + 1);
+    broker.wait_metric(
+        r#"fbbus_connects_refused_total{reason="max_connections"}"#,
+        1.0,
+    );
+    assert!(
+        !broker.log_text().contains("router refused"),
+        "no client was refused in the router"
+    );
+    drop(clients);
+}
