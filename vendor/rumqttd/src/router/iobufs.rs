@@ -3,16 +3,12 @@ use std::{
     sync::Arc,
 };
 
-use flume::{Receiver, Sender};
 use parking_lot::Mutex;
 use tracing::{error, warn};
 
-use crate::{
-    protocol::Packet,
-    router::{FilterIdx, MAX_CHANNEL_CAPACITY},
-    Cursor, Notification,
-};
+use crate::{protocol::Packet, router::FilterIdx, Cursor, Notification};
 
+use super::wakeup::{wakeup, WakeRx, WakeTx};
 use super::Forward;
 
 const MAX_INFLIGHT: usize = 100;
@@ -67,7 +63,8 @@ pub struct Outgoing {
     /// Send buffer
     pub(crate) data_buffer: Arc<Mutex<VecDeque<Notification>>>,
     /// Handle which is given to router to allow router to communicate with this connection
-    pub(crate) handle: Sender<()>,
+    /// (fbbus: a flag and a waiter, not a channel of tokens: `wakeup`)
+    pub(crate) handle: WakeTx,
     /// The buffer to keep track of inflight packets.
     inflight_buffer: VecDeque<(u16, FilterIdx, Option<Cursor>)>,
     /// PubRels waiting for PubComp
@@ -78,8 +75,8 @@ pub struct Outgoing {
 
 impl Outgoing {
     #[inline]
-    pub(crate) fn new(client_id: String) -> (Self, Receiver<()>) {
-        let (handle, rx) = flume::bounded(MAX_CHANNEL_CAPACITY);
+    pub(crate) fn new(client_id: String) -> (Self, WakeRx) {
+        let (handle, rx) = wakeup();
         // fbbus: no buffer is preallocated (upstream reserved 200 notifications and 2 x 100
         // inflight entries per connection, ~40 KB for an idle device); they grow on use and
         // `compact` gives the memory back once they are empty again.

@@ -23,6 +23,7 @@ mod routing;
 mod scheduler;
 pub(crate) mod shared_subs;
 mod waiters;
+pub(crate) mod wakeup; // fbbus
 
 pub use connection::Connection;
 pub use graveyard::{SavedSessions, DEFAULT_MAX_SAVED_SESSIONS};

@@ -508,7 +508,7 @@ impl Router {
                 .lock()
                 .push_back(disconnect_notification);
 
-            outgoing.handle.try_send(()).ok();
+            outgoing.handle.wake();
         }
 
         // Remove connection from router
@@ -1249,7 +1249,7 @@ impl Router {
                 None => {
                     drop(buffer);
                     if forwarded {
-                        outgoing.handle.try_send(()).ok();
+                        outgoing.handle.wake();
                     }
                     if skipped_requests.is_empty() {
                         // if no requests is in skip list, that means
@@ -1305,7 +1305,7 @@ impl Router {
 
         drop(buffer);
         if forwarded {
-            outgoing.handle.try_send(()).ok();
+            outgoing.handle.wake();
         }
         // Add requests back to the tracker if there are any
         requests.extend(skipped_requests);
@@ -1741,7 +1741,7 @@ fn ack_device_data(ackslog: &mut AckLog, outgoing: &mut Outgoing) -> bool {
     }
 
     debug!(acks_count = count, "Acks sent to device");
-    outgoing.handle.try_send(()).ok();
+    outgoing.handle.wake();
     true
 }
 
@@ -2019,7 +2019,7 @@ fn retrieve_shadow(datalog: &mut DataLog, outgoing: &mut Outgoing, shadow: Shado
         if len >= MAX_CHANNEL_CAPACITY - 1 {
             outgoing.push_notification(Notification::Unschedule);
         }
-        outgoing.handle.try_send(()).ok();
+        outgoing.handle.wake();
     }
 }
 
@@ -2795,7 +2795,7 @@ mod fbbus_tests {
         id: ConnectionId,
         incoming: Arc<Mutex<VecDeque<Packet>>>,
         outgoing: Arc<Mutex<VecDeque<Notification>>>,
-        _wakeups: Receiver<()>,
+        _wakeups: crate::router::wakeup::WakeRx,
     }
 
     impl Client {
