@@ -169,7 +169,7 @@ impl<'a> LinkBuilder<'a> {
     /// and pending PUBRELs follow it.
     ///
     /// This saves each connection the wait for the router thread: one connection alone
-    /// is answered about 18 % sooner (docs/performance.md). With many connecting at once
+    /// is answered about 13 % sooner (docs/performance.md). With many connecting at once
     /// the worker filled that wait with the others, and the router is still woken once
     /// per Connect, so the connection rate did not change.
     pub async fn build_linked(self) -> Result<(LinkTx, LinkRx, Notification), LinkError> {
