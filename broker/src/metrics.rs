@@ -259,11 +259,12 @@ impl Metrics {
             bridge_dropped: with_series(
                 counter_vec(
                     "fbbus_bridge_dropped_total",
-                    "Bridged messages not delivered, by reason (duplicate, acl, type, filter, unbridgeable, zenoh_error)",
+                    "Bridged messages not delivered, by reason (duplicate: a copy, one per router path with session_per_router; late: older than one of its topic taken already; acl, type, filter, unbridgeable, zenoh_error)",
                     &["reason"],
                 ),
                 &[
                     &["duplicate"],
+                    &["late"],
                     &["acl"],
                     &["type"],
                     &["filter"],

@@ -402,7 +402,7 @@ struct CutPlant {
 
 impl CutPlant {
     async fn start(
-        attach: impl Fn(usize, &str, &str) -> (String, Vec<String>, &'static str),
+        attach: impl Fn(usize, &str, &str) -> (String, Vec<String>, String),
     ) -> CutPlant {
         let dir = tempfile::tempdir().unwrap();
         let (port_1, port_2) = (free_port(), free_port());
@@ -417,13 +417,13 @@ impl CutPlant {
         ];
         let mut lines = Vec::new();
         for n in 1..=LINES {
-            let (listen, connect, mode) = attach(n, &r1, &r2);
+            let (listen, connect, bridge) = attach(n, &r1, &r2);
             let connect: Vec<&str> = connect.iter().map(String::as_str).collect();
             lines.push(Line::start_on(
                 &format!("line-{n}"),
                 &listen,
                 &connect,
-                &format!("mode = \"{mode}\"\n"),
+                &bridge,
                 None,
             ));
         }
@@ -468,9 +468,11 @@ async fn lines_that_are_peers_of_both_routers_lose_nothing_when_the_routers_link
     }
     // Each line a peer that listens and connects to both routers: zenoh links the lines
     // to each other as well (gossip), and routes each message once.
-    let mut plant =
-        CutPlant::start(|_, r1, r2| (tcp_endpoint(), vec![r1.to_owned(), r2.to_owned()], "peer"))
-            .await;
+    let mut plant = CutPlant::start(|_, r1, r2| {
+        let routers = vec![r1.to_owned(), r2.to_owned()];
+        (tcp_endpoint(), routers, "mode = \"peer\"\n".into())
+    })
+    .await;
     plant.cable.set_cut(true);
     // Every 100 ms for longer than the lease: no line ever lists a device otherwise.
     let cut = Instant::now();
@@ -510,7 +512,8 @@ async fn lines_that_are_clients_of_different_routers_are_split_by_a_cut_and_whol
     // at a time, the first of its list that answers.
     let mut plant = CutPlant::start(|n, r1, r2| {
         let order = if n <= 3 { [r1, r2] } else { [r2, r1] };
-        (String::new(), order.map(str::to_owned).to_vec(), "client")
+        let routers = order.map(str::to_owned).to_vec();
+        (String::new(), routers, "mode = \"client\"\n".into())
     })
     .await;
     plant.cable.set_cut(true);
@@ -538,4 +541,55 @@ async fn lines_that_are_clients_of_different_routers_are_split_by_a_cut_and_whol
         healed.elapsed()
     );
     plant.stream(21..=40).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_with_a_session_per_router_are_not_split_by_a_cut_nor_by_a_router_killed() {
+    if !python_zenoh() {
+        return;
+    }
+    // As in the test above, lines 1-3 list router 1 first and lines 4-5 router 2; but each
+    // line is a client of both at once, one zenoh session per router.
+    let mut plant = CutPlant::start(|n, r1, r2| {
+        let order = if n <= 3 { [r1, r2] } else { [r2, r1] };
+        let routers = order.map(str::to_owned).to_vec();
+        let bridge = "mode = \"client\"\nsession_per_router = true\n";
+        (String::new(), routers, bridge.into())
+    })
+    .await;
+    let duplicates = |plant: &CutPlant| -> f64 {
+        let series = "fbbus_bridge_dropped_total{reason=\"duplicate\"}";
+        plant.lines.iter().map(|l| l.broker.metric(series)).sum()
+    };
+    // Linked routers: line 5 gets each message of line 1 through both, and drops a copy.
+    assert!(
+        duplicates(&plant) > 0.0,
+        "no copy came through the second router: are there two sessions?"
+    );
+    plant.cable.set_cut(true);
+    // Every 100 ms for longer than the lease: no line ever lists a device otherwise.
+    let cut = Instant::now();
+    while cut.elapsed() < CUT_SETTLES {
+        plant.everyone_online("while cut");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    plant.stream(21..=40).await;
+    plant.cable.set_cut(false);
+    tokio::time::sleep(CUT_SETTLES).await;
+    plant.everyone_online("healed");
+    plant.stream(41..=60).await;
+    // Router 1 killed: lines 1-3 put through their session on router 2 from then on.
+    plant.routers.remove(0);
+    let killed = Instant::now();
+    while killed.elapsed() < CUT_SETTLES {
+        plant.everyone_online("router 1 killed");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    plant.stream(61..=80).await;
+    for line in &plant.lines {
+        let late = line
+            .broker
+            .metric("fbbus_bridge_dropped_total{reason=\"late\"}");
+        eprintln!("{}: {late} late copies dropped", line.name);
+    }
 }

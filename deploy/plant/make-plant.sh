@@ -73,9 +73,12 @@ bind = "127.0.0.1:$((ADMIN_BASE + k))"
 registry_file = "$DIR/line-$k/registry.json"
 
 [bridge]
-# A zenoh client of both routers: it uses the first that answers and fails over to the
-# other when that one dies (the other lines see this line go and come within a second).
+# A zenoh client of both routers, with a session on each: it puts through router-1
+# while it is there and through router-2 when it is not, and takes what comes through
+# either (each message once: the copy is dropped by its stamp). A cut of the link
+# between the routers, or either router dying, leaves it on the bus.
 mode = "client"
+session_per_router = true
 connect = ["tls/127.0.0.1:$ROUTER_1_PORT", "tls/127.0.0.1:$ROUTER_2_PORT"]
 lease_ms = $LEASE_MS
 

@@ -207,7 +207,11 @@ impl Injector {
         if !self.dedup.first_time(&message.stamp) {
             return dropped("duplicate");
         }
-        let missing = self.gaps.missing(&message.stamp, &message.topic);
+        // A message that came the long way (through a second router) after a newer one of
+        // its topic: dropped, so each topic keeps its order.
+        let Some(missing) = self.gaps.missing(&message.stamp, &message.topic) else {
+            return dropped("late");
+        };
         if missing > 0 {
             ctx.metrics.bridge_lost.inc_by(missing);
             static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();

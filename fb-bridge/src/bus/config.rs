@@ -59,7 +59,18 @@ pub struct BusConfig {
     pub max_remote_filters_per_line: usize,
     /// Filters all other lines together may subscribe to here.
     pub max_remote_filters: usize,
+    /// `mode = "client"` only: one zenoh session per router in `connect` instead of one
+    /// session on the first router that answers. A zenoh client is on one router at a
+    /// time, so lines that prefer different routers are split when the link between the
+    /// routers is cut; with a session on each, every line meets every other on every
+    /// router, and stays on the bus while any one of them reaches it (issue 32). Each
+    /// message then arrives once per router path: the copies are dropped by their stamp.
+    pub session_per_router: bool,
 }
+
+/// The most sessions [`BusConfig::session_per_router`] opens: a plant runs two routers,
+/// sometimes three.
+pub const MAX_ROUTER_SESSIONS: usize = 4;
 
 impl Default for BusConfig {
     fn default() -> Self {
@@ -75,6 +86,7 @@ impl Default for BusConfig {
             peers: None,
             max_remote_filters_per_line: 1_000,
             max_remote_filters: 10_000,
+            session_per_router: false,
         }
     }
 }
@@ -226,6 +238,21 @@ impl BusConfig {
                 }
             }
         }
+        if self.session_per_router
+            && (self.mode != Mode::Client
+                || !(2..=MAX_ROUTER_SESSIONS).contains(&self.connect.len()))
+        {
+            return Err((
+                "bridge.session_per_router".into(),
+                format!(
+                    "takes mode = \"client\" and 2 to {MAX_ROUTER_SESSIONS} routers in \
+                     `connect`: it opens one zenoh session per router (this is mode = \"{}\" \
+                     with {} endpoint(s))",
+                    self.mode.as_str(),
+                    self.connect.len()
+                ),
+            ));
+        }
         if self.lease_ms < 500 {
             return Err(("bridge.lease_ms".into(), "at least 500".into()));
         }
@@ -319,6 +346,35 @@ mod tests {
         };
         assert!(client.reach_note().is_none());
         assert!(BusConfig::default().reach_note().is_none());
+    }
+
+    #[test]
+    fn a_session_per_router_takes_a_client_and_two_to_four_routers() {
+        let routers = |n: usize| {
+            (0..n)
+                .map(|i| format!("tcp/127.0.0.1:{}", 7447 + i))
+                .collect()
+        };
+        let at = |mode, n| BusConfig {
+            mode,
+            connect: routers(n),
+            session_per_router: true,
+            ..BusConfig::default()
+        };
+        assert!(at(Mode::Client, 2).validate("line-a").is_ok());
+        assert!(at(Mode::Client, MAX_ROUTER_SESSIONS)
+            .validate("line-a")
+            .is_ok());
+        for bad in [
+            at(Mode::Client, 1),
+            at(Mode::Client, MAX_ROUTER_SESSIONS + 1),
+            at(Mode::Peer, 2),
+            at(Mode::Router, 2),
+        ] {
+            let (key, message) = bad.validate("line-a").unwrap_err();
+            assert_eq!(key, "bridge.session_per_router");
+            assert!(message.contains("mode = \"client\""), "{message}");
+        }
     }
 
     #[test]

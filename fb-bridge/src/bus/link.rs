@@ -15,11 +15,17 @@
 //!   own: zenoh's routing tables match every new token against all the others, and 8,000
 //!   device tokens made each router spend tens of seconds of CPU doing so (issue 32).
 //!
+//! A client line with [`BusConfig::session_per_router`] holds one session per router:
+//! every subscription, queryable and token is declared on each, puts and queries go
+//! through the first that has a router, and what the sessions report is merged
+//! (module `presence`) so the broker sees one bus.
+//!
 //! No zenoh or flume type appears in this module's public API: the broker sees fbbus
 //! types ([`Inbox`], [`RetainedQueries`], [`LinkError`]), so it does not depend on zenoh's
 //! version or on the channel crate zenoh's handlers happen to use.
 
-use std::sync::PoisonError;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use zenoh::key_expr::KeyExpr;
@@ -30,6 +36,7 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::SampleKind;
 use zenoh::Session;
 
+use super::presence::{decode_version, encode_version, Presence, RecordOrder};
 use super::{keys, BusConfig, Stamp};
 
 #[derive(Debug, thiserror::Error)]
@@ -129,14 +136,17 @@ impl<T> Inbox<T> {
 }
 
 /// Other lines' queries for this line's retained messages; dropping it stops answering.
-pub struct RetainedQueries(Queryable<flume::Receiver<Query>>);
+pub struct RetainedQueries {
+    _queryables: Vec<Queryable<()>>,
+    queries: flume::Receiver<Query>,
+}
 
 impl RetainedQueries {
     /// The next query with a filter this line can answer (others are skipped); `None`
     /// once the link is closed.
     pub async fn recv(&self) -> Option<RetainedQuery> {
         loop {
-            let query = self.0.recv_async().await.ok()?;
+            let query = self.queries.recv_async().await.ok()?;
             if let Some((_, filter)) = keys::parse_retained_query(query.key_expr().as_str()) {
                 return Some(RetainedQuery { query, filter });
             }
@@ -159,18 +169,77 @@ impl RetainedQuery {
 }
 
 pub struct Link {
-    session: Session,
+    /// One session, or one per router ([`BusConfig::session_per_router`]).
+    sessions: Vec<Session>,
+    /// The index of the session puts and queries go through ([`Active`]).
+    active: Active,
     line: String,
     epoch: u64,
     inbox: flume::Sender<Inbound>,
+    /// Record changes put so far: with the epoch, each change's version.
+    record_changes: AtomicU64,
     /// Declared by [`Link::announce_line`], once the line answers registry queries.
-    line_token: std::sync::Mutex<Option<LivelinessToken>>,
+    line_tokens: std::sync::Mutex<Vec<LivelinessToken>>,
 }
 
 /// The interest of this line in one MQTT filter; dropping it undeclares both halves.
 pub struct Import {
-    _subscriber: Subscriber<()>,
-    _token: LivelinessToken,
+    _subscribers: Vec<Subscriber<()>>,
+    _tokens: Vec<LivelinessToken>,
+}
+
+/// Which of a link's sessions puts and queries go through: the first, or with a session
+/// per router the first whose router is there (checked every [`ACTIVE_EVERY`]).
+#[derive(Clone)]
+struct Active(Arc<AtomicUsize>);
+
+/// How often a link with a session per router checks which sessions have a router: the
+/// longest a put can go to a session whose router was just killed.
+const ACTIVE_EVERY: Duration = Duration::from_millis(50);
+
+impl Active {
+    fn get(&self) -> usize {
+        self.0.load(Ordering::Relaxed)
+    }
+
+    /// Follows `sessions` until they close: the first with a router is the active one.
+    /// Says once (per change) when the sessions share routers: a session whose router
+    /// died moves to the next router of its list and stays there, so the line is no longer
+    /// on both sides of a cut between the routers.
+    fn follow(&self, sessions: Vec<Session>) {
+        let active = Arc::clone(&self.0);
+        tokio::spawn(async move {
+            let mut shared = false;
+            while !sessions.iter().any(Session::is_closed) {
+                let routers: Vec<Vec<zenoh::session::ZenohId>> = sessions
+                    .iter()
+                    .map(|s| zenoh::Wait::wait(s.info().routers_zid()).collect())
+                    .collect();
+                if let Some(first) = routers.iter().position(|r| !r.is_empty()) {
+                    active.store(first, Ordering::Relaxed);
+                }
+                let mut distinct: Vec<_> = routers.iter().flatten().collect();
+                distinct.sort();
+                distinct.dedup();
+                let now_shared =
+                    routers.iter().all(|r| !r.is_empty()) && distinct.len() < sessions.len();
+                if now_shared != shared {
+                    shared = now_shared;
+                    if shared {
+                        tracing::warn!(
+                            "bus: two of this line's sessions are on the same router (one's \
+                             own router was gone): the line stays on the bus, but a cut \
+                             between the routers would split it from the lines on the other \
+                             side until its broker restarts with every router up"
+                        );
+                    } else {
+                        tracing::info!("bus: this line has a session on each router again");
+                    }
+                }
+                tokio::time::sleep(ACTIVE_EVERY).await;
+            }
+        });
+    }
 }
 
 /// Checks that the `[bridge]` section makes a zenoh configuration, and that the line's
@@ -187,7 +256,7 @@ pub fn validate(config: &BusConfig, line: &str) -> Result<(), LinkError> {
             });
         }
     }
-    zenoh_config(config).map(drop)
+    session_configs(config).map(drop)
 }
 
 /// The common name of the first certificate of a PEM file.
@@ -209,6 +278,22 @@ fn common_name(path: &std::path::Path) -> Result<String, LinkError> {
         .and_then(|cn| cn.as_str().ok())
         .ok_or_else(|| failed("has no common name (CN): it names the line".into()))?;
     Ok(name.to_owned())
+}
+
+/// zenoh's configuration of each session the link opens: one, or with a session per
+/// router one per router, each listing its own router first and the others after it (a
+/// client's `open` waits for a router, so each session opens on whichever answers).
+fn session_configs(config: &BusConfig) -> Result<Vec<zenoh::Config>, LinkError> {
+    if !config.session_per_router {
+        return Ok(vec![zenoh_config(config)?]);
+    }
+    (0..config.connect.len())
+        .map(|i| {
+            let mut own = config.clone();
+            own.connect.rotate_left(i);
+            zenoh_config(&own)
+        })
+        .collect()
 }
 
 /// Builds zenoh's configuration from the `[bridge]` section.
@@ -294,122 +379,80 @@ fn settings(config: &BusConfig) -> Vec<(&'static str, serde_json::Value)> {
 }
 
 impl Link {
-    /// Opens the session and starts watching the bus (the line is announced separately,
-    /// [`Link::announce_line`]). Returns the
-    /// link, its inbox (messages of imported filters) and the liveliness events.
+    /// Opens the session (or one per router) and starts watching the bus (the line is
+    /// announced separately, [`Link::announce_line`]). Returns the link, its inbox
+    /// (messages of imported filters) and the liveliness events.
     pub async fn open(
         config: &BusConfig,
         line: &str,
     ) -> Result<(Link, Inbox<Inbound>, Inbox<Event>), LinkError> {
-        let zenoh = zenoh_config(config)?;
         // zenoh's `open` blocks its thread until the session is up (a client's: until its
-        // router answers), even when awaited: keep it off the async workers.
-        let session = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(zenoh)))
-            .await
-            .map_err(zerr)?
-            .map_err(zerr)?;
+        // router answers), even when awaited: keep it off the async workers. The sessions
+        // open side by side.
+        let opening: Vec<_> = session_configs(config)?
+            .into_iter()
+            .map(|c| tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(c))))
+            .collect();
+        let mut sessions = Vec::with_capacity(opening.len());
+        for session in opening {
+            sessions.push(session.await.map_err(zerr)?.map_err(zerr)?);
+        }
         let epoch = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(1, |d| d.as_micros() as u64);
         let (inbox, inbox_rx) = flume::bounded(INBOX);
         let (events, events_rx) = flume::unbounded();
-
-        let own = line.to_owned();
-        let tx = events.clone();
-        session
-            .liveliness()
-            .declare_subscriber(format!("{}/line/*", keys::CONTROL))
-            .history(true)
-            .callback(move |sample| {
-                let Some(l) = keys::parse_line_token(sample.key_expr().as_str()) else {
-                    return;
-                };
-                if l == own {
-                    return;
-                }
-                let _ = tx.send(match sample.kind() {
-                    SampleKind::Put => Event::LineUp(l.to_owned()),
-                    SampleKind::Delete => Event::LineDown(l.to_owned()),
-                });
-            })
-            .background()
-            .await
-            .map_err(zerr)?;
-        let own = line.to_owned();
-        let tx = events.clone();
-        session
-            .liveliness()
-            .declare_subscriber(format!("{}/interest/**", keys::CONTROL))
-            .history(true)
-            .callback(move |sample| {
-                let Some((l, filter)) = keys::parse_interest(sample.key_expr().as_str()) else {
-                    return;
-                };
-                if l == own {
-                    return;
-                }
-                let line = l.to_owned();
-                let _ = tx.send(match sample.kind() {
-                    SampleKind::Put => Event::InterestAdded { line, filter },
-                    SampleKind::Delete => Event::InterestRemoved { line, filter },
-                });
-            })
-            .background()
-            .await
-            .map_err(zerr)?;
-        let own = line.to_owned();
-        let tx = events;
-        session
-            .declare_subscriber(format!("{}/record/**", keys::CONTROL))
-            .callback(move |sample| {
-                let Some((l, device)) = keys::parse_line_item("record", sample.key_expr().as_str())
-                else {
-                    return;
-                };
-                if l != own {
-                    let _ = tx.send(match sample.kind() {
-                        SampleKind::Put => Event::Record {
-                            line: l.to_owned(),
-                            device: device.to_owned(),
-                            json: sample.payload().to_bytes().into_owned(),
-                        },
-                        SampleKind::Delete => Event::Forgotten {
-                            line: l.to_owned(),
-                            device: device.to_owned(),
-                        },
-                    });
-                }
-            })
-            .background()
-            .await
-            .map_err(zerr)?;
-
+        let merged = Merged {
+            lines: Arc::new(Presence::new()),
+            interests: Arc::new(Presence::new()),
+            // One session delivers each record change once, in order: nothing to keep.
+            records: (sessions.len() > 1).then(|| Arc::new(RecordOrder::new())),
+        };
+        for (i, session) in sessions.iter().enumerate() {
+            watch(session, i, line, &events, &merged).await?;
+        }
+        let active = Active(Arc::new(AtomicUsize::new(0)));
+        if sessions.len() > 1 {
+            active.follow(sessions.clone());
+        }
         Ok((
             Link {
-                session,
+                sessions,
+                active,
                 line: line.to_owned(),
                 epoch,
                 inbox,
-                line_token: std::sync::Mutex::new(None),
+                record_changes: AtomicU64::new(0),
+                line_tokens: std::sync::Mutex::new(Vec::new()),
             },
             Inbox(inbox_rx),
             Inbox(events_rx),
         ))
     }
 
+    /// The session puts and queries go through now.
+    fn session(&self) -> &Session {
+        let i = self.active.get();
+        self.sessions.get(i).unwrap_or(&self.sessions[0])
+    }
+
     /// Tells the other lines this line is up. Call it once the records are served
     /// ([`Link::serve_records`]): other lines query them as soon as they see the token.
     pub async fn announce_line(&self) -> Result<(), LinkError> {
-        let token = self
-            .session
-            .liveliness()
-            .declare_token(keys::line_token(&self.line))
-            .await
-            .map_err(zerr)?;
+        let mut tokens = Vec::with_capacity(self.sessions.len());
+        for session in &self.sessions {
+            tokens.push(
+                session
+                    .liveliness()
+                    .declare_token(keys::line_token(&self.line))
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
         *self
-            .line_token
+            .line_tokens
             .lock()
-            .unwrap_or_else(PoisonError::into_inner) = Some(token);
+            .unwrap_or_else(PoisonError::into_inner) = tokens;
         Ok(())
     }
 
@@ -420,7 +463,8 @@ impl Link {
     /// The exporting half (owned by one task: it numbers the messages it sends).
     pub fn exporter(&self) -> Exporter {
         Exporter {
-            session: self.session.clone(),
+            sessions: self.sessions.clone(),
+            active: self.active.clone(),
             line: self.line.clone(),
             epoch: self.epoch,
             seq: 0,
@@ -431,7 +475,7 @@ impl Link {
     /// The importing half's key cache (owned by the task that takes the inbox).
     pub fn route_keys(&self) -> RouteKeys {
         RouteKeys {
-            session: self.session.clone(),
+            sessions: self.sessions.clone(),
             keys: std::collections::HashMap::new(),
             len: 0,
         }
@@ -448,50 +492,65 @@ impl Link {
             key: "filter".into(),
             message: format!("`{filter}` cannot cross lines"),
         })?;
-        let inbox = self.inbox.clone();
-        let own = self.line.clone();
-        let subscriber = self
-            .session
-            .declare_subscriber(key)
-            .callback(move |sample| {
-                let Some((line, topic)) = keys::parse_data_key(sample.key_expr().as_str()) else {
-                    return;
-                };
-                let Some(stamp) = sample.attachment().and_then(|a| Stamp::decode(&a.to_bytes()))
-                else {
-                    tracing::debug!(key = %sample.key_expr(), "bus sample without an fbbus stamp; ignored");
-                    return;
-                };
-                // The stamp naming another line than the key is refused (and counted) by
-                // the importing broker.
-                if line == own {
-                    return;
-                }
-                let _ = inbox.send(Inbound {
-                    line: line.to_owned(),
-                    stamp,
-                    topic: topic.to_owned(),
-                    payload: sample.payload().to_bytes().into_owned(),
-                });
-            })
-            .await
-            .map_err(zerr)?;
-        let token = self
-            .session
-            .liveliness()
-            .declare_token(keys::interest_token(&self.line, filter))
-            .await
-            .map_err(zerr)?;
-        Ok(Import {
-            _subscriber: subscriber,
-            _token: token,
-        })
+        let mut import = Import {
+            _subscribers: Vec::with_capacity(self.sessions.len()),
+            _tokens: Vec::with_capacity(self.sessions.len()),
+        };
+        for session in &self.sessions {
+            let inbox = self.inbox.clone();
+            let own = self.line.clone();
+            let subscriber = session
+                .declare_subscriber(key.clone())
+                .callback(move |sample| {
+                    let Some((line, topic)) = keys::parse_data_key(sample.key_expr().as_str())
+                    else {
+                        return;
+                    };
+                    let Some(stamp) = sample
+                        .attachment()
+                        .and_then(|a| Stamp::decode(&a.to_bytes()))
+                    else {
+                        tracing::debug!(key = %sample.key_expr(), "bus sample without an fbbus stamp; ignored");
+                        return;
+                    };
+                    // The stamp naming another line than the key is refused (and counted)
+                    // by the importing broker, which also drops the copies that came
+                    // through another router (`Dedup`).
+                    if line == own {
+                        return;
+                    }
+                    let _ = inbox.send(Inbound {
+                        line: line.to_owned(),
+                        stamp,
+                        topic: topic.to_owned(),
+                        payload: sample.payload().to_bytes().into_owned(),
+                    });
+                })
+                .await
+                .map_err(zerr)?;
+            import._subscribers.push(subscriber);
+            import._tokens.push(
+                session
+                    .liveliness()
+                    .declare_token(keys::interest_token(&self.line, filter))
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
+        Ok(import)
+    }
+
+    /// The version the next record change of this line carries.
+    fn next_record_version(&self) -> Vec<u8> {
+        let count = self.record_changes.fetch_add(1, Ordering::Relaxed) + 1;
+        encode_version(self.epoch, count)
     }
 
     /// Publishes a local device's registry record to the other lines.
     pub async fn put_record(&self, device: &str, json: Vec<u8>) -> Result<(), LinkError> {
-        self.session
+        self.session()
             .put(keys::record_key(&self.line, device), json)
+            .attachment(self.next_record_version())
             .congestion_control(CongestionControl::Block)
             .await
             .map_err(zerr)
@@ -500,8 +559,9 @@ impl Link {
     /// Tells the other lines this line forgot its device (`fbbus devices forget`, or
     /// `[fb] forget_offline_after_s`): a delete of the device's record key.
     pub async fn forget_record(&self, device: &str) -> Result<(), LinkError> {
-        self.session
+        self.session()
             .delete(keys::record_key(&self.line, device))
+            .attachment(self.next_record_version())
             .await
             .map_err(zerr)
     }
@@ -514,26 +574,30 @@ impl Link {
         &self,
         records: impl Fn(Option<&str>) -> Vec<(String, Vec<u8>)> + Send + Sync + 'static,
     ) -> Result<(), LinkError> {
-        let line = self.line.clone();
-        self.session
-            .declare_queryable(format!("{}/record/{}/*", keys::CONTROL, self.line))
-            .callback(move |query: Query| {
-                let asked = keys::parse_line_item("record", query.key_expr().as_str())
-                    .map(|(_, device)| device)
-                    .filter(|device| !device.contains(['*', '$']));
-                for (device, json) in records(asked) {
-                    let key = keys::record_key(&line, &device);
-                    let Ok(k) = KeyExpr::try_from(key) else {
-                        continue;
-                    };
-                    if query.key_expr().intersects(&k) {
-                        let _ = zenoh::Wait::wait(query.reply(k, json));
+        let records = Arc::new(records);
+        for session in &self.sessions {
+            let (line, records) = (self.line.clone(), Arc::clone(&records));
+            session
+                .declare_queryable(format!("{}/record/{}/*", keys::CONTROL, self.line))
+                .callback(move |query: Query| {
+                    let asked = keys::parse_line_item("record", query.key_expr().as_str())
+                        .map(|(_, device)| device)
+                        .filter(|device| !device.contains(['*', '$']));
+                    for (device, json) in records(asked) {
+                        let key = keys::record_key(&line, &device);
+                        let Ok(k) = KeyExpr::try_from(key) else {
+                            continue;
+                        };
+                        if query.key_expr().intersects(&k) {
+                            let _ = zenoh::Wait::wait(query.reply(k, json));
+                        }
                     }
-                }
-            })
-            .background()
-            .await
-            .map_err(zerr)
+                })
+                .background()
+                .await
+                .map_err(zerr)?;
+        }
+        Ok(())
     }
 
     /// The records `line` (`*`: every line) serves, as (line, device, JSON): of `device`
@@ -544,7 +608,7 @@ impl Link {
         device: Option<&str>,
     ) -> Result<Vec<(String, String, Vec<u8>)>, LinkError> {
         let replies = self
-            .session
+            .session()
             .get(format!(
                 "{}/record/{line}/{}",
                 keys::CONTROL,
@@ -572,12 +636,25 @@ impl Link {
 
     /// The queries other lines ask for this line's retained messages.
     pub async fn retained_queries(&self) -> Result<RetainedQueries, LinkError> {
-        self.session
-            .declare_queryable(keys::retained_queryable(&self.line))
-            .with(flume::bounded(64))
-            .await
-            .map(RetainedQueries)
-            .map_err(zerr)
+        // Bounded: a full queue blocks zenoh's receive path, as its own handler would.
+        let (tx, queries) = flume::bounded(64);
+        let mut queryables = Vec::with_capacity(self.sessions.len());
+        for session in &self.sessions {
+            let tx = tx.clone();
+            queryables.push(
+                session
+                    .declare_queryable(keys::retained_queryable(&self.line))
+                    .callback(move |query| {
+                        let _ = tx.send(query);
+                    })
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
+        Ok(RetainedQueries {
+            _queryables: queryables,
+            queries,
+        })
     }
 
     /// Retained messages of other lines matching `filter`.
@@ -595,7 +672,7 @@ impl Link {
             return Ok(Vec::new());
         };
         let replies = self
-            .session
+            .session()
             .get(key)
             .timeout(Duration::from_secs(2))
             .await
@@ -643,20 +720,126 @@ impl Link {
         }
     }
 
-    /// Closes the session: other lines see this line's tokens go at once.
+    /// Closes the sessions: other lines see this line's tokens go at once.
     pub async fn close(&self) {
-        let _ = self.session.close().await;
+        for session in &self.sessions {
+            let _ = session.close().await;
+        }
     }
+}
+
+/// What a link's sessions see of the other lines, merged (module `presence`).
+struct Merged {
+    lines: Arc<Presence<String>>,
+    interests: Arc<Presence<(String, String)>>,
+    /// With more than one session only.
+    records: Option<Arc<RecordOrder>>,
+}
+
+/// Watches session number `index` for the other lines' liveliness, interests and record
+/// changes, merged with what the link's other sessions see into `events`.
+async fn watch(
+    session: &Session,
+    index: usize,
+    line: &str,
+    events: &flume::Sender<Event>,
+    merged: &Merged,
+) -> Result<(), LinkError> {
+    let (own, tx, lines) = (line.to_owned(), events.clone(), Arc::clone(&merged.lines));
+    session
+        .liveliness()
+        .declare_subscriber(format!("{}/line/*", keys::CONTROL))
+        .history(true)
+        .callback(move |sample| {
+            let Some(l) = keys::parse_line_token(sample.key_expr().as_str()) else {
+                return;
+            };
+            if l == own {
+                return;
+            }
+            let up = sample.kind() == SampleKind::Put;
+            let _ = match lines.seen(l.to_owned(), index, up) {
+                Some(true) => tx.send(Event::LineUp(l.to_owned())),
+                Some(false) => tx.send(Event::LineDown(l.to_owned())),
+                None => Ok(()),
+            };
+        })
+        .background()
+        .await
+        .map_err(zerr)?;
+    let (own, tx, interests) = (
+        line.to_owned(),
+        events.clone(),
+        Arc::clone(&merged.interests),
+    );
+    session
+        .liveliness()
+        .declare_subscriber(format!("{}/interest/**", keys::CONTROL))
+        .history(true)
+        .callback(move |sample| {
+            let Some((l, filter)) = keys::parse_interest(sample.key_expr().as_str()) else {
+                return;
+            };
+            if l == own {
+                return;
+            }
+            let up = sample.kind() == SampleKind::Put;
+            let line = l.to_owned();
+            let _ = match interests.seen((line.clone(), filter.clone()), index, up) {
+                Some(true) => tx.send(Event::InterestAdded { line, filter }),
+                Some(false) => tx.send(Event::InterestRemoved { line, filter }),
+                None => Ok(()),
+            };
+        })
+        .background()
+        .await
+        .map_err(zerr)?;
+    let (own, tx, records) = (line.to_owned(), events.clone(), merged.records.clone());
+    session
+        .declare_subscriber(format!("{}/record/**", keys::CONTROL))
+        .callback(move |sample| {
+            let Some((l, device)) = keys::parse_line_item("record", sample.key_expr().as_str())
+            else {
+                return;
+            };
+            if l == own {
+                return;
+            }
+            let version = sample
+                .attachment()
+                .and_then(|a| decode_version(&a.to_bytes()));
+            if records
+                .as_ref()
+                .is_some_and(|r| !r.newer(l, device, version))
+            {
+                return;
+            }
+            let _ = tx.send(match sample.kind() {
+                SampleKind::Put => Event::Record {
+                    line: l.to_owned(),
+                    device: device.to_owned(),
+                    json: sample.payload().to_bytes().into_owned(),
+                },
+                SampleKind::Delete => Event::Forgotten {
+                    line: l.to_owned(),
+                    device: device.to_owned(),
+                },
+            });
+        })
+        .background()
+        .await
+        .map_err(zerr)
 }
 
 /// Publishes local messages on the bus, numbered per origin.
 pub struct Exporter {
-    session: Session,
+    sessions: Vec<Session>,
+    active: Active,
     line: String,
     epoch: u64,
     seq: u64,
-    /// Per topic: its publisher and the last `topic_seq` it put.
-    publishers: std::collections::HashMap<String, (Publisher<'static>, u64)>,
+    /// Per topic: its publisher on each session and the last `topic_seq` it put.
+    publishers: std::collections::HashMap<String, (Vec<Publisher<'static>>, u64)>,
 }
 
 /// Publishers kept for repeated topics; past this many the cache starts over.
@@ -681,20 +864,27 @@ impl Exporter {
             if self.publishers.len() >= PUBLISHER_CACHE {
                 self.publishers.clear();
             }
-            let publisher = self
-                .session
-                .declare_publisher(key)
-                .congestion_control(CongestionControl::Block)
-                .priority(if event {
-                    Priority::DataHigh
-                } else {
-                    Priority::Data
-                })
-                .await
-                .map_err(zerr)?;
-            self.publishers.insert(topic.to_owned(), (publisher, 0));
+            let mut publishers = Vec::with_capacity(self.sessions.len());
+            for session in &self.sessions {
+                publishers.push(
+                    session
+                        .declare_publisher(key.clone())
+                        .congestion_control(CongestionControl::Block)
+                        .priority(if event {
+                            Priority::DataHigh
+                        } else {
+                            Priority::Data
+                        })
+                        .await
+                        .map_err(zerr)?,
+                );
+            }
+            self.publishers.insert(topic.to_owned(), (publishers, 0));
         }
-        let Some((publisher, topic_seq)) = self.publishers.get_mut(topic) else {
+        let Some((publishers, topic_seq)) = self.publishers.get_mut(topic) else {
+            return Ok(false);
+        };
+        let Some(publisher) = publishers.get(self.active.get()).or(publishers.first()) else {
             return Ok(false);
         };
         self.seq += 1;
@@ -725,9 +915,10 @@ impl Exporter {
 /// burst that was about a quarter of the line's CPU. Declaring each key once, as the
 /// first message on it arrives, turns both into lookups.
 pub struct RouteKeys {
-    session: Session,
-    /// line -> topic -> declared key
-    keys: std::collections::HashMap<String, std::collections::HashMap<String, KeyExpr<'static>>>,
+    sessions: Vec<Session>,
+    /// line -> topic -> the key, declared on each session
+    keys:
+        std::collections::HashMap<String, std::collections::HashMap<String, Vec<KeyExpr<'static>>>>,
     len: usize,
 }
 
@@ -741,15 +932,22 @@ impl RouteKeys {
             return;
         }
         if self.len >= ROUTE_KEYS {
-            for key in self.keys.drain().flat_map(|(_, t)| t.into_values()) {
-                let _ = zenoh::Wait::wait(self.session.undeclare(key));
+            for declared in self.keys.drain().flat_map(|(_, t)| t.into_values()) {
+                for (session, key) in self.sessions.iter().zip(declared) {
+                    let _ = zenoh::Wait::wait(session.undeclare(key));
+                }
             }
             self.len = 0;
         }
         let Some(key) = keys::data_key(line, topic) else {
             return;
         };
-        match zenoh::Wait::wait(self.session.declare_keyexpr(key)) {
+        let declared: Result<Vec<_>, _> = self
+            .sessions
+            .iter()
+            .map(|session| zenoh::Wait::wait(session.declare_keyexpr(key.clone())))
+            .collect();
+        match declared {
             Ok(declared) => {
                 self.keys
                     .entry(line.to_owned())

@@ -28,7 +28,9 @@ mod config;
 pub mod keys;
 #[cfg(feature = "zenoh")]
 pub mod link;
+#[cfg(feature = "zenoh")]
+mod presence;
 mod stamp;
 
-pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode};
+pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode, MAX_ROUTER_SESSIONS};
 pub use stamp::{Dedup, Gaps, Stamp, DEDUP_ORIGINS, DEDUP_WINDOW, GAP_TOPICS};

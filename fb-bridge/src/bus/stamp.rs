@@ -139,39 +139,58 @@ pub const GAP_TOPICS: usize = 10_000;
 /// (its bridge's cache of topics started over). A gap is also counted when this line's
 /// own interest in the topic lapsed and came back, since the origin went on numbering
 /// for the other lines meanwhile.
+///
+/// It also keeps each topic's order: a message older than one already taken of its
+/// topic (it came the long way, through a second router, and the copy of a newer one
+/// overtook it) is late, and dropped.
 #[derive(Debug, Default)]
 pub struct Gaps {
-    /// origin line -> topic -> (epoch, last topic_seq); looked up without allocating.
-    last: HashMap<String, HashMap<String, (u64, u64)>>,
+    /// origin line -> topic -> the last message taken; looked up without allocating.
+    last: HashMap<String, HashMap<String, Last>>,
     topics: usize,
 }
 
+/// The last message of a topic [`Gaps`] took: its origin's epoch, its `topic_seq` and
+/// its `seq`.
+#[derive(Debug, Clone, Copy)]
+struct Last {
+    epoch: u64,
+    topic_seq: u64,
+    seq: u64,
+}
+
 impl Gaps {
-    /// The messages missing before this one (0 if none); call once per message after
-    /// [`Dedup::first_time`].
-    pub fn missing(&mut self, stamp: &Stamp, topic: &str) -> u64 {
+    /// The messages missing before this one (0 if none), or `None` if it is late (an
+    /// older message of its topic than one taken already: drop it). Call once per
+    /// message after [`Dedup::first_time`].
+    pub fn missing(&mut self, stamp: &Stamp, topic: &str) -> Option<u64> {
         if stamp.topic_seq == 0 {
-            return 0;
+            return Some(0);
         }
+        let now = Last {
+            epoch: stamp.epoch,
+            topic_seq: stamp.topic_seq,
+            seq: stamp.seq,
+        };
         let known = self
             .last
             .get_mut(&stamp.line)
             .and_then(|t| t.get_mut(topic));
-        if let Some((epoch, last)) = known {
-            if *epoch == stamp.epoch {
-                if stamp.topic_seq > *last {
-                    let missing = stamp.topic_seq - *last - 1;
-                    *last = stamp.topic_seq;
-                    return missing;
+        if let Some(last) = known {
+            if last.epoch == stamp.epoch {
+                if stamp.topic_seq > last.topic_seq {
+                    let missing = stamp.topic_seq - last.topic_seq - 1;
+                    *last = now;
+                    return Some(missing);
                 }
-                if last.saturating_sub(stamp.topic_seq) < DEDUP_WINDOW {
-                    // Late, within the dedup window: neither new nor a gap.
-                    return 0;
+                if stamp.seq < last.seq {
+                    return None;
                 }
             }
-            // The origin restarted, or numbers the topic anew: the count starts again.
-            (*epoch, *last) = (stamp.epoch, stamp.topic_seq);
-            return 0;
+            // The origin restarted, or numbers the topic anew (a later message with a
+            // lower number): the count starts again.
+            *last = now;
+            return Some(0);
         }
         if self.topics >= GAP_TOPICS {
             self.last.clear();
@@ -181,8 +200,8 @@ impl Gaps {
         self.last
             .entry(stamp.line.clone())
             .or_default()
-            .insert(topic.to_owned(), (stamp.epoch, stamp.topic_seq));
-        0
+            .insert(topic.to_owned(), now);
+        Some(0)
     }
 }
 
@@ -227,26 +246,46 @@ mod tests {
     #[test]
     fn gaps_count_what_never_came_per_origin_and_topic() {
         let mut g = Gaps::default();
+        // One topic per origin here, so seq = topic_seq, except where said.
         let at = |epoch, topic_seq| Stamp {
             topic_seq,
-            ..stamp("a", epoch, 1)
+            ..stamp("a", epoch, topic_seq)
         };
-        assert_eq!(g.missing(&at(1, 5), "t"), 0, "the first starts the count");
-        assert_eq!(g.missing(&at(1, 6), "t"), 0);
-        assert_eq!(g.missing(&at(1, 9), "t"), 2, "7 and 8");
-        assert_eq!(g.missing(&at(1, 1), "u"), 0, "another topic");
-        assert_eq!(g.missing(&at(1, 8), "t"), 0, "late, not a gap");
-        assert_eq!(g.missing(&at(1, 10), "t"), 0);
-        assert_eq!(g.missing(&at(2, 1), "t"), 0, "the origin restarted");
-        assert_eq!(g.missing(&at(2, 3), "t"), 1);
-        assert_eq!(g.missing(&at(2, 0), "t"), 0, "not numbered");
-        // Numbers near the end of u64 (a hostile line's) do not overflow.
-        assert_eq!(g.missing(&at(2, u64::MAX - 1), "t"), u64::MAX - 5);
         assert_eq!(
-            g.missing(&at(2, 3), "t"),
-            0,
-            "far behind: the count starts again"
+            g.missing(&at(1, 5), "t"),
+            Some(0),
+            "the first starts the count"
         );
+        assert_eq!(g.missing(&at(1, 6), "t"), Some(0));
+        assert_eq!(g.missing(&at(1, 9), "t"), Some(2), "7 and 8");
+        assert_eq!(g.missing(&at(1, 1), "u"), Some(0), "another topic");
+        assert_eq!(
+            g.missing(&at(1, 8), "t"),
+            None,
+            "late: dropped, the gap stays"
+        );
+        assert_eq!(g.missing(&at(1, 10), "t"), Some(0));
+        let renumbered = Stamp {
+            seq: 11,
+            ..at(1, 1)
+        };
+        assert_eq!(g.missing(&renumbered, "t"), Some(0), "numbered anew");
+        assert_eq!(
+            g.missing(
+                &Stamp {
+                    seq: 13,
+                    ..at(1, 3)
+                },
+                "t"
+            ),
+            Some(1)
+        );
+        assert_eq!(g.missing(&at(2, 1), "t"), Some(0), "the origin restarted");
+        assert_eq!(g.missing(&at(2, 3), "t"), Some(1));
+        assert_eq!(g.missing(&at(2, 0), "t"), Some(0), "not numbered");
+        // Numbers near the end of u64 (a hostile line's) do not overflow.
+        assert_eq!(g.missing(&at(2, u64::MAX - 1), "t"), Some(u64::MAX - 5));
+        assert_eq!(g.missing(&at(2, 3), "t"), None, "far behind: late");
         let mut d = Dedup::default();
         assert!(d.first_time(&stamp("a", 1, u64::MAX)));
         assert!(d.first_time(&stamp("a", 1, u64::MAX - 1)));

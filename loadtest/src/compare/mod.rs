@@ -126,7 +126,7 @@ enum FbbusOnly {
         /// Devices per line (default 1000; --quick 20).
         #[arg(long, value_name = "M")]
         devices: Option<usize>,
-        /// Topologies, comma-separated: alone, routers, peers, zenohd. Default: all (zenohd
+        /// Topologies, comma-separated: alone, routers, redundant, peers, zenohd. Default: all (zenohd
         /// when a zenohd binary is found).
         #[arg(long, value_delimiter = ',', value_name = "LIST")]
         topology: Vec<String>,

@@ -4,6 +4,9 @@
 //! - **routers**: lines 1 and 2 are zenoh routers (`mode = "router"`), line 2 linked to
 //!   line 1; lines 3..N are zenoh clients of both (a client uses one router at a time and
 //!   moves to the other when it goes), as a plant with two redundant routers runs;
+//! - **redundant**: the same, but each client line holds a zenoh session on each router
+//!   line at once (`[bridge] session_per_router`), every message arriving once per router
+//!   and its copy dropped by the stamp;
 //! - **peers**: every line a zenoh peer listening on its own endpoint and connecting to
 //!   lines 1 and 2 (zenoh's gossip makes the mesh).
 //!
@@ -95,6 +98,8 @@ pub enum Topology {
     /// door.
     Alone,
     Routers,
+    /// As `Routers`, each client line with a session on each router line.
+    Redundant,
     Peers,
     /// Every line a zenoh client of two real `zenohd` routers, router 2 linked to router
     /// 1: the plant of deploy/plant/ (without TLS). Router 1 is what dies.
@@ -102,9 +107,10 @@ pub enum Topology {
 }
 
 impl Topology {
-    pub const ALL: [Topology; 4] = [
+    pub const ALL: [Topology; 5] = [
         Topology::Alone,
         Topology::Routers,
+        Topology::Redundant,
         Topology::Peers,
         Topology::Zenohd,
     ];
@@ -113,6 +119,7 @@ impl Topology {
         match self {
             Topology::Alone => "alone",
             Topology::Routers => "routers",
+            Topology::Redundant => "redundant",
             Topology::Peers => "peers",
             Topology::Zenohd => "zenohd",
         }
@@ -126,7 +133,7 @@ impl Topology {
                 .into_iter()
                 .find(|t| t.name() == name.trim())
                 .with_context(|| {
-                    format!("unknown topology `{name}` (known: alone, routers, peers, zenohd)")
+                    format!("unknown topology `{name}` (known: alone, routers, redundant, peers, zenohd)")
                 })?;
             if !out.contains(&t) {
                 out.push(t);
@@ -154,9 +161,16 @@ impl Topology {
             (Topology::Alone, _) => return String::new(),
             // The two endpoints are the zenohd routers'.
             (Topology::Zenohd, _) => ("client", vec![], vec![first, second]),
-            (Topology::Routers, 1) => ("router", vec![first], vec![]),
-            (Topology::Routers, 2) => ("router", vec![second], vec![first]),
+            (Topology::Routers | Topology::Redundant, 1) => ("router", vec![first], vec![]),
+            (Topology::Routers | Topology::Redundant, 2) => ("router", vec![second], vec![first]),
             (Topology::Routers, _) => ("client", vec![], vec![first, second]),
+            (Topology::Redundant, _) => {
+                return format!(
+                    "\n[bridge]\nmode = \"client\"\nsession_per_router = true\nconnect = \
+                     {:?}\n",
+                    [first, second]
+                )
+            }
             (Topology::Peers, 1) => ("peer", vec![first], vec![]),
             (Topology::Peers, 2) => ("peer", vec![second], vec![first]),
             (Topology::Peers, n) => ("peer", vec![&endpoints[n - 1]], vec![first, second]),
