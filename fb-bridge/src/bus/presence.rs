@@ -10,8 +10,9 @@
 //! already delivers each once, in order: [`Presence`] then passes every change on, and
 //! the link keeps no [`RecordOrder`].
 
+use std::collections::hash_map::RandomState;
 use std::collections::HashMap;
-use std::hash::Hash;
+use std::hash::{BuildHasher, Hash};
 use std::sync::{Mutex, PoisonError};
 
 /// Which sessions see each key (a line's token, a line's interest in a filter).
@@ -62,14 +63,20 @@ pub(crate) const RECORD_ORDER_DEVICES: usize = 200_000;
 /// The version of the last record taken per (line, device): the origin bridge's epoch
 /// and its count of record changes, carried as the record's attachment
 /// ([`encode_version`]).
+///
+/// Keyed by a keyed 64-bit hash of (line, device), not the names: an entry is about 40
+/// bytes whatever names another line sends (10 MB at [`RECORD_ORDER_DEVICES`]), and
+/// two devices sharing a hash by chance is a 1 in 2^64 event per pair.
 pub(crate) struct RecordOrder {
-    last: Mutex<HashMap<(String, String), (u64, u64)>>,
+    last: Mutex<HashMap<u64, (u64, u64)>>,
+    hasher: RandomState,
 }
 
 impl RecordOrder {
     pub(crate) fn new() -> Self {
         RecordOrder {
             last: Mutex::new(HashMap::new()),
+            hasher: RandomState::new(),
         }
     }
 
@@ -81,8 +88,8 @@ impl RecordOrder {
         let Some(version) = version else {
             return true;
         };
+        let key = self.hasher.hash_one((line, device));
         let mut last = self.last.lock().unwrap_or_else(PoisonError::into_inner);
-        let key = (line.to_owned(), device.to_owned());
         match last.get_mut(&key) {
             Some(taken) if *taken >= version => false,
             Some(taken) => {
@@ -159,6 +166,10 @@ mod tests {
         assert!(o.newer("l", "d", Some((6, 1))), "the origin restarted");
         assert!(!o.newer("l", "d", Some((5, 9))), "its previous run");
         assert!(o.newer("l", "d", None), "no version: taken");
+        for i in 0..RECORD_ORDER_DEVICES as u64 + 10 {
+            o.newer("l", &i.to_string(), Some((1, 1)));
+        }
+        assert!(o.last.lock().unwrap().len() <= RECORD_ORDER_DEVICES);
     }
 
     #[test]
