@@ -139,6 +139,10 @@ pub struct Metrics {
     typed_ports: Mutex<std::collections::HashSet<(String, String)>>,
     pub bridge_remote_subscriptions: IntGauge,
     pub bridge_imports: IntGauge,
+    /// With `[bridge] session_per_router`: the line's sessions, and those whose router is
+    /// there (0 and 0 otherwise).
+    pub bridge_router_sessions: IntGauge,
+    pub bridge_router_sessions_up: IntGauge,
     pub bridge_liveliness: IntCounterVec,
     /// Registry queries this line sent other lines (`bridge::federation`).
     pub bridge_record_queries: IntCounterVec,
@@ -287,6 +291,14 @@ impl Metrics {
             bridge_imports: gauge(
                 "fbbus_bridge_imports",
                 "Filters this line imports from other lines (its clients subscribed to them)",
+            ),
+            bridge_router_sessions: gauge(
+                "fbbus_bridge_router_sessions",
+                "With [bridge] session_per_router: this line's zenoh sessions, one per router (0 otherwise)",
+            ),
+            bridge_router_sessions_up: gauge(
+                "fbbus_bridge_router_sessions_up",
+                "With [bridge] session_per_router: the sessions whose router is there now (below fbbus_bridge_router_sessions: the line is on fewer routers than it should be)",
             ),
             bridge_liveliness: counter_vec(
                 "fbbus_bridge_liveliness_changes_total",

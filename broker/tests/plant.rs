@@ -21,7 +21,10 @@
 //! And the link between the two routers cut and healed ([`Cable`]), with two real zenoh
 //! routers (Python's zenoh): lines that are peers of each other and of both routers lose
 //! nothing; lines that are zenoh clients of different routers are split until the link
-//! heals (a zenoh client session has one router at a time), then whole again.
+//! heals (a zenoh client session has one router at a time), then whole again; lines with
+//! a session per router (`[bridge] session_per_router`) are not split by the cut, nor by
+//! either router killed in turn, and a line started while a router is down takes its
+//! session there when the router comes.
 
 mod common;
 
@@ -391,7 +394,9 @@ fn listed(lines: &[Line], status: &str) -> Vec<f64> {
 /// `[bridge]` (mode and endpoints). Each line has 4 devices, all online everywhere before
 /// this returns; also a subscriber on line 5 to line 1's first device.
 struct CutPlant {
-    _dir: tempfile::TempDir,
+    dir: tempfile::TempDir,
+    /// Router 1's endpoint (router 2 reaches it through the cable).
+    router_1: String,
     routers: Vec<Python>,
     cable: Cable,
     lines: Vec<Line>,
@@ -429,7 +434,8 @@ impl CutPlant {
         }
         let (devices, sub, topic) = four_devices_and_an_hmi(&lines).await;
         let mut plant = CutPlant {
-            _dir: dir,
+            dir,
+            router_1: r1,
             routers,
             cable,
             lines,
@@ -578,6 +584,15 @@ async fn lines_with_a_session_per_router_are_not_split_by_a_cut_nor_by_a_router_
     tokio::time::sleep(CUT_SETTLES).await;
     plant.everyone_online("healed");
     plant.stream(41..=60).await;
+    let sessions_up = |plant: &CutPlant| -> Vec<f64> {
+        let series = "fbbus_bridge_router_sessions_up";
+        plant
+            .lines
+            .iter()
+            .map(|l| l.broker.metric(series))
+            .collect()
+    };
+    assert_eq!(sessions_up(&plant), vec![2.0; LINES]);
     // Router 1 killed: lines 1-3 put through their session on router 2 from then on.
     plant.routers.remove(0);
     let killed = Instant::now();
@@ -585,11 +600,90 @@ async fn lines_with_a_session_per_router_are_not_split_by_a_cut_nor_by_a_router_
         plant.everyone_online("router 1 killed");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
+    assert_eq!(sessions_up(&plant), vec![1.0; LINES], "router 1 killed");
     plant.stream(61..=80).await;
+    // Router 1 back on its port: each line's session on router 1 returns to it (a zenoh
+    // client waits for its own router), so router 2 may go next without a dip.
+    let router_1 = plain_router(plant.dir.path(), "router-1", &plant.router_1, &[]);
+    plant.routers.insert(0, router_1);
+    let back = Instant::now();
+    while sessions_up(&plant) != vec![2.0; LINES] {
+        assert!(
+            back.elapsed() < 3 * CUT_SETTLES,
+            "sessions back on router 1: {:?}",
+            sessions_up(&plant)
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    eprintln!(
+        "every line on both routers again {:?} after router 1 returned",
+        back.elapsed()
+    );
+    plant.routers.remove(1);
+    let killed = Instant::now();
+    while killed.elapsed() < CUT_SETTLES {
+        plant.everyone_online("router 1 returned, router 2 killed");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    plant.stream(81..=100).await;
     for line in &plant.lines {
         let late = line
             .broker
             .metric("fbbus_bridge_dropped_total{reason=\"late\"}");
         eprintln!("{}: {late} late copies dropped", line.name);
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_line_started_while_a_router_is_down_takes_its_session_there_once_it_comes() {
+    if !python_zenoh() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (r1, r2) = (
+        format!("tcp/127.0.0.1:{}", free_port()),
+        format!("tcp/127.0.0.1:{}", free_port()),
+    );
+    // Router 2 is down while the lines start: each line is up on router 1 alone.
+    let mut routers = vec![plain_router(dir.path(), "router-1", &r1, &[])];
+    let bridge = "mode = \"client\"\nsession_per_router = true\n";
+    let lines: Vec<Line> = (1..=3)
+        .map(|n| Line::start_on(&format!("line-{n}"), "", &[&r1, &r2], bridge, None))
+        .collect();
+    let (devices, mut sub, topic) = four_devices_and_an_hmi(&lines).await;
+    once_in_order(&devices[0], &mut sub, &topic, 1..=10).await;
+    let gauge = |name: &str| -> Vec<f64> { lines.iter().map(|l| l.broker.metric(name)).collect() };
+    assert_eq!(gauge("fbbus_bridge_router_sessions"), vec![2.0; 3]);
+    assert_eq!(gauge("fbbus_bridge_router_sessions_up"), vec![1.0; 3]);
+
+    // Router 2 comes: each line's second session opens and is given what the line
+    // declared meanwhile (its token, its records, line 3's interest in line 1's topic).
+    routers.push(plain_router(
+        dir.path(),
+        "router-2",
+        &r2,
+        std::slice::from_ref(&r1),
+    ));
+    let came = Instant::now();
+    while gauge("fbbus_bridge_router_sessions_up") != vec![2.0; 3] {
+        assert!(
+            came.elapsed() < 3 * CUT_SETTLES,
+            "sessions on router 2: {:?}",
+            gauge("fbbus_bridge_router_sessions_up")
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // Router 1 killed: everything now goes through the sessions opened late.
+    routers.remove(0);
+    let killed = Instant::now();
+    while killed.elapsed() < CUT_SETTLES {
+        assert_eq!(
+            listed(&lines, "online"),
+            vec![12.0; 3],
+            "router 1 killed, {:?} after",
+            killed.elapsed()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    once_in_order(&devices[0], &mut sub, &topic, 11..=20).await;
 }

@@ -275,6 +275,18 @@ async fn start(
     Ok(())
 }
 
+/// How often `fbbus_bridge_router_sessions_up` is brought up to date.
+const ROUTER_SESSIONS_EVERY: Duration = Duration::from_secs(1);
+
+/// Keeps the router-session gauges of a line with a session per router.
+async fn router_sessions(link: Arc<Link>, metrics: Arc<crate::metrics::Metrics>) {
+    while let Some((up, total)) = link.routers() {
+        metrics.bridge_router_sessions.set(total as i64);
+        metrics.bridge_router_sessions_up.set(up as i64);
+        tokio::time::sleep(ROUTER_SESSIONS_EVERY).await;
+    }
+}
+
 /// The bridge's work once zenoh is open: its router links, registry federation, retained
 /// queries, and the import, export and event tasks.
 async fn run(
@@ -370,6 +382,12 @@ async fn run(
         )),
     ];
     bridge.tasks().extend(tasks);
+    if link.routers().is_some() {
+        bridge.tasks().push(tokio::spawn(router_sessions(
+            Arc::clone(&link),
+            metrics.clone(),
+        )));
+    }
     let _ = bridge.link.set(link);
     tracing::info!(line, mode = config.mode.as_str(), listen = ?config.listen, connect = ?config.connect,
         "bridge to the other lines started (zenoh)");

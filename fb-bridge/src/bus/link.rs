@@ -15,28 +15,28 @@
 //!   own: zenoh's routing tables match every new token against all the others, and 8,000
 //!   device tokens made each router spend tens of seconds of CPU doing so (issue 32).
 //!
-//! A client line with [`BusConfig::session_per_router`] holds one session per router:
-//! every subscription, queryable and token is declared on each, puts and queries go
-//! through the first that has a router, and what the sessions report is merged
-//! (module `presence`) so the broker sees one bus.
+//! A client line with [`BusConfig::session_per_router`] holds one session per router
+//! (module `sessions`): every subscription, queryable and token is declared on each,
+//! puts and queries go through the first that has a router, and what the sessions
+//! report is merged (module `presence`) so the broker sees one bus.
 //!
 //! No zenoh or flume type appears in this module's public API: the broker sees fbbus
 //! types ([`Inbox`], [`RetainedQueries`], [`LinkError`]), so it does not depend on zenoh's
 //! version or on the channel crate zenoh's handlers happen to use.
 
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, PoisonError};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use zenoh::key_expr::KeyExpr;
-use zenoh::liveliness::LivelinessToken;
-use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::pubsub::Publisher;
 use zenoh::qos::{CongestionControl, Priority};
-use zenoh::query::{Query, Queryable};
-use zenoh::sample::SampleKind;
+use zenoh::query::Query;
 use zenoh::Session;
 
-use super::presence::{decode_version, encode_version, Presence, RecordOrder};
+use super::presence::encode_version;
+use super::sessions::Sessions;
 use super::{keys, BusConfig, Stamp};
 
 #[derive(Debug, thiserror::Error)]
@@ -135,9 +135,8 @@ impl<T> Inbox<T> {
     }
 }
 
-/// Other lines' queries for this line's retained messages; dropping it stops answering.
+/// Other lines' queries for this line's retained messages; they end when the link closes.
 pub struct RetainedQueries {
-    _queryables: Vec<Queryable<()>>,
     queries: flume::Receiver<Query>,
 }
 
@@ -170,75 +169,24 @@ impl RetainedQuery {
 
 pub struct Link {
     /// One session, or one per router ([`BusConfig::session_per_router`]).
-    sessions: Vec<Session>,
-    /// The index of the session puts and queries go through ([`Active`]).
-    active: Active,
+    sessions: Sessions,
     line: String,
     epoch: u64,
     inbox: flume::Sender<Inbound>,
     /// Record changes put so far: with the epoch, each change's version.
     record_changes: AtomicU64,
-    /// Declared by [`Link::announce_line`], once the line answers registry queries.
-    line_tokens: std::sync::Mutex<Vec<LivelinessToken>>,
 }
 
-/// The interest of this line in one MQTT filter; dropping it undeclares both halves.
+/// The interest of this line in one MQTT filter; dropping it undeclares its subscriber
+/// and its token on every session.
 pub struct Import {
-    _subscribers: Vec<Subscriber<()>>,
-    _tokens: Vec<LivelinessToken>,
+    sessions: Sessions,
+    id: u64,
 }
 
-/// Which of a link's sessions puts and queries go through: the first, or with a session
-/// per router the first whose router is there (checked every [`ACTIVE_EVERY`]).
-#[derive(Clone)]
-struct Active(Arc<AtomicUsize>);
-
-/// How often a link with a session per router checks which sessions have a router: the
-/// longest a put can go to a session whose router was just killed.
-const ACTIVE_EVERY: Duration = Duration::from_millis(50);
-
-impl Active {
-    fn get(&self) -> usize {
-        self.0.load(Ordering::Relaxed)
-    }
-
-    /// Follows `sessions` until they close: the first with a router is the active one.
-    /// Says once (per change) when the sessions share routers: a session whose router
-    /// died moves to the next router of its list and stays there, so the line is no longer
-    /// on both sides of a cut between the routers.
-    fn follow(&self, sessions: Vec<Session>) {
-        let active = Arc::clone(&self.0);
-        tokio::spawn(async move {
-            let mut shared = false;
-            while !sessions.iter().any(Session::is_closed) {
-                let routers: Vec<Vec<zenoh::session::ZenohId>> = sessions
-                    .iter()
-                    .map(|s| zenoh::Wait::wait(s.info().routers_zid()).collect())
-                    .collect();
-                if let Some(first) = routers.iter().position(|r| !r.is_empty()) {
-                    active.store(first, Ordering::Relaxed);
-                }
-                let mut distinct: Vec<_> = routers.iter().flatten().collect();
-                distinct.sort();
-                distinct.dedup();
-                let now_shared =
-                    routers.iter().all(|r| !r.is_empty()) && distinct.len() < sessions.len();
-                if now_shared != shared {
-                    shared = now_shared;
-                    if shared {
-                        tracing::warn!(
-                            "bus: two of this line's sessions are on the same router (one's \
-                             own router was gone): the line stays on the bus, but a cut \
-                             between the routers would split it from the lines on the other \
-                             side until its broker restarts with every router up"
-                        );
-                    } else {
-                        tracing::info!("bus: this line has a session on each router again");
-                    }
-                }
-                tokio::time::sleep(ACTIVE_EVERY).await;
-            }
-        });
+impl Drop for Import {
+    fn drop(&mut self) {
+        self.sessions.forget_import(self.id);
     }
 }
 
@@ -281,17 +229,20 @@ fn common_name(path: &std::path::Path) -> Result<String, LinkError> {
 }
 
 /// zenoh's configuration of each session the link opens: one, or with a session per
-/// router one per router, each listing its own router first and the others after it (a
-/// client's `open` waits for a router, so each session opens on whichever answers).
+/// router one per router, each connecting to its own router only (a client whose router
+/// went waits for it to come back, so each session stays on its router).
 fn session_configs(config: &BusConfig) -> Result<Vec<zenoh::Config>, LinkError> {
     if !config.session_per_router {
         return Ok(vec![zenoh_config(config)?]);
     }
-    (0..config.connect.len())
-        .map(|i| {
-            let mut own = config.clone();
-            own.connect.rotate_left(i);
-            zenoh_config(&own)
+    config
+        .connect
+        .iter()
+        .map(|router| {
+            zenoh_config(&BusConfig {
+                connect: vec![router.clone()],
+                ..config.clone()
+            })
         })
         .collect()
 }
@@ -379,96 +330,60 @@ fn settings(config: &BusConfig) -> Vec<(&'static str, serde_json::Value)> {
 }
 
 impl Link {
-    /// Opens the session (or one per router) and starts watching the bus (the line is
-    /// announced separately, [`Link::announce_line`]). Returns the link, its inbox
-    /// (messages of imported filters) and the liveliness events.
+    /// Opens the session (or one per router: the link is up once the first is) and starts
+    /// watching the bus (the line is announced separately, [`Link::announce_line`]).
+    /// Returns the link, its inbox (messages of imported filters) and the liveliness
+    /// events.
     pub async fn open(
         config: &BusConfig,
         line: &str,
     ) -> Result<(Link, Inbox<Inbound>, Inbox<Event>), LinkError> {
-        // zenoh's `open` blocks its thread until the session is up (a client's: until its
-        // router answers), even when awaited: keep it off the async workers. The sessions
-        // open side by side.
-        let opening: Vec<_> = session_configs(config)?
-            .into_iter()
-            .map(|c| tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(c))))
-            .collect();
-        let mut sessions = Vec::with_capacity(opening.len());
-        for session in opening {
-            sessions.push(session.await.map_err(zerr)?.map_err(zerr)?);
-        }
+        let configs = session_configs(config)?;
         let epoch = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(1, |d| d.as_micros() as u64);
         let (inbox, inbox_rx) = flume::bounded(INBOX);
         let (events, events_rx) = flume::unbounded();
-        let merged = Merged {
-            lines: Arc::new(Presence::new()),
-            interests: Arc::new(Presence::new()),
-            // One session delivers each record change once, in order: nothing to keep.
-            records: (sessions.len() > 1).then(|| Arc::new(RecordOrder::new())),
-        };
-        for (i, session) in sessions.iter().enumerate() {
-            watch(session, i, line, &events, &merged).await?;
-        }
-        let active = Active(Arc::new(AtomicUsize::new(0)));
-        if sessions.len() > 1 {
-            active.follow(sessions.clone());
-        }
+        let sessions = Sessions::open(configs, line, events, inbox.clone()).await?;
         Ok((
             Link {
                 sessions,
-                active,
                 line: line.to_owned(),
                 epoch,
                 inbox,
                 record_changes: AtomicU64::new(0),
-                line_tokens: std::sync::Mutex::new(Vec::new()),
             },
             Inbox(inbox_rx),
             Inbox(events_rx),
         ))
     }
 
-    /// The session puts and queries go through now.
-    fn session(&self) -> &Session {
-        let i = self.active.get();
-        self.sessions.get(i).unwrap_or(&self.sessions[0])
-    }
-
     /// Tells the other lines this line is up. Call it once the records are served
     /// ([`Link::serve_records`]): other lines query them as soon as they see the token.
     pub async fn announce_line(&self) -> Result<(), LinkError> {
-        let mut tokens = Vec::with_capacity(self.sessions.len());
-        for session in &self.sessions {
-            tokens.push(
-                session
-                    .liveliness()
-                    .declare_token(keys::line_token(&self.line))
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
-        *self
-            .line_tokens
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner) = tokens;
-        Ok(())
+        self.sessions.announce()
     }
 
     pub fn line(&self) -> &str {
         &self.line
     }
 
+    /// With [`BusConfig::session_per_router`]: (sessions whose router is there,
+    /// sessions), checked every 50 ms. `None` with one session.
+    pub fn routers(&self) -> Option<(usize, usize)> {
+        self.sessions.routers()
+    }
+
     /// The exporting half (owned by one task: it numbers the messages it sends).
     pub fn exporter(&self) -> Exporter {
         Exporter {
             sessions: self.sessions.clone(),
-            active: self.active.clone(),
+            declared_for: None,
             line: self.line.clone(),
             epoch: self.epoch,
             seq: 0,
-            publishers: std::collections::HashMap::new(),
+            publishers: HashMap::new(),
+            topic_seqs: HashMap::new(),
         }
     }
 
@@ -476,7 +391,8 @@ impl Link {
     pub fn route_keys(&self) -> RouteKeys {
         RouteKeys {
             sessions: self.sessions.clone(),
-            keys: std::collections::HashMap::new(),
+            declared_for: None,
+            keys: HashMap::new(),
             len: 0,
         }
     }
@@ -492,52 +408,11 @@ impl Link {
             key: "filter".into(),
             message: format!("`{filter}` cannot cross lines"),
         })?;
-        let mut import = Import {
-            _subscribers: Vec::with_capacity(self.sessions.len()),
-            _tokens: Vec::with_capacity(self.sessions.len()),
-        };
-        for session in &self.sessions {
-            let inbox = self.inbox.clone();
-            let own = self.line.clone();
-            let subscriber = session
-                .declare_subscriber(key.clone())
-                .callback(move |sample| {
-                    let Some((line, topic)) = keys::parse_data_key(sample.key_expr().as_str())
-                    else {
-                        return;
-                    };
-                    let Some(stamp) = sample
-                        .attachment()
-                        .and_then(|a| Stamp::decode(&a.to_bytes()))
-                    else {
-                        tracing::debug!(key = %sample.key_expr(), "bus sample without an fbbus stamp; ignored");
-                        return;
-                    };
-                    // The stamp naming another line than the key is refused (and counted)
-                    // by the importing broker, which also drops the copies that came
-                    // through another router (`Dedup`).
-                    if line == own {
-                        return;
-                    }
-                    let _ = inbox.send(Inbound {
-                        line: line.to_owned(),
-                        stamp,
-                        topic: topic.to_owned(),
-                        payload: sample.payload().to_bytes().into_owned(),
-                    });
-                })
-                .await
-                .map_err(zerr)?;
-            import._subscribers.push(subscriber);
-            import._tokens.push(
-                session
-                    .liveliness()
-                    .declare_token(keys::interest_token(&self.line, filter))
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
-        Ok(import)
+        let id = self.sessions.import(key, filter)?;
+        Ok(Import {
+            sessions: self.sessions.clone(),
+            id,
+        })
     }
 
     /// The version the next record change of this line carries.
@@ -548,7 +423,8 @@ impl Link {
 
     /// Publishes a local device's registry record to the other lines.
     pub async fn put_record(&self, device: &str, json: Vec<u8>) -> Result<(), LinkError> {
-        self.session()
+        self.sessions
+            .active()?
             .put(keys::record_key(&self.line, device), json)
             .attachment(self.next_record_version())
             .congestion_control(CongestionControl::Block)
@@ -559,7 +435,8 @@ impl Link {
     /// Tells the other lines this line forgot its device (`fbbus devices forget`, or
     /// `[fb] forget_offline_after_s`): a delete of the device's record key.
     pub async fn forget_record(&self, device: &str) -> Result<(), LinkError> {
-        self.session()
+        self.sessions
+            .active()?
             .delete(keys::record_key(&self.line, device))
             .attachment(self.next_record_version())
             .await
@@ -574,30 +451,7 @@ impl Link {
         &self,
         records: impl Fn(Option<&str>) -> Vec<(String, Vec<u8>)> + Send + Sync + 'static,
     ) -> Result<(), LinkError> {
-        let records = Arc::new(records);
-        for session in &self.sessions {
-            let (line, records) = (self.line.clone(), Arc::clone(&records));
-            session
-                .declare_queryable(format!("{}/record/{}/*", keys::CONTROL, self.line))
-                .callback(move |query: Query| {
-                    let asked = keys::parse_line_item("record", query.key_expr().as_str())
-                        .map(|(_, device)| device)
-                        .filter(|device| !device.contains(['*', '$']));
-                    for (device, json) in records(asked) {
-                        let key = keys::record_key(&line, &device);
-                        let Ok(k) = KeyExpr::try_from(key) else {
-                            continue;
-                        };
-                        if query.key_expr().intersects(&k) {
-                            let _ = zenoh::Wait::wait(query.reply(k, json));
-                        }
-                    }
-                })
-                .background()
-                .await
-                .map_err(zerr)?;
-        }
-        Ok(())
+        self.sessions.serve_records(Arc::new(records))
     }
 
     /// The records `line` (`*`: every line) serves, as (line, device, JSON): of `device`
@@ -608,7 +462,8 @@ impl Link {
         device: Option<&str>,
     ) -> Result<Vec<(String, String, Vec<u8>)>, LinkError> {
         let replies = self
-            .session()
+            .sessions
+            .active()?
             .get(format!(
                 "{}/record/{line}/{}",
                 keys::CONTROL,
@@ -636,27 +491,10 @@ impl Link {
 
     /// The queries other lines ask for this line's retained messages.
     pub async fn retained_queries(&self) -> Result<RetainedQueries, LinkError> {
-        // Bounded: a full queue blocks zenoh's receive path, as its own handler would.
         let (tx, queries) = flume::bounded(64);
-        let mut queryables = Vec::with_capacity(self.sessions.len());
-        for session in &self.sessions {
-            let tx = tx.clone();
-            queryables.push(
-                session
-                    .declare_queryable(keys::retained_queryable(&self.line))
-                    .callback(move |query| {
-                        let _ = tx.send(query);
-                    })
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
-        Ok(RetainedQueries {
-            _queryables: queryables,
-            queries,
-        })
+        self.sessions.serve_retained(tx)?;
+        Ok(RetainedQueries { queries })
     }
-
     /// Retained messages of other lines matching `filter`.
     pub async fn query_retained(&self, filter: &str) -> Result<Vec<Inbound>, LinkError> {
         self.query_retained_of(None, filter).await
@@ -672,7 +510,8 @@ impl Link {
             return Ok(Vec::new());
         };
         let replies = self
-            .session()
+            .sessions
+            .active()?
             .get(key)
             .timeout(Duration::from_secs(2))
             .await
@@ -722,124 +561,23 @@ impl Link {
 
     /// Closes the sessions: other lines see this line's tokens go at once.
     pub async fn close(&self) {
-        for session in &self.sessions {
-            let _ = session.close().await;
-        }
+        self.sessions.close().await;
     }
-}
-
-/// What a link's sessions see of the other lines, merged (module `presence`).
-struct Merged {
-    lines: Arc<Presence<String>>,
-    interests: Arc<Presence<(String, String)>>,
-    /// With more than one session only.
-    records: Option<Arc<RecordOrder>>,
-}
-
-/// Watches session number `index` for the other lines' liveliness, interests and record
-/// changes, merged with what the link's other sessions see into `events`.
-async fn watch(
-    session: &Session,
-    index: usize,
-    line: &str,
-    events: &flume::Sender<Event>,
-    merged: &Merged,
-) -> Result<(), LinkError> {
-    let (own, tx, lines) = (line.to_owned(), events.clone(), Arc::clone(&merged.lines));
-    session
-        .liveliness()
-        .declare_subscriber(format!("{}/line/*", keys::CONTROL))
-        .history(true)
-        .callback(move |sample| {
-            let Some(l) = keys::parse_line_token(sample.key_expr().as_str()) else {
-                return;
-            };
-            if l == own {
-                return;
-            }
-            let up = sample.kind() == SampleKind::Put;
-            let _ = match lines.seen(l.to_owned(), index, up) {
-                Some(true) => tx.send(Event::LineUp(l.to_owned())),
-                Some(false) => tx.send(Event::LineDown(l.to_owned())),
-                None => Ok(()),
-            };
-        })
-        .background()
-        .await
-        .map_err(zerr)?;
-    let (own, tx, interests) = (
-        line.to_owned(),
-        events.clone(),
-        Arc::clone(&merged.interests),
-    );
-    session
-        .liveliness()
-        .declare_subscriber(format!("{}/interest/**", keys::CONTROL))
-        .history(true)
-        .callback(move |sample| {
-            let Some((l, filter)) = keys::parse_interest(sample.key_expr().as_str()) else {
-                return;
-            };
-            if l == own {
-                return;
-            }
-            let up = sample.kind() == SampleKind::Put;
-            let line = l.to_owned();
-            let _ = match interests.seen((line.clone(), filter.clone()), index, up) {
-                Some(true) => tx.send(Event::InterestAdded { line, filter }),
-                Some(false) => tx.send(Event::InterestRemoved { line, filter }),
-                None => Ok(()),
-            };
-        })
-        .background()
-        .await
-        .map_err(zerr)?;
-    let (own, tx, records) = (line.to_owned(), events.clone(), merged.records.clone());
-    session
-        .declare_subscriber(format!("{}/record/**", keys::CONTROL))
-        .callback(move |sample| {
-            let Some((l, device)) = keys::parse_line_item("record", sample.key_expr().as_str())
-            else {
-                return;
-            };
-            if l == own {
-                return;
-            }
-            let version = sample
-                .attachment()
-                .and_then(|a| decode_version(&a.to_bytes()));
-            if records
-                .as_ref()
-                .is_some_and(|r| !r.newer(l, device, version))
-            {
-                return;
-            }
-            let _ = tx.send(match sample.kind() {
-                SampleKind::Put => Event::Record {
-                    line: l.to_owned(),
-                    device: device.to_owned(),
-                    json: sample.payload().to_bytes().into_owned(),
-                },
-                SampleKind::Delete => Event::Forgotten {
-                    line: l.to_owned(),
-                    device: device.to_owned(),
-                },
-            });
-        })
-        .background()
-        .await
-        .map_err(zerr)
 }
 
 /// Publishes local messages on the bus, numbered per origin.
 pub struct Exporter {
-    sessions: Vec<Session>,
-    active: Active,
+    sessions: Sessions,
+    /// What the publishers were declared on ([`Sessions::version`]); they are declared
+    /// again when the active session changes.
+    declared_for: Option<(usize, u64)>,
     line: String,
     epoch: u64,
     seq: u64,
-    /// Per topic: its publisher on each session and the last `topic_seq` it put.
-    publishers: std::collections::HashMap<String, (Vec<Publisher<'static>>, u64)>,
+    /// Per topic, its publisher on the active session.
+    publishers: HashMap<String, Publisher<'static>>,
+    /// Per topic, the last `topic_seq` it put (kept across a change of session).
+    topic_seqs: HashMap<String, u64>,
 }
 
 /// Publishers kept for repeated topics; past this many the cache starts over.
@@ -857,6 +595,11 @@ impl Exporter {
         retain: bool,
         event: bool,
     ) -> Result<bool, LinkError> {
+        let version = self.sessions.version();
+        if self.declared_for != Some(version) {
+            self.publishers.clear();
+            self.declared_for = Some(version);
+        }
         if !self.publishers.contains_key(topic) {
             let Some(key) = keys::data_key(&self.line, topic) else {
                 return Ok(false);
@@ -864,36 +607,42 @@ impl Exporter {
             if self.publishers.len() >= PUBLISHER_CACHE {
                 self.publishers.clear();
             }
-            let mut publishers = Vec::with_capacity(self.sessions.len());
-            for session in &self.sessions {
-                publishers.push(
-                    session
-                        .declare_publisher(key.clone())
-                        .congestion_control(CongestionControl::Block)
-                        .priority(if event {
-                            Priority::DataHigh
-                        } else {
-                            Priority::Data
-                        })
-                        .await
-                        .map_err(zerr)?,
-                );
+            if self.topic_seqs.len() >= PUBLISHER_CACHE {
+                self.topic_seqs.clear();
             }
-            self.publishers.insert(topic.to_owned(), (publishers, 0));
+            let publisher = self
+                .sessions
+                .active()?
+                .declare_publisher(key)
+                .congestion_control(CongestionControl::Block)
+                .priority(if event {
+                    Priority::DataHigh
+                } else {
+                    Priority::Data
+                })
+                .await
+                .map_err(zerr)?;
+            self.publishers.insert(topic.to_owned(), publisher);
         }
-        let Some((publishers, topic_seq)) = self.publishers.get_mut(topic) else {
+        let Some(publisher) = self.publishers.get(topic) else {
             return Ok(false);
         };
-        let Some(publisher) = publishers.get(self.active.get()).or(publishers.first()) else {
-            return Ok(false);
+        let topic_seq = match self.topic_seqs.get_mut(topic) {
+            Some(n) => {
+                *n += 1;
+                *n
+            }
+            None => {
+                self.topic_seqs.insert(topic.to_owned(), 1);
+                1
+            }
         };
         self.seq += 1;
-        *topic_seq += 1;
         let stamp = Stamp {
             line: self.line.clone(),
             epoch: self.epoch,
             seq: self.seq,
-            topic_seq: *topic_seq,
+            topic_seq,
             qos,
             retain,
         };
@@ -915,10 +664,11 @@ impl Exporter {
 /// burst that was about a quarter of the line's CPU. Declaring each key once, as the
 /// first message on it arrives, turns both into lookups.
 pub struct RouteKeys {
-    sessions: Vec<Session>,
+    sessions: Sessions,
+    /// The sessions' generation the keys were declared for ([`Sessions::version`]).
+    declared_for: Option<u64>,
     /// line -> topic -> the key, declared on each session
-    keys:
-        std::collections::HashMap<String, std::collections::HashMap<String, Vec<KeyExpr<'static>>>>,
+    keys: HashMap<String, HashMap<String, Vec<(Session, KeyExpr<'static>)>>>,
     len: usize,
 }
 
@@ -928,35 +678,38 @@ const ROUTE_KEYS: usize = 10_000;
 impl RouteKeys {
     /// Declares the key of `topic` of `line` unless it is already.
     pub fn note(&mut self, line: &str, topic: &str) {
-        if self.keys.get(line).is_some_and(|t| t.contains_key(topic)) {
+        let generation = self.sessions.version().1;
+        let stale = self.declared_for.is_some_and(|g| g != generation);
+        if self.keys.get(line).is_some_and(|t| t.contains_key(topic)) && !stale {
             return;
         }
-        if self.len >= ROUTE_KEYS {
-            for declared in self.keys.drain().flat_map(|(_, t)| t.into_values()) {
-                for (session, key) in self.sessions.iter().zip(declared) {
-                    let _ = zenoh::Wait::wait(session.undeclare(key));
-                }
+        if self.len >= ROUTE_KEYS || stale {
+            for (session, key) in self
+                .keys
+                .drain()
+                .flat_map(|(_, t)| t.into_values())
+                .flatten()
+            {
+                let _ = zenoh::Wait::wait(session.undeclare(key));
             }
             self.len = 0;
         }
+        self.declared_for = Some(generation);
         let Some(key) = keys::data_key(line, topic) else {
             return;
         };
-        let declared: Result<Vec<_>, _> = self
-            .sessions
-            .iter()
-            .map(|session| zenoh::Wait::wait(session.declare_keyexpr(key.clone())))
-            .collect();
-        match declared {
-            Ok(declared) => {
-                self.keys
-                    .entry(line.to_owned())
-                    .or_default()
-                    .insert(topic.to_owned(), declared);
-                self.len += 1;
+        let mut declared = Vec::new();
+        for session in self.sessions.each() {
+            match zenoh::Wait::wait(session.declare_keyexpr(key.clone())) {
+                Ok(k) => declared.push((session, k)),
+                Err(e) => tracing::debug!(line, topic, error = %e, "key not declared"),
             }
-            Err(e) => tracing::debug!(line, topic, error = %e, "key not declared"),
         }
+        self.keys
+            .entry(line.to_owned())
+            .or_default()
+            .insert(topic.to_owned(), declared);
+        self.len += 1;
     }
 }
 

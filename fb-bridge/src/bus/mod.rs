@@ -30,6 +30,8 @@ pub mod keys;
 pub mod link;
 #[cfg(feature = "zenoh")]
 mod presence;
+#[cfg(feature = "zenoh")]
+mod sessions;
 mod stamp;
 
 pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode, MAX_ROUTER_SESSIONS};
