@@ -11,7 +11,8 @@
 #   1. every line lists all N x DEVICES devices online;
 #   2. a device of line 1 publishes every 20 ms for 2 s to a subscriber on line N;
 #   3. router-1 is killed: every line lists every device online again; 2 s more;
-#   4. router-1 starts again, router-2 is killed: the same;
+#   4. router-1 starts again; once every line has its session on it again
+#      (fbbus_bridge_router_sessions_up), router-2 is killed: the same;
 #   5. the subscriber got every message once, in order.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -93,7 +94,14 @@ send
 failover router-1
 send
 router_up router-1
-sleep 3
+on_both_routers() { # every line's sessions are on their routers again
+  for k in $(seq 1 "$N"); do
+    curl -s "127.0.0.1:$((9882 + k))/metrics" | awk '$1 == "fbbus_bridge_router_sessions_up" { up = $2 }
+      $1 == "fbbus_bridge_router_sessions" { all = $2 } END { exit !(all > 0 && up == all) }' || return 1
+  done
+}
+wait_for 15 "router-1 back: every line has its session on it again" on_both_routers
+sleep 1
 failover router-2
 send
 sleep 1

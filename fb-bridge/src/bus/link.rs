@@ -293,6 +293,12 @@ fn settings(config: &BusConfig) -> Vec<(&'static str, serde_json::Value)> {
     if config.mode != super::Mode::Client {
         out.push(("connect/exit_on_failure", json!(false)));
     }
+    if config.session_per_router {
+        // A session waits for its own router when it is gone: try it every second (zenoh
+        // backs off to every 4 s), so the line is back on both routers within about a
+        // second of the router's return.
+        out.push(("connect/retry", json!({ "period_max_ms": 1_000 })));
+    }
     out.extend([
         (
             "scouting/multicast/enabled",
@@ -718,7 +724,36 @@ mod tests {
     use std::sync::atomic::{AtomicUsize, Ordering};
     use std::sync::Arc;
 
-    use super::{Inbox, INBOX};
+    use super::{session_configs, Inbox, INBOX};
+    use crate::bus::{BusConfig, Mode};
+
+    /// One zenoh configuration per router, each naming its own router only, and each one
+    /// zenoh accepts (a key zenoh does not know fails here, not at a plant's start).
+    #[test]
+    fn a_session_per_router_is_configured_for_its_router_alone() {
+        let routers = vec![
+            "tcp/127.0.0.1:7447".to_owned(),
+            "tcp/127.0.0.1:7448".to_owned(),
+        ];
+        let config = BusConfig {
+            mode: Mode::Client,
+            connect: routers.clone(),
+            session_per_router: true,
+            ..BusConfig::default()
+        };
+        let configs = session_configs(&config).expect("zenoh takes them");
+        assert_eq!(configs.len(), 2);
+        for (config, router) in configs.iter().zip(&routers) {
+            let connect = config.get_json("connect/endpoints").unwrap();
+            assert_eq!(connect, format!("[\"{router}\"]"));
+            assert!(config.get_json("connect/retry").unwrap().contains("1000"));
+        }
+        let one = BusConfig {
+            session_per_router: false,
+            ..config
+        };
+        assert_eq!(session_configs(&one).unwrap().len(), 1);
+    }
 
     /// A loop over a full inbox gives its thread back: another task on the same thread
     /// runs before the loop has taken more than a budget's worth (128) of items. Without
