@@ -101,8 +101,9 @@ pub enum Topology {
     /// As `Routers`, each client line with a session on each router line.
     Redundant,
     Peers,
-    /// Every line a zenoh client of two real `zenohd` routers, router 2 linked to router
-    /// 1: the plant of deploy/plant/ (without TLS). Router 1 is what dies.
+    /// Every line a zenoh client of two real `zenohd` routers with a session on each
+    /// (`session_per_router`), router 2 linked to router 1: the plant of deploy/plant/
+    /// (without TLS). Router 1 is what dies. (Before 2026-11-29: one session per line.)
     Zenohd,
 }
 
@@ -159,12 +160,11 @@ impl Topology {
         let (first, second) = (&endpoints[0], &endpoints[1]);
         let (mode, listen, connect): (&str, Vec<&String>, Vec<&String>) = match (self, n) {
             (Topology::Alone, _) => return String::new(),
-            // The two endpoints are the zenohd routers'.
-            (Topology::Zenohd, _) => ("client", vec![], vec![first, second]),
             (Topology::Routers | Topology::Redundant, 1) => ("router", vec![first], vec![]),
             (Topology::Routers | Topology::Redundant, 2) => ("router", vec![second], vec![first]),
             (Topology::Routers, _) => ("client", vec![], vec![first, second]),
-            (Topology::Redundant, _) => {
+            // Zenohd: the two endpoints are the zenohd routers'.
+            (Topology::Redundant | Topology::Zenohd, _) => {
                 return format!(
                     "\n[bridge]\nmode = \"client\"\nsession_per_router = true\nconnect = \
                      {:?}\n",
