@@ -109,13 +109,21 @@ impl Sessions {
         }));
         let (opened_tx, mut opened) = tokio::sync::mpsc::channel(count.max(1));
         for (slot, config) in configs.into_iter().enumerate() {
-            let (sessions, opened_tx) = (sessions.clone(), opened_tx.clone());
+            // Weak: a session whose router answers only after the link is gone (dropped
+            // without `close`, say when the bridge failed to start) is closed, not kept.
+            let (sessions, opened_tx) = (Arc::downgrade(&sessions.0), opened_tx.clone());
             tokio::spawn(async move {
                 // zenoh's `open` blocks its thread until the session is up (a client's:
                 // until its router answers), even when awaited: off the async workers.
                 let open = tokio::task::spawn_blocking(move || zenoh::open(config).wait());
                 let attached = match open.await.map_err(zerr).and_then(|r| r.map_err(zerr)) {
-                    Ok(session) => sessions.attach(slot, session),
+                    Ok(session) => match sessions.upgrade() {
+                        Some(shared) => Sessions(shared).attach(slot, session),
+                        None => {
+                            let _ = session.close().await;
+                            return;
+                        }
+                    },
                     Err(e) => Err(e),
                 };
                 if let (Err(e), true) = (&attached, slot > 0) {
