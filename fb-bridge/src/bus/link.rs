@@ -39,67 +39,9 @@ use super::presence::encode_version;
 use super::sessions::Sessions;
 use super::{keys, BusConfig, Stamp};
 
-#[derive(Debug, thiserror::Error)]
-pub enum LinkError {
-    #[error("zenoh configuration `{key}`: {message}")]
-    Config { key: String, message: String },
-    #[error(
-        "[bridge.tls] cert `{cert}` names `{name}`, but this bridge is `{line}` (the \
-         [broker] line, or the router's name): a line is who its certificate says. Issue \
-         one with common name `{line}` (`fbbus bus-cert issue --name {line}`, \
-         docs/bus-security.md)"
-    )]
-    Identity {
-        cert: String,
-        name: String,
-        line: String,
-    },
-    #[error("[bridge.tls] cert `{cert}`: {message}")]
-    Certificate { cert: String, message: String },
-    #[error("zenoh: {0}")]
-    Zenoh(String),
-}
-
-fn zerr(e: impl std::fmt::Display) -> LinkError {
-    LinkError::Zenoh(e.to_string())
-}
-
-/// A message from another line, as it came off zenoh.
-#[derive(Debug, Clone)]
-pub struct Inbound {
-    /// The line whose key it came on (`fbbus/<line>/...`): on a mutual-TLS bus, the line
-    /// zenoh's access control let speak there. The stamp must name the same line.
-    pub line: String,
-    pub stamp: Stamp,
-    pub topic: String,
-    pub payload: Vec<u8>,
-}
-
-/// A liveliness change seen on the bus (other lines only).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Event {
-    LineUp(String),
-    LineDown(String),
-    InterestAdded {
-        line: String,
-        filter: String,
-    },
-    InterestRemoved {
-        line: String,
-        filter: String,
-    },
-    /// A registry record another line put (its device changed).
-    Record {
-        line: String,
-        device: String,
-        json: Vec<u8>,
-    },
-    /// Another line forgot its device (a zenoh delete of the device's record key).
-    Forgotten {
-        line: String,
-        device: String,
-    },
-}
+use super::error::zerr;
+pub use super::error::LinkError;
+pub use super::event::{Event, Inbound};
 
 /// Samples and events, in arrival order, bounded: a full inbox blocks zenoh's receive
 /// path, which backs the link up to the sender (blocking congestion control) instead of

@@ -25,6 +25,10 @@
 
 pub mod access;
 mod config;
+#[cfg(feature = "zenoh")]
+mod error;
+#[cfg(feature = "zenoh")]
+mod event;
 pub mod keys;
 #[cfg(feature = "zenoh")]
 pub mod link;

@@ -26,13 +26,10 @@ use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
 
-use super::link::{Event, Inbound, LinkError};
+use super::error::{zerr, LinkError};
+use super::event::{Event, Inbound};
 use super::presence::{decode_version, Presence, RecordOrder};
 use super::{keys, Stamp};
-
-fn zerr(e: impl std::fmt::Display) -> LinkError {
-    LinkError::Zenoh(e.to_string())
-}
 
 /// How often a link with a session per router checks which sessions have a router: the
 /// longest a put can go to a session whose router was just killed.
