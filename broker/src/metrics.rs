@@ -149,6 +149,7 @@ pub struct Metrics {
     pub bridge_retained_replayed: IntCounter,
     /// Messages of other lines that never arrived (gaps in a topic's numbering).
     pub bridge_lost: IntCounter,
+    pub bridge_lost_reported: IntCounter,
     /// Requests refused at a limit, by limit (`subscriptions_per_client`, ...).
     pub limit_refusals: IntCounterVec,
     /// Admin HTTP connections open now, and those closed at `[admin] max_connections`.
@@ -319,6 +320,12 @@ impl Metrics {
                 "Messages of other lines that never reached this line: gaps in the numbering \
                  each line gives every topic it puts on the bus (a router that died with \
                  messages queued, a cut link); see docs/device-contract.md, the bus",
+            ),
+            bridge_lost_reported: counter(
+                "fbbus_bridge_lost_reported_total",
+                "Messages this line put on the bus that other lines reported never reached \
+                 them (the sum of their fbbus_bridge_lost_total for this line, reported \
+                 within about a second)",
             ),
             connections,
             limit_refusals: counter_vec(

@@ -350,7 +350,8 @@ async fn a_full_mesh_of_three_lines_delivers_exactly_once() {
 /// (`fbbus_bridge_lost_total`): none when it takes one of two topics another line takes
 /// both of (a numbering per line, not per topic, would count the other topic's messages
 /// as lost), and the ones it missed when the topic went on flowing to another line while
-/// its own interest had lapsed.
+/// its own interest had lapsed; and the line that sent them is told how many
+/// (`fbbus_bridge_lost_reported_total`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_line_counts_the_messages_of_a_topic_that_never_reached_it() {
     const LOST: &str = "fbbus_bridge_lost_total";
@@ -405,6 +406,21 @@ async fn a_line_counts_the_messages_of_a_topic_that_never_reached_it() {
     );
     assert_eq!(b.broker.metric(LOST), 20.0, "{}", b.broker.metrics());
     assert_eq!(c.broker.metric(LOST), 0.0);
+    // Line A, the sender, is told (within a second or so) what never reached B; B's
+    // reports come again every 30 s and are not counted again.
+    const REPORTED: &str = "fbbus_bridge_lost_reported_total";
+    let deadline = Instant::now() + PROPAGATION;
+    while a.broker.metric(REPORTED) < 20.0 {
+        assert!(Instant::now() < deadline, "A was never told what B missed");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(a.broker.metric(REPORTED), 20.0, "counted once");
+    assert_eq!(
+        b.broker.metric(REPORTED),
+        0.0,
+        "B sent nothing that was lost"
+    );
 }
 
 // ---------------------------------------------------------------- registry federation

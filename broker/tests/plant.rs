@@ -539,6 +539,14 @@ async fn lines_that_are_clients_of_different_routers_are_split_by_a_cut_and_whol
         vec![8.0, 8.0, 8.0, 12.0, 12.0],
         "while cut"
     );
+    // Line 2, on line 1's side of the cut, takes line 1's stream meanwhile: line 1 goes
+    // on numbering it, and line 5 misses those 20.
+    let mut near = V4::connect(plant.lines[1].port(), "hmi-2", None)
+        .await
+        .unwrap();
+    near.subscribe(&plant.topic).await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    once_in_order(&plant.devices[0], &mut near, &plant.topic, 21..=40).await;
     plant.cable.set_cut(false);
     let healed = Instant::now();
     all_online(&plant.lines, LINES * 4, Duration::from_secs(15)).await;
@@ -546,7 +554,29 @@ async fn lines_that_are_clients_of_different_routers_are_split_by_a_cut_and_whol
         "the cable healed: every line listed every device online again after {:?}",
         healed.elapsed()
     );
-    plant.stream(21..=40).await;
+    plant.stream(41..=60).await;
+    // What line 5 missed is counted on both sides: by line 5, and by line 1 from line 5's
+    // report.
+    const LOST: &str = "fbbus_bridge_lost_total";
+    const REPORTED: &str = "fbbus_bridge_lost_reported_total";
+    assert_eq!(
+        plant.lines[4].broker.metric(LOST),
+        20.0,
+        "line 5 missed 21-40"
+    );
+    let lost_elsewhere: f64 = plant.lines[..4].iter().map(|l| l.broker.metric(LOST)).sum();
+    assert_eq!(lost_elsewhere, 0.0, "line 2 took 21-40");
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while plant.lines[0].broker.metric(REPORTED) < 20.0 {
+        assert!(
+            Instant::now() < deadline,
+            "line 1 was never told: {}",
+            plant.lines[0].broker.metric(REPORTED)
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(plant.lines[0].broker.metric(REPORTED), 20.0, "counted once");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

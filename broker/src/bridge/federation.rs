@@ -69,6 +69,18 @@ pub(super) async fn bus_events(
                     liveliness("forgotten");
                 }
             }
+            Event::LossReported { line, lost } => {
+                ctx.metrics.bridge_lost_reported.inc_by(lost);
+                static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
+                if LOGGED.due() {
+                    tracing::warn!(
+                        line,
+                        lost,
+                        "another line reports messages of this line that never reached it \
+                         (fbbus_bridge_lost_reported_total, logged at most once a minute)"
+                    );
+                }
+            }
         }
     }
 }

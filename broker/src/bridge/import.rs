@@ -103,8 +103,7 @@ async fn requery(link: &Link, ctx: &Context, line: &str, filter: &str) {
 /// import link. Whatever the inbox holds is taken at once (up to [`INJECT_BATCH`]) and
 /// handed to the router in one go: one router wake-up per batch, not per message.
 pub(super) async fn inject_loop(
-    inbox: Inbox<Inbound>,
-    route_keys: RouteKeys,
+    (link, inbox): (Arc<Link>, Inbox<Inbound>),
     ctx: Arc<Context>,
     (mut tx, rx): (LinkTx, LinkRx),
     import: Vec<String>,
@@ -114,7 +113,8 @@ pub(super) async fn inject_loop(
     let mut injector = Injector {
         dedup: Dedup::default(),
         gaps: Gaps::default(),
-        route_keys,
+        route_keys: link.route_keys(),
+        link,
         publisher: IMPORT_CLIENT_ID.into(),
         devices: HashMap::new(),
         origin: Origins::default(),
@@ -165,6 +165,8 @@ struct Injector {
     dedup: Dedup,
     /// Messages of other lines lost on the way (`fbbus_bridge_lost_total`).
     gaps: Gaps,
+    /// Counts them for their origins too ([`Link::count_lost`]).
+    link: Arc<Link>,
     route_keys: RouteKeys,
     /// The origin's publisher of every message from the bus: the import link.
     publisher: Arc<str>,
@@ -214,6 +216,13 @@ impl Injector {
         };
         if missing > 0 {
             ctx.metrics.bridge_lost.inc_by(missing);
+            let origin = &message.stamp;
+            if !self.link.count_lost(&origin.line, origin.epoch, missing) {
+                tracing::debug!(
+                    line = origin.line,
+                    "lost messages not reported: too many lines"
+                );
+            }
             static LOGGED: crate::logging::OnceAMinute = crate::logging::OnceAMinute::new();
             if LOGGED.due() {
                 tracing::warn!(

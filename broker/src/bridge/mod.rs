@@ -40,7 +40,9 @@
 //! and the link are up, every message reaches every subscribed line once, in order; a
 //! message in flight when a bridge or the link goes down may be lost (zenoh keeps no
 //! end-to-end acknowledgement), and nothing published while a line is cut off is queued
-//! for it. Retained messages are fetched again when a line (re)starts importing a filter,
+//! for it. What is lost is counted on both sides: by the line that missed it (a gap in the
+//! topic's numbering, `fbbus_bridge_lost_total`) and, from that line's report within a
+//! second, by the line that sent it (`fbbus_bridge_lost_reported_total`). Retained messages are fetched again when a line (re)starts importing a filter,
 //! so retained state converges after a restart or a partition.
 //!
 //! **Starting alone.** A line never waits for the bus: a peer or router starts with its
@@ -287,6 +289,25 @@ async fn router_sessions(link: Arc<Link>, metrics: Arc<crate::metrics::Metrics>)
     }
 }
 
+/// How often the other lines are told what of theirs this line counted as lost, when
+/// that moved; every [`LOSSES_AGAIN`]-th time all counts are sent again, in case a report
+/// was lost with a router.
+const LOSSES_EVERY: Duration = Duration::from_secs(1);
+const LOSSES_AGAIN: u32 = 30;
+
+/// Tells the other lines what of theirs never reached this line (`fbbus_bridge_lost_total`
+/// here becomes `fbbus_bridge_lost_reported_total` there).
+async fn report_losses(link: Arc<Link>) {
+    let mut tick = 0u32;
+    loop {
+        tokio::time::sleep(LOSSES_EVERY).await;
+        tick = tick.wrapping_add(1);
+        if let Err(e) = link.report_losses(tick.is_multiple_of(LOSSES_AGAIN)).await {
+            tracing::debug!(error = %e, "lost messages not reported to their lines");
+        }
+    }
+}
+
 /// The bridge's work once zenoh is open: its router links, registry federation, retained
 /// queries, and the import, export and event tasks.
 async fn run(
@@ -346,8 +367,7 @@ async fn run(
             Arc::clone(&ctx),
         )),
         tokio::spawn(import::inject_loop(
-            inbox,
-            link.route_keys(),
+            (Arc::clone(&link), inbox),
             Arc::clone(&ctx),
             (import_link.0, import_link.1),
             config.import.clone(),
@@ -380,6 +400,7 @@ async fn run(
             Arc::clone(&ctx),
             config.export.clone(),
         )),
+        tokio::spawn(report_losses(Arc::clone(&link))),
     ];
     bridge.tasks().extend(tasks);
     if link.routers().is_some() {

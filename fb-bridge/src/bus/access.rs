@@ -7,7 +7,7 @@
 //! | peer | may send us (ingress) |
 //! |---|---|
 //! | every peer | subscribe to and query `fbbus/**` and `fbbus/@/**` (reading is what the bus is for) |
-//! | line `L` | put under `fbbus/L/fb/**` and `fbbus/@/record/L/**` (delete there too: a forgotten device); liveliness tokens `fbbus/@/line/L`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
+//! | line `L` | put under `fbbus/L/fb/**`, `fbbus/@/record/L/**` (delete there too: a forgotten device) and `fbbus/@/loss/L/*`; liveliness tokens `fbbus/@/line/L`, `fbbus/@/interest/L/**`; queryables and replies under `fbbus/@/record/L/**`, `fbbus/@/retained/L/fb/**` |
 //! | router | everything under `fbbus/**` and `fbbus/@/**`: it forwards the other lines' traffic, each checked at the router's own ingress |
 //! | reader | nothing else |
 //!
@@ -52,6 +52,7 @@ pub fn line_keys(line: &str) -> Vec<String> {
         format!("fbbus/@/line/{line}"),
         format!("fbbus/@/interest/{line}/**"),
         format!("fbbus/@/retained/{line}/fb/**"),
+        format!("fbbus/@/loss/{line}/*"),
     ]
 }
 
@@ -144,6 +145,7 @@ mod tests {
         };
         let keys = rule("speak-as-line-c")["key_exprs"].to_string();
         assert!(keys.contains("fbbus/line-c/fb/**"), "{keys}");
+        assert!(keys.contains("fbbus/@/loss/line-c/*"), "{keys}");
         assert!(!keys.contains("line-b"), "{keys}");
         let policy = |subject: &str| {
             acl["policies"]

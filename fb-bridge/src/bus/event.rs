@@ -32,6 +32,12 @@ pub enum Event {
         device: String,
         json: Vec<u8>,
     },
+    /// Line `line` counted `lost` more of this line's messages as lost on the way (see
+    /// [`super::LossReport`]).
+    LossReported {
+        line: String,
+        lost: u64,
+    },
     /// Another line forgot its device (a zenoh delete of the device's record key).
     Forgotten {
         line: String,

@@ -7,6 +7,7 @@
 //! | `fbbus/@/record/<line>/<device>` | the device's registry record, its state included (put on change; queryable) |
 //! | `fbbus/@/interest/<line>/<filter>` | liveliness token: a client of `<line>` subscribed to `<filter>` (escaped) |
 //! | `fbbus/@/retained/<line>/...` | queryable: retained messages of `<line>` matching a filter |
+//! | `fbbus/@/loss/<line>/<origin>` | `<origin>`'s messages `<line>` counted as lost ([`super::LossReport`]) |
 //!
 //! The `@` chunk is verbatim in zenoh: `fbbus/*/fb/**` never matches the control plane.
 //! Only the `fb/` namespace crosses lines: `dinasore/` and `fbdk/` are re-encoded from it
@@ -145,6 +146,11 @@ pub fn line_token(line: &str) -> String {
 
 pub fn record_key(line: &str, device: &str) -> String {
     format!("{CONTROL}/record/{line}/{device}")
+}
+
+/// Where `receiver` reports the messages of `origin` it counted as lost.
+pub fn loss_key(receiver: &str, origin: &str) -> String {
+    format!("{CONTROL}/loss/{receiver}/{origin}")
 }
 
 /// The liveliness token announcing that a client of `line` subscribed to `filter`.

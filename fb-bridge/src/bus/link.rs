@@ -26,7 +26,7 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use zenoh::key_expr::KeyExpr;
@@ -37,7 +37,7 @@ use zenoh::Session;
 
 use super::presence::encode_version;
 use super::sessions::Sessions;
-use super::{keys, BusConfig, Stamp};
+use super::{keys, BusConfig, LossTally, Stamp};
 
 use super::error::zerr;
 pub use super::error::LinkError;
@@ -117,6 +117,8 @@ pub struct Link {
     inbox: flume::Sender<Inbound>,
     /// Record changes put so far: with the epoch, each change's version.
     record_changes: AtomicU64,
+    /// Other lines' messages this line counted as lost, to be reported to them.
+    losses: Mutex<LossTally>,
 }
 
 /// The interest of this line in one MQTT filter; dropping it undeclares its subscriber
@@ -292,7 +294,7 @@ impl Link {
             .map_or(1, |d| d.as_micros() as u64);
         let (inbox, inbox_rx) = flume::bounded(INBOX);
         let (events, events_rx) = flume::unbounded();
-        let sessions = Sessions::open(configs, line, events, inbox.clone()).await?;
+        let sessions = Sessions::open(configs, (line, epoch), events, inbox.clone()).await?;
         Ok((
             Link {
                 sessions,
@@ -300,6 +302,7 @@ impl Link {
                 epoch,
                 inbox,
                 record_changes: AtomicU64::new(0),
+                losses: Mutex::new(LossTally::default()),
             },
             Inbox(inbox_rx),
             Inbox(events_rx),
@@ -389,6 +392,40 @@ impl Link {
             .attachment(self.next_record_version())
             .await
             .map_err(zerr)
+    }
+
+    /// `lost` messages of `origin`'s run `epoch` never reached this line (the gaps
+    /// [`super::Gaps`] found): counted, to be told to `origin` by
+    /// [`Link::report_losses`]. False if the count has no room for one more origin
+    /// ([`super::LOSS_LINES`]).
+    pub fn count_lost(&self, origin: &str, epoch: u64, lost: u64) -> bool {
+        self.losses
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .add(origin, epoch, lost)
+    }
+
+    /// Tells each origin line how many of its messages this line counted as lost: the
+    /// counts that moved since the last call, or all of them (`everything`). Returns the
+    /// reports put.
+    pub async fn report_losses(&self, everything: bool) -> Result<usize, LinkError> {
+        let reports = self
+            .losses
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .reports(self.epoch, everything);
+        if reports.is_empty() {
+            return Ok(0);
+        }
+        let session = self.sessions.active()?;
+        for (origin, report) in &reports {
+            session
+                .put(keys::loss_key(&self.line, origin), report.encode())
+                .congestion_control(CongestionControl::Block)
+                .await
+                .map_err(zerr)?;
+        }
+        Ok(reports.len())
     }
 
     /// Answers registry queries (`fbbus/@/record/<line>/<device or *>`) with `records`'

@@ -12,7 +12,9 @@
 //!   per-origin sequence, MQTT QoS and RETAIN), and [`Dedup`], which drops a message
 //!   already seen from that origin;
 //! - [`BusConfig`]: the `[bridge]` section of the broker's configuration, and [`access`]:
-//!   zenoh's access control built from its `[bridge.peers]` (who may speak for which line).
+//!   zenoh's access control built from its `[bridge.peers]` (who may speak for which line);
+//! - [`LossTally`] and [`Reported`]: messages lost on the way, counted by the line that
+//!   missed them and reported back to the line that sent them.
 //!
 //! The zenoh session itself is [`link`] (cargo feature `zenoh`).
 //!
@@ -32,6 +34,7 @@ mod event;
 pub mod keys;
 #[cfg(feature = "zenoh")]
 pub mod link;
+mod loss;
 #[cfg(feature = "zenoh")]
 mod presence;
 #[cfg(feature = "zenoh")]
@@ -39,4 +42,5 @@ mod sessions;
 mod stamp;
 
 pub use config::{loopback_endpoint, BusConfig, BusPeers, BusTls, Mode, MAX_ROUTER_SESSIONS};
+pub use loss::{LossReport, LossTally, Reported, LOSS_LINES};
 pub use stamp::{Dedup, Gaps, Stamp, DEDUP_ORIGINS, DEDUP_WINDOW, GAP_TOPICS};

@@ -29,7 +29,7 @@ use zenoh::{Session, Wait};
 use super::error::{zerr, LinkError};
 use super::event::{Event, Inbound};
 use super::presence::{decode_version, Presence, RecordOrder};
-use super::{keys, Stamp};
+use super::{keys, LossReport, Reported, Stamp};
 
 /// How often a link with a session per router checks which sessions have a router: the
 /// longest a put can go to a session whose router was just killed.
@@ -59,6 +59,8 @@ struct Shared {
     interests: Presence<(String, String)>,
     /// With more than one session only: one delivers each change once, in order.
     records: Option<RecordOrder>,
+    /// What the other lines reported of this line's messages lost on the way.
+    reported: Mutex<Reported>,
 }
 
 /// Everything a newly attached session must declare too.
@@ -85,7 +87,7 @@ impl Sessions {
     /// (attached); the others are attached as they open. Fails only if every one failed.
     pub(super) async fn open(
         configs: Vec<zenoh::Config>,
-        line: &str,
+        (line, epoch): (&str, u64),
         events: flume::Sender<Event>,
         inbox: flume::Sender<Inbound>,
     ) -> Result<Sessions, LinkError> {
@@ -103,6 +105,7 @@ impl Sessions {
             lines: Presence::new(),
             interests: Presence::new(),
             records: (count > 1).then(RecordOrder::new),
+            reported: Mutex::new(Reported::new(epoch)),
         }));
         let (opened_tx, mut opened) = tokio::sync::mpsc::channel(count.max(1));
         for (slot, config) in configs.into_iter().enumerate() {
@@ -422,6 +425,36 @@ impl Sessions {
         session
             .declare_subscriber(format!("{}/record/**", keys::CONTROL))
             .callback(on_record)
+            .background()
+            .wait()
+            .map_err(zerr)?;
+        let shared = Arc::downgrade(&self.0);
+        let on_loss = move |sample: zenoh::sample::Sample| {
+            let Some(s) = shared.upgrade() else { return };
+            let Some((receiver, origin)) =
+                keys::parse_line_item("loss", sample.key_expr().as_str())
+            else {
+                return;
+            };
+            let Some(report) = LossReport::decode(&sample.payload().to_bytes()) else {
+                return;
+            };
+            if origin != s.line || receiver == s.line {
+                return;
+            }
+            let lost = s
+                .reported
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .take(receiver, report);
+            if lost > 0 {
+                let line = receiver.to_owned();
+                let _ = s.events.send(Event::LossReported { line, lost });
+            }
+        };
+        session
+            .declare_subscriber(keys::loss_key("*", &self.0.line))
+            .callback(on_loss)
             .background()
             .wait()
             .map_err(zerr)
