@@ -24,10 +24,14 @@
 //! heals (a zenoh client session has one router at a time), then whole again; lines with
 //! a session per router (`[bridge] session_per_router`) are not split by the cut, nor by
 //! either router killed in turn, and a line started while a router is down takes its
-//! session there when the router comes.
+//! session there when the router comes. The cut is also made by the kernel
+//! ([`RouterNets`]: each router in a network namespace, their link a veth pair set down;
+//! skipped, with the reason, where namespaces cannot be made). What a cut loses is
+//! counted on both sides: by the line that missed it and by the line that sent it.
 
 mod common;
 
+use std::net::SocketAddr;
 use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -301,6 +305,11 @@ struct Cable {
 impl Cable {
     /// A cable from a port of its own to `to` on 127.0.0.1.
     async fn lay(to: u16) -> Cable {
+        Cable::lay_to(SocketAddr::from(([127, 0, 0, 1], to))).await
+    }
+
+    /// A cable from a port of its own on 127.0.0.1 to `to`.
+    async fn lay_to(to: SocketAddr) -> Cable {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let port = listener.local_addr().unwrap().port();
         let cut = Arc::new(AtomicBool::new(false));
@@ -309,7 +318,7 @@ impl Cable {
             while let Ok((near, _)) = listener.accept().await {
                 let cut = Arc::clone(&flag);
                 tokio::spawn(async move {
-                    let Ok(far) = tokio::net::TcpStream::connect(("127.0.0.1", to)).await else {
+                    let Ok(far) = tokio::net::TcpStream::connect(to).await else {
                         return;
                     };
                     let ((near_rx, near_tx), (far_rx, far_tx)) =
@@ -330,6 +339,79 @@ impl Cable {
 
     fn set_cut(&self, cut: bool) {
         self.cut.store(cut, Ordering::SeqCst);
+    }
+}
+
+/// What links a [`CutPlant`]'s two routers, for the test to cut.
+enum RouterLink {
+    /// A [`Cable`] on loopback.
+    Relay(Cable),
+    /// A veth pair between the routers' namespaces ([`RouterNets`]); the relays carry
+    /// the lines to the routers and are never cut.
+    Veth {
+        // Held for the lines, and dropped before `net`: nothing left connected into
+        // namespaces being deleted.
+        _relays: [Cable; 2],
+        net: RouterNets,
+    },
+}
+
+impl RouterLink {
+    fn set_cut(&self, cut: bool) {
+        match self {
+            RouterLink::Relay(cable) => cable.set_cut(cut),
+            RouterLink::Veth { net, .. } => net.pair.set_link(&net.pair.a, &net.pair.veth_a, !cut),
+        }
+    }
+}
+
+/// The port both routers listen on inside their namespaces.
+const ROUTER_PORT: u16 = 7447;
+
+/// Two network namespaces, one per router, joined by a veth pair (the routers' cable,
+/// 10.216.0.0/24), and a veth pair from the test's namespace to each (10.217.0.0/24 and
+/// 10.218.0.0/24) for the lines' relays. The second router cannot reach the first but by
+/// the cable: its namespace has no route to the first's other address. All of it goes
+/// with the namespaces on drop.
+struct RouterNets {
+    pair: common::netns::VethPair,
+}
+
+impl RouterNets {
+    const CABLE_1: &'static str = "10.216.0.1";
+    const HOST_1: &'static str = "10.217.0.2";
+    const HOST_2: &'static str = "10.218.0.2";
+
+    fn create() -> Result<RouterNets, String> {
+        let pair = common::netns::VethPair::create("fbr", "vr", "10.216.0")?;
+        let tag = std::process::id() % 100_000;
+        for (n, ns, subnet) in [(1, &pair.a, "10.217.0"), (2, &pair.b, "10.218.0")] {
+            let (host, far) = (format!("vh{n}{tag}"), format!("vn{n}{tag}"));
+            let (host_ip, far_ip) = (format!("{subnet}.1/24"), format!("{subnet}.2/24"));
+            let steps: [&[&str]; 6] = [
+                &["link", "add", &host, "type", "veth", "peer", "name", &far],
+                &["link", "set", &far, "netns", ns],
+                &["addr", "add", &host_ip, "dev", &host],
+                &["link", "set", &host, "up"],
+                &["-n", ns, "addr", "add", &far_ip, "dev", &far],
+                &["-n", ns, "link", "set", &far, "up"],
+            ];
+            for step in steps {
+                let out = Command::new("ip").args(step).output();
+                match out {
+                    Ok(out) if out.status.success() => {}
+                    Ok(out) => {
+                        return Err(format!(
+                            "`ip {}` failed: {}",
+                            step.join(" "),
+                            String::from_utf8_lossy(&out.stderr).trim()
+                        ))
+                    }
+                    Err(e) => return Err(format!("ip: {e}")),
+                }
+            }
+        }
+        Ok(RouterNets { pair })
     }
 }
 
@@ -362,17 +444,29 @@ async fn carry(
 /// A plain zenoh router in Python's zenoh (the zenoh of zenohd 1.10), listening on
 /// `listen`, linking to `connect`, with the lines' lease.
 fn plain_router(dir: &Path, name: &str, listen: &str, connect: &[String]) -> Python {
+    plain_router_in(None, dir, name, &[listen], connect)
+}
+
+/// [`plain_router`] in network namespace `netns`, listening on every one of `listen`.
+fn plain_router_in(
+    netns: Option<&str>,
+    dir: &Path,
+    name: &str,
+    listen: &[&str],
+    connect: &[String],
+) -> Python {
     let config = dir.join(format!("{name}.json5"));
     let text = serde_json::json!({
         "mode": "router",
-        "listen": {"endpoints": [listen]},
+        "listen": {"endpoints": listen},
         "connect": {"endpoints": connect},
         "scouting": {"multicast": {"enabled": false}},
         "transport": {"link": {"tx": {"lease": 3000}}},
     });
     std::fs::write(&config, text.to_string()).unwrap();
     // The last four arguments serve the script's "stranger" command, not used here.
-    let router = Python::spawn(
+    let router = Python::spawn_in(
+        netns,
         "zenoh_router.py",
         &[config.to_str().unwrap(), "tcp/127.0.0.1:1", "-", "-", "-"],
     );
@@ -398,7 +492,7 @@ struct CutPlant {
     /// Router 1's endpoint (router 2 reaches it through the cable).
     router_1: String,
     routers: Vec<Python>,
-    cable: Cable,
+    cable: RouterLink,
     lines: Vec<Line>,
     devices: Vec<V4>,
     sub: V4,
@@ -420,6 +514,56 @@ impl CutPlant {
             plain_router(dir.path(), "router-1", &r1, &[]),
             plain_router(dir.path(), "router-2", &r2, &[cable.endpoint()]),
         ];
+        CutPlant::around(dir, (r1, r2), routers, RouterLink::Relay(cable), attach).await
+    }
+
+    /// The same plant with each router in a network namespace of its own, the two
+    /// namespaces linked by a veth pair, the cable [`RouterLink::Veth`] pulls. The lines
+    /// reach the routers through loopback relays that are never cut (a line's bus
+    /// endpoint off loopback would have to be mutual TLS).
+    async fn start_in_namespaces(
+        attach: impl Fn(usize, &str, &str) -> (String, Vec<String>, String),
+    ) -> Result<CutPlant, String> {
+        let net = RouterNets::create()?;
+        let dir = tempfile::tempdir().unwrap();
+        let at = |ip: &str| format!("tcp/{ip}:{ROUTER_PORT}");
+        let routers = vec![
+            plain_router_in(
+                Some(&net.pair.a),
+                dir.path(),
+                "router-1",
+                &[&at(RouterNets::CABLE_1), &at(RouterNets::HOST_1)],
+                &[],
+            ),
+            plain_router_in(
+                Some(&net.pair.b),
+                dir.path(),
+                "router-2",
+                &[&at(RouterNets::HOST_2)],
+                &[at(RouterNets::CABLE_1)],
+            ),
+        ];
+        let to = |ip: &str| SocketAddr::new(ip.parse().unwrap(), ROUTER_PORT);
+        let relays = [
+            Cable::lay_to(to(RouterNets::HOST_1)).await,
+            Cable::lay_to(to(RouterNets::HOST_2)).await,
+        ];
+        let (r1, r2) = (relays[0].endpoint(), relays[1].endpoint());
+        let link = RouterLink::Veth {
+            _relays: relays,
+            net,
+        };
+        Ok(CutPlant::around(dir, (r1, r2), routers, link, attach).await)
+    }
+
+    /// The lines and devices of a plant whose routers are up, reached at `r1` and `r2`.
+    async fn around(
+        dir: tempfile::TempDir,
+        (r1, r2): (String, String),
+        routers: Vec<Python>,
+        cable: RouterLink,
+        attach: impl Fn(usize, &str, &str) -> (String, Vec<String>, String),
+    ) -> CutPlant {
         let mut lines = Vec::new();
         for n in 1..=LINES {
             let (listen, connect, bridge) = attach(n, &r1, &r2);
@@ -662,6 +806,54 @@ async fn lines_with_a_session_per_router_are_not_split_by_a_cut_nor_by_a_router_
             .metric("fbbus_bridge_dropped_total{reason=\"late\"}");
         eprintln!("{}: {late} late copies dropped", line.name);
     }
+}
+
+/// The same cut as above, made by the kernel: each router in a network namespace of its
+/// own, the link between them a veth pair set down and up again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lines_with_a_session_per_router_stay_whole_when_the_routers_veth_is_pulled() {
+    if !python_zenoh() {
+        return;
+    }
+    let started = CutPlant::start_in_namespaces(|n, r1, r2| {
+        let order = if n <= 3 { [r1, r2] } else { [r2, r1] };
+        let routers = order.map(str::to_owned).to_vec();
+        let bridge = "mode = \"client\"\nsession_per_router = true\n";
+        (String::new(), routers, bridge.into())
+    })
+    .await;
+    let mut plant = match started {
+        Ok(plant) => plant,
+        Err(e) => {
+            return eprintln!("SKIPPED: cannot create network namespaces here: {e}");
+        }
+    };
+    // Line 5 gets line 1's stream through both routers (line 1 puts through router 1;
+    // router 1 sends it to line 5's session there and to router 2 for line 5's session
+    // there) and drops one copy of each: so the copies tell whether the cable carries.
+    let copies = |plant: &CutPlant| {
+        let series = "fbbus_bridge_dropped_total{reason=\"duplicate\"}";
+        plant.lines[LINES - 1].broker.metric(series)
+    };
+    assert!(
+        copies(&plant) > 0.0,
+        "no copy came through the second router"
+    );
+    plant.cable.set_cut(true);
+    let cut = Instant::now();
+    while cut.elapsed() < CUT_SETTLES {
+        plant.everyone_online("while the veth is down");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(listed(&plant.lines, "unreachable"), vec![0.0; LINES]);
+    let before = copies(&plant);
+    plant.stream(21..=40).await;
+    assert_eq!(copies(&plant), before, "a copy crossed the pulled veth");
+    plant.cable.set_cut(false);
+    tokio::time::sleep(CUT_SETTLES).await;
+    plant.everyone_online("veth up again");
+    plant.stream(41..=60).await;
+    assert!(copies(&plant) > before, "the routers never linked again");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -244,8 +244,22 @@ pub struct Python {
 
 impl Python {
     pub fn spawn(script: &str, args: &[&str]) -> Python {
+        Python::spawn_in(None, script, args)
+    }
+
+    /// The script run in network namespace `netns` (`ip netns exec`, which becomes the
+    /// Python process), or in the test's own.
+    pub fn spawn_in(netns: Option<&str>, script: &str, args: &[&str]) -> Python {
         let path = format!("{}/tests/python/{script}", env!("CARGO_MANIFEST_DIR"));
-        let mut child = Command::new("python3")
+        let mut command = match netns {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns, "python3"]);
+                c
+            }
+            None => Command::new("python3"),
+        };
+        let mut child = command
             .arg(&path)
             .args(args)
             .stdin(Stdio::piped())
