@@ -1,15 +1,21 @@
 //! The stamp every bridged message carries (`fb_bridge::bus::Stamp`, the device contract's
 //! bus section), from another line: whatever bytes a peer with a line certificate puts as
 //! the attachment, and whatever numbers a stamp that decodes carries, through the
-//! duplicate window (`Dedup`) and the loss count (`Gaps`) a receiving line keeps.
+//! duplicate window (`Dedup`) and the loss count (`Gaps`) a receiving line keeps; and the
+//! same bytes as another line's loss report (`LossReport`, `fbbus/@/loss/...`) through
+//! what the origin adds up of them (`Reported`).
 //!
 //! Checked: no panic (overflow checks on: sequence numbers near `u64::MAX`); a stamp that
 //! decodes encodes to bytes that decode to the same stamp; a gap never counts more
-//! messages than the topic's number says were put; the loss count's table stays bounded.
+//! messages than the topic's number says were put; the loss count's table stays bounded;
+//! a report that decodes encodes to the same bytes, and what the origin counts from one
+//! receiver's run never exceeds the largest count that run reported.
 #![no_main]
 
 use arbitrary::Arbitrary;
-use fb_bridge::bus::{Dedup, Gaps, Stamp, GAP_TOPICS};
+use std::collections::HashMap;
+
+use fb_bridge::bus::{Dedup, Gaps, LossReport, Reported, Stamp, GAP_TOPICS};
 use libfuzzer_sys::fuzz_target;
 
 #[derive(Arbitrary, Debug)]
@@ -30,6 +36,24 @@ struct Input {
 
 fuzz_target!(|input: Input| {
     let (mut dedup, mut gaps) = (Dedup::default(), Gaps::default());
+    let mut reported = Reported::new(1);
+    let mut counted: HashMap<(usize, u64), (u64, u64)> = HashMap::new();
+    for raw in &input.raw {
+        let Some(report) = LossReport::decode(raw) else {
+            continue;
+        };
+        assert_eq!(&report.encode(), raw);
+        let receiver = raw.len() % 3;
+        let new = reported.take(&format!("line-{receiver}"), report);
+        if report.origin_epoch == 1 {
+            let (sum, max) = counted.entry((receiver, report.receiver_epoch)).or_default();
+            *sum += new;
+            *max = (*max).max(report.lost);
+            assert!(sum <= max, "{report:?}: counted {sum} of at most {max}");
+        } else {
+            assert_eq!(new, 0, "a report about another run of the origin");
+        }
+    }
     for raw in &input.raw {
         let Some(stamp) = Stamp::decode(raw) else {
             continue;
