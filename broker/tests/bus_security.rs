@@ -9,6 +9,8 @@
 //!   keys for devices it does not have is refused by the importing line's registry check,
 //!   counted per origin line and described on `fbbus/diag/<device>`; a zenoh application
 //!   with a reader's certificate reads the bus and nothing it puts goes anywhere;
+//! - on a mutual-TLS bus a line reports messages it lost only as itself (`fbbus/@/loss/`),
+//!   and a reader not at all;
 //! - on the plain loopback bus (no TLS, no access control) the registry check still holds:
 //!   nobody speaks for a device of this line, or for a device no line announced.
 //!
@@ -35,6 +37,9 @@ const PRESS: &str = r#"{"fbs": {"PRESS": {
 /// How long a refused or ignored message gets to show an effect before the test says it
 /// had none (loopback: milliseconds in practice).
 const QUIET: Duration = Duration::from_millis(1500);
+
+/// What line A counts of its messages other lines reported lost.
+const LOST_REPORTED: &str = "fbbus_bridge_lost_reported_total";
 
 fn refused(line: &Line, origin: &str, reason: &str) -> f64 {
     line.broker.metric(&format!(
@@ -475,6 +480,33 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
         leaked.is_empty(),
         "line C spoke for dev-b on line A: {leaked:?}"
     );
+    // Loss reports: line C may tell line A what it missed of line A's (under its own key),
+    // not as line B. It learns line A's run (epoch) from a stamp of line A's messages: a
+    // report about another run of line A would be ignored whoever sent it.
+    c.ask("subscribe fbbus/line-a/**");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let mut epoch = json!(null);
+    for i in 15..35 {
+        publish(&press, "fb/press-8/PRESS/FORCE", force(i), false).await;
+        epoch = c.ask("epoch line-a")["epoch"].clone();
+        if !epoch.is_null() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(epoch.is_u64(), "line C never saw a message of line A");
+    assert_eq!(a.broker.metric(LOST_REPORTED), 0.0);
+    c.ask("loss line-b line-a 7");
+    c.ask("loss line-c line-a 5");
+    a.wait_metric(LOST_REPORTED, 5.0);
+    tokio::time::sleep(QUIET).await;
+    assert_eq!(
+        a.broker.metric(LOST_REPORTED),
+        5.0,
+        "line C's report as line B was taken"
+    );
+    received(&mut obs_a, Duration::from_millis(300)).await;
+    received(&mut obs_b, Duration::from_millis(300)).await;
     c.send("quit");
 
     // 4. A zenoh application with a reader's certificate: reads line A's messages (and the
@@ -510,7 +542,15 @@ async fn on_a_mutual_tls_bus_a_peer_speaks_only_for_itself() {
     historian.ask("token fbbus/@/line/historian");
     historian.ask("token fbbus/@/device/historian/hist-1");
     historian.ask("put fbbus/historian/fb/hist-1/PRESS/STOP historian true");
+    // Its loss report, about line A's current run (it read line A's messages above).
+    assert!(historian.ask("epoch line-a")["epoch"].is_u64());
+    historian.ask("loss historian line-a 3");
     tokio::time::sleep(QUIET).await;
+    assert_eq!(
+        a.broker.metric(LOST_REPORTED),
+        5.0,
+        "a reader's loss report was taken"
+    );
     for line in [&a, &b] {
         assert_eq!(line.record("hist-1"), None, "line {}", line.name);
         assert_eq!(refused_any(line, "historian"), 0.0, "line {}", line.name);

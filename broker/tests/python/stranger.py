@@ -19,6 +19,10 @@ Commands (every wait bounded):
                           put a registry record of DEVICE on fbbus/@/record/LINE/DEVICE
                           whose body says it is a device of CLAIMED, with an invented
                           interface (PRESS.STOP: BOOL, PRESS.FORCE: REAL)
+  epoch LINE              LINE's epoch, from the stamp of a message of LINE received so
+                          far: {"epoch": n or null}
+  loss REPORTER ORIGIN N  put a loss report on fbbus/@/loss/REPORTER/ORIGIN: N of
+                          ORIGIN's messages (of the epoch `epoch ORIGIN` gives) lost
   play LINE DEVICE        the issue's sequence: declare LINE's liveliness token, put the
                           record of DEVICE, declare DEVICE's token, put STOP true and
                           FORCE 999.5 on fbbus/LINE/fb/DEVICE/PRESS/..., stamped as LINE
@@ -71,6 +75,7 @@ seq = 0
 tokens = {}
 subscribers = []
 received = []
+epochs = {}
 lock = threading.Lock()
 
 
@@ -111,8 +116,12 @@ def token(key):
 
 
 def on_sample(sample):
+    stamped = sample.attachment.to_bytes() if sample.attachment is not None else b""
     with lock:
         received.append(str(sample.key_expr))
+        # fb-bridge/src/bus/stamp.rs: version 2 is [2, flags, epoch, seq, topic_seq, line].
+        if len(stamped) > 26 and stamped[0] == 2:
+            epochs[stamped[26:].decode(errors="replace")] = struct.unpack(">Q", stamped[2:10])[0]
 
 
 def peers():
@@ -149,6 +158,17 @@ def run(words):
         return {"put": words[1]}
     if command == "record":
         return {"record": record(words[1], words[2], words[3])}
+    if command == "epoch":
+        with lock:
+            return {"epoch": epochs.get(words[1])}
+    if command == "loss":
+        reporter, origin, lost = words[1], words[2], int(words[3])
+        with lock:
+            origin_epoch = epochs.get(origin, 0)
+        # fb-bridge/src/bus/loss.rs: origin's epoch, the reporter's, the count (big-endian).
+        report = struct.pack(">QQQ", origin_epoch, EPOCH, lost)
+        session.put(f"fbbus/@/loss/{reporter}/{origin}", report)
+        return {"loss": f"fbbus/@/loss/{reporter}/{origin}", "origin_epoch": origin_epoch}
     if command == "play":
         line, device = words[1], words[2]
         token(f"fbbus/@/line/{line}")
