@@ -52,6 +52,7 @@ pub mod sink;
 pub mod tally;
 pub mod target;
 pub mod wire;
+pub mod zenoh_floor;
 
 pub use run::{run, Plan};
 

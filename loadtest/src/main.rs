@@ -254,6 +254,13 @@ enum Command {
     /// bridge`: fbbus's typed topics, registry and bridge (`--bus tcp,mtls`: plain TCP
     /// vs mutual TLS with access control).
     Compare(Box<compare::CompareArgs>),
+    /// Internal (`compare bridge`): a zenoh peer on 127.0.0.1:PORT that answers pings,
+    /// until standard input closes (`loadtest::zenoh_floor`).
+    #[command(hide = true)]
+    ZenohPong {
+        #[arg(long)]
+        port: u16,
+    },
     /// Internal (`compare`): run raw rumqttd 0.20 on 127.0.0.1:PORT until killed.
     #[command(hide = true)]
     ServeRumqttd {
@@ -366,6 +373,15 @@ fn main() -> ExitCode {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 eprintln!("fbbus-loadtest serve-rumqttd: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    if let Command::ZenohPong { port } = &cli.scenario {
+        return match loadtest::zenoh_floor::serve_pong(*port) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("fbbus-loadtest zenoh-pong: {e:#}");
                 ExitCode::FAILURE
             }
         };
@@ -505,7 +521,10 @@ async fn run(cli: Cli) -> Result<()> {
             recurring_ids: *recurring_ids,
             mix: churn::parse_mix(mix).map_err(|e| anyhow::anyhow!("--mix {e}"))?,
         }),
-        Command::Render { .. } | Command::Compare(_) | Command::ServeRumqttd { .. } => {
+        Command::Render { .. }
+        | Command::Compare(_)
+        | Command::ServeRumqttd { .. }
+        | Command::ZenohPong { .. } => {
             unreachable!("handled above")
         }
         Command::Conveyor {

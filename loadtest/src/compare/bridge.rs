@@ -27,8 +27,10 @@
 //! B tcp, A -> B mtls, one broker, ...), each on freshly started processes, so machine
 //! noise hits every setup alike; the summary uses each setup's median. Then the hop's
 //! cost, p50(A -> B) − p50(one broker) and msg/s(A -> B) / msg/s(one broker), per bus,
-//! and every later bus as a ratio to each earlier one (`mtls/tcp`). Everything on 127.0.0.1;
-//! every loop is bounded by a count and a deadline.
+//! and every later bus as a ratio to each earlier one (`mtls/tcp`). Last, the floor under
+//! the hop: zenoh alone between two processes, ping-pong at 1,000 msg/s
+//! ([`loadtest::zenoh_floor`]), half a round trip being what zenoh itself adds one way.
+//! Everything on 127.0.0.1; every loop is bounded by a count and a deadline.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -168,6 +170,10 @@ struct Row {
     result: std::result::Result<Figures, String>,
 }
 
+/// Round trips and their rate for the floor under the hop ([`loadtest::zenoh_floor`]).
+const FLOOR_ROUND_TRIPS: usize = 2000;
+const FLOOR_RATE: u32 = 1000;
+
 pub async fn run(fbbus: &Path, p: &BridgeParams, out: &Path) -> Result<()> {
     let mut t = Transcript::default();
     header(&mut t, fbbus, p);
@@ -232,8 +238,24 @@ pub async fn run(fbbus: &Path, p: &BridgeParams, out: &Path) -> Result<()> {
         }
     }
 
+    eprintln!("bridge: zenoh alone");
+    let floor = tokio::task::spawn_blocking(|| {
+        loadtest::zenoh_floor::measure(FLOOR_ROUND_TRIPS, FLOOR_RATE)
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}"))
+    .and_then(|r| r);
     table(&mut t, &rows, p);
     summary(&mut t, &rows, p, started.elapsed());
+    match floor {
+        Ok(f) => t.line(format!(
+            "zenoh alone (loadtest::zenoh_floor: two processes, peers over loopback TCP, no TLS, \
+             {FLOOR_RATE} msg/s, {} round trips): one way p50 {:.0} us, p99 {:.0} us: what zenoh \
+             itself adds, the hop's floor here while the bus is zenoh over TCP",
+            f.samples, f.p50_us, f.p99_us
+        )),
+        Err(e) => t.line(format!("zenoh alone: n/a ({e:#})")),
+    }
     drop(pki);
     std::fs::create_dir_all(out).with_context(|| format!("creating --out {}", out.display()))?;
     let file = out.join("bridge.txt");
