@@ -623,6 +623,8 @@ impl Exporter {
             }
         };
         self.seq += 1;
+        // What other lines may report lost of this run is at most this (see `Reported`).
+        self.sessions.exported(self.seq);
         let stamp = Stamp {
             line: self.line.clone(),
             epoch: self.epoch,

@@ -136,8 +136,10 @@ impl Reported {
 
     /// `receiver` reports `report`: the messages it newly counts as lost (0 for a copy,
     /// an older report, one about another run of this line, or a receiver beyond
-    /// [`LOSS_LINES`]).
-    pub fn take(&mut self, receiver: &str, report: LossReport) -> u64 {
+    /// [`LOSS_LINES`]). A receiver's count is taken as at most `sent`, the messages this
+    /// run of the line has put on the bus: a line that claims more is wrong or lying, and
+    /// could otherwise run the sum past `u64::MAX`.
+    pub fn take(&mut self, receiver: &str, report: LossReport, sent: u64) -> u64 {
         if report.origin_epoch != self.own_epoch {
             return 0;
         }
@@ -157,8 +159,9 @@ impl Reported {
             // The receiver (re)started: it counts from 0.
             (*epoch, *last) = (report.receiver_epoch, 0);
         }
-        let new = report.lost.saturating_sub(*last);
-        *last = (*last).max(report.lost);
+        let lost = report.lost.min(sent);
+        let new = lost.saturating_sub(*last);
+        *last = (*last).max(lost);
         new
     }
 }
@@ -222,33 +225,49 @@ mod tests {
         assert_eq!(t.reports(1, false).len(), LOSS_LINES);
     }
 
+    const SENT: u64 = 1_000;
+
     #[test]
     fn the_origin_adds_each_receivers_news_once() {
         let mut r = Reported::new(10);
-        assert_eq!(r.take("line-b", report(10, 1, 5)), 5);
-        assert_eq!(r.take("line-b", report(10, 1, 5)), 0, "a copy");
-        assert_eq!(r.take("line-b", report(10, 1, 4)), 0, "an older report");
-        assert_eq!(r.take("line-b", report(10, 1, 8)), 3);
-        assert_eq!(r.take("line-c", report(10, 3, 2)), 2, "another receiver");
+        assert_eq!(r.take("line-b", report(10, 1, 5), SENT), 5);
+        assert_eq!(r.take("line-b", report(10, 1, 5), SENT), 0, "a copy");
         assert_eq!(
-            r.take("line-b", report(9, 1, 100)),
+            r.take("line-b", report(10, 1, 4), SENT),
+            0,
+            "an older report"
+        );
+        assert_eq!(r.take("line-b", report(10, 1, 8), SENT), 3);
+        assert_eq!(
+            r.take("line-c", report(10, 3, 2), SENT),
+            2,
+            "another receiver"
+        );
+        assert_eq!(
+            r.take("line-b", report(9, 1, 100), SENT),
             0,
             "about an earlier run"
         );
-        assert_eq!(r.take("line-b", report(10, 2, 1)), 1, "B restarted");
+        assert_eq!(r.take("line-b", report(10, 2, 1), SENT), 1, "B restarted");
         assert_eq!(
-            r.take("line-b", report(10, 1, 50)),
+            r.take("line-b", report(10, 1, 50), SENT),
             0,
             "B's earlier run, late"
         );
         for i in 0..LOSS_LINES {
-            r.take(&format!("l{i}"), report(10, 1, 1));
+            r.take(&format!("l{i}"), report(10, 1, 1), SENT);
         }
-        assert_eq!(r.take("one-more", report(10, 1, 1)), 0, "bounded");
+        assert_eq!(r.take("one-more", report(10, 1, 1), SENT), 0, "bounded");
         assert_eq!(
-            r.take("line-b", report(10, 2, 2)),
+            r.take("line-b", report(10, 2, 2), SENT),
             1,
             "a known one still counts"
         );
+        assert_eq!(
+            r.take("line-b", report(10, 2, u64::MAX), 7),
+            5,
+            "no more than this line sent"
+        );
+        assert_eq!(r.take("line-b", report(10, 2, u64::MAX), 7), 0);
     }
 }

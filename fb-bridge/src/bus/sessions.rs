@@ -61,6 +61,8 @@ struct Shared {
     records: Option<RecordOrder>,
     /// What the other lines reported of this line's messages lost on the way.
     reported: Mutex<Reported>,
+    /// Messages this line put on the bus in this run: no line can have lost more of them.
+    exported: AtomicU64,
 }
 
 /// Everything a newly attached session must declare too.
@@ -106,6 +108,7 @@ impl Sessions {
             interests: Presence::new(),
             records: (count > 1).then(RecordOrder::new),
             reported: Mutex::new(Reported::new(epoch)),
+            exported: AtomicU64::new(0),
         }));
         let (opened_tx, mut opened) = tokio::sync::mpsc::channel(count.max(1));
         for (slot, config) in configs.into_iter().enumerate() {
@@ -196,6 +199,11 @@ impl Sessions {
             .flatten()
             .or_else(|| slots.iter().flatten().next().cloned())
             .ok_or_else(|| LinkError::Zenoh("the link is closed".into()))
+    }
+
+    /// The exporter put its `count`-th message of this run.
+    pub(super) fn exported(&self, count: u64) {
+        self.0.exported.store(count, Ordering::Relaxed);
     }
 
     /// Changes when the active session or the set of sessions changed: a cache of handles
@@ -446,7 +454,7 @@ impl Sessions {
                 .reported
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .take(receiver, report);
+                .take(receiver, report, s.exported.load(Ordering::Relaxed));
             if lost > 0 {
                 let line = receiver.to_owned();
                 let _ = s.events.send(Event::LossReported { line, lost });
