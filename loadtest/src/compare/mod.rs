@@ -237,6 +237,11 @@ struct RunArgs {
     /// messages (--quick 5,000) are shared among them.
     #[arg(long, value_name = "N")]
     pairs: Option<usize>,
+    /// Messages per pair in `pairs` (default: the 100,000 shared among the pairs, 2,000
+    /// each). 100,000 take 0.1-0.3 s on 2 cores, short enough for one scheduling hiccup
+    /// to move a round by 2x; 20,000 per pair (1,000,000) run 1-3 s.
+    #[arg(long, value_name = "N")]
+    pairs_messages: Option<usize>,
     /// Duration of the steady-rate latency scenario in seconds (default 10; --quick 2).
     #[arg(long, value_name = "SECONDS")]
     latency_secs: Option<u64>,
@@ -622,6 +627,9 @@ async fn compare(
         let total = params.pairs * params.pairs_messages;
         params.pairs = n.max(1);
         params.pairs_messages = (total / params.pairs).max(1);
+    }
+    if let Some(n) = args.pairs_messages {
+        params.pairs_messages = n.max(1);
     }
     params.inflight = usize::from(inflight.max(1));
     if let Some(s) = args.latency_secs {
