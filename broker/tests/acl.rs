@@ -259,3 +259,50 @@ async fn acl_reloads_without_disconnects_and_denials_are_logged_once() {
     );
     assert!(dev1.alive(), "the reload kept dev1 connected");
 }
+
+/// A stranger cannot fill the log by reconnecting: each connection's denials are logged
+/// once per client and topic, and all of them together at most
+/// `logging::OUTSIDE_LINES_PER_MINUTE` (600) lines a minute; every denial is still
+/// counted. 700 connections, each denied once on a topic of its own.
+#[test]
+fn denials_from_a_loop_of_connections_stay_within_the_logs_budget() {
+    const CONNECTIONS: usize = 700;
+    let broker = line_broker();
+    for i in 0..CONNECTIONS {
+        let mut c = RawClient::connect(broker.port());
+        let client_id = format!("dev1-{i}");
+        let connect = raw::Connect {
+            client_id: &client_id,
+            login: Some(("dev1", "pw")),
+            ..Default::default()
+        };
+        assert_eq!(c.handshake(&connect), 0, "connection {i} refused");
+        c.send(&raw::publish_qos0(&format!("cell/{i}/cmd"), b"x"));
+        c.send(&raw::packet(0xE0, &[]));
+    }
+    assert_eq!(
+        broker.wait_metric(
+            "fbbus_acl_denied_total{action=\"publish\"}",
+            CONNECTIONS as f64
+        ),
+        CONNECTIONS as f64
+    );
+    let log = broker.log_text();
+    let logged = log.lines().filter(|l| l.contains("denied by ACL")).count();
+    assert!(
+        (500..=600).contains(&logged),
+        "{logged} denial lines for {CONNECTIONS} denials"
+    );
+    assert!(
+        log.contains("refusals of outside input this minute"),
+        "the log does not say that lines were left out"
+    );
+    // The broker serves on.
+    let mut c = RawClient::connect(broker.port());
+    let connect = raw::Connect {
+        client_id: "monitor",
+        login: Some(("monitor", "pw")),
+        ..Default::default()
+    };
+    assert_eq!(c.handshake(&connect), 0);
+}

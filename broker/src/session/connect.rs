@@ -110,7 +110,7 @@ impl Session {
                 logged,
             }) => {
                 ctx.metrics.refused(reason);
-                if !logged {
+                if !logged && crate::logging::OUTSIDE.allow() {
                     tracing::info!(%peer, client_id = %connect.client_id, reason, "CONNECT refused");
                 }
                 let _ = io.send(connack(code, None)).await;
@@ -525,7 +525,9 @@ fn authorize_will(
     if ctx.policy.will_allowed(who, &topic) {
         return Ok(());
     }
-    tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
+    if crate::logging::OUTSIDE.allow() {
+        tracing::warn!(client_id, ?topic, "will topic not allowed; CONNECT refused");
+    }
     Err(refused(
         ConnectReturnCode::NotAuthorized,
         "will_not_authorized",

@@ -437,7 +437,7 @@ impl Session {
                     .rare()
                     .logged_denials
                     .insert(("max_subscriptions_per_client", String::new()));
-                if first {
+                if first && crate::logging::OUTSIDE.allow() {
                     tracing::warn!(
                         client_id = &*self.client.client_id,
                         limit = self.ctx.max_subscriptions,
@@ -599,7 +599,7 @@ impl Session {
         if logged.len() >= MAX_LOGGED_DENIALS {
             return;
         }
-        if logged.insert((action, topic.to_owned())) {
+        if logged.insert((action, topic.to_owned())) && crate::logging::OUTSIDE.allow() {
             tracing::warn!(
                 client_id = &*self.client.client_id,
                 username = self.client.username.as_deref().unwrap_or(""),

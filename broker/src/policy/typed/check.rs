@@ -316,7 +316,10 @@ impl FbSession {
         let port = format!("{}.{}", own.fb, own.port);
         fb.metrics
             .typed_refused(&profile.device, &port, refusal.label());
-        if self.logged.len() < 1024 && self.logged.insert((own.topic.clone(), refusal.label())) {
+        if self.logged.len() < 1024
+            && self.logged.insert((own.topic.clone(), refusal.label()))
+            && crate::logging::OUTSIDE.allow()
+        {
             tracing::warn!(
                 device = profile.device,
                 client_id = self.client_id,

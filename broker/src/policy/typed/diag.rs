@@ -99,6 +99,7 @@ impl FbSession {
             && self
                 .logged
                 .insert((topic.to_owned(), rejection.refusal.label()))
+            && crate::logging::OUTSIDE.allow()
         {
             tracing::warn!(
                 device = self.device,

@@ -199,7 +199,10 @@ impl FbSession {
             .typed_not_reencoded
             .with_label_values(&[namespace])
             .inc();
-        if self.logged.len() < 1024 && self.logged.insert((topic.to_owned(), "not_reencoded")) {
+        if self.logged.len() < 1024
+            && self.logged.insert((topic.to_owned(), "not_reencoded"))
+            && crate::logging::OUTSIDE.allow()
+        {
             tracing::warn!(
                 device = self.device,
                 topic,
