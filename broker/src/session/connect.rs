@@ -382,7 +382,7 @@ fn client_id_refused(
     why: &str,
     reason: &'static str,
 ) -> Refused {
-    if ctx.identity.may_log(client_id, owner) {
+    if ctx.identity.may_log(client_id, owner) && crate::logging::OUTSIDE.allow() {
         tracing::warn!(
             %peer,
             client_id,
@@ -455,7 +455,7 @@ fn claim(
             Err(Refusal::Owned(owned)) => owned,
             Err(Refusal::Quota) => return Err(over_quota(ctx, peer, client_id, &identity, max)),
         };
-    if ctx.identity.may_log(client_id, owner) {
+    if ctx.identity.may_log(client_id, owner) && crate::logging::OUTSIDE.allow() {
         tracing::warn!(
             %peer,
             client_id,
