@@ -98,6 +98,8 @@ pub struct Spec<'a> {
     pub persistence: Option<&'a Persistence>,
     /// Mosquitto: lines added to its `mosquitto.conf` (`max_inflight_messages 100`).
     pub mosquitto_lines: &'a [String],
+    /// FlashMQ: lines added to its `flashmq.conf` (`client_max_write_buffer_size ...`).
+    pub flashmq_lines: &'a [String],
 }
 
 /// A broker child process; killed and reaped on drop.
@@ -517,6 +519,10 @@ fn flashmq_config(spec: &Spec<'_>, dir: &Path, port: u16) -> Result<String, Erro
     );
     if let Some(limit) = nofile_hard_limit() {
         config.push_str(&format!("rlimit_nofile {limit}\n"));
+    }
+    for line in spec.flashmq_lines {
+        config.push_str(line);
+        config.push('\n');
     }
     match spec.auth {
         Some(a) => {

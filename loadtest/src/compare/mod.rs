@@ -215,6 +215,11 @@ struct RunArgs {
     /// Skip the extra Mosquitto run with its shipped `set_tcp_nodelay false` (fanin, latency).
     #[arg(long)]
     no_mosquitto_default: bool,
+    /// A line added to FlashMQ's generated `flashmq.conf`, e.g.
+    /// `client_max_write_buffer_size 104857600` (its 1 MiB default per client is what makes
+    /// it drop most of a QoS 0 fan-in; repeatable).
+    #[arg(long = "flashmq-option", value_name = "LINE")]
+    flashmq_options: Vec<String>,
     /// Extra `[broker]` key for every fbbus's generated config, e.g.
     /// `router_segment_bytes=1048576` (repeatable; default: fbbus's own defaults).
     #[arg(long = "fbbus-broker-option", value_name = "KEY=VALUE")]
@@ -289,6 +294,8 @@ pub struct Contender {
     /// How its clients reach it; with several transports the label is
     /// `<broker>/<transport>`.
     pub transport: Transport,
+    /// Lines added to the peer's own config file (FlashMQ: `--flashmq-option`).
+    pub peer_lines: Vec<String>,
 }
 
 impl CompareArgs {
@@ -526,6 +533,7 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
             kind: Kind::Fbbus,
             program: existing_fbbus(default.to_path_buf())?,
             transport: Transport::Tcp,
+            peer_lines: Vec::new(),
         }]);
     }
     let mut out: Vec<Contender> = Vec::new();
@@ -547,6 +555,7 @@ fn fbbus_contenders(entries: &[String], default: &Path) -> Result<Vec<Contender>
             kind: Kind::Fbbus,
             program: existing_fbbus(PathBuf::from(path))?,
             transport: Transport::Tcp,
+            peer_lines: Vec::new(),
         });
     }
     Ok(out)
@@ -653,12 +662,14 @@ async fn compare(
                     .clone()
                     .unwrap_or_else(|| PathBuf::from("mosquitto")),
                 transport: Transport::Tcp,
+                peer_lines: Vec::new(),
             }),
             Kind::Rumqttd => contenders.push(Contender {
                 label: "rumqttd".into(),
                 kind: Kind::Rumqttd,
                 program: harness.to_path_buf(),
                 transport: Transport::Tcp,
+                peer_lines: Vec::new(),
             }),
             Kind::FlashMq => contenders.push(Contender {
                 label: "flashmq".into(),
@@ -666,6 +677,7 @@ async fn compare(
                 // Missing: every scenario's row says how to get it.
                 program: flashmq.clone().unwrap_or_else(|| PathBuf::from("flashmq")),
                 transport: Transport::Tcp,
+                peer_lines: args.flashmq_options.clone(),
             }),
             Kind::MosquittoDefault => {}
         }
@@ -688,6 +700,7 @@ async fn compare(
                     kind: c.kind,
                     program: c.program.clone(),
                     transport,
+                    peer_lines: c.peer_lines.clone(),
                 })
             })
             .collect();
@@ -730,6 +743,7 @@ async fn compare(
             .clone()
             .unwrap_or_else(|| PathBuf::from("mosquitto")),
         transport: Transport::Tcp,
+        peer_lines: Vec::new(),
     };
     for &scenario in &scenarios {
         let mut runs: Vec<&Contender> = Vec::new();
@@ -852,6 +866,7 @@ async fn run_one(
         acl: fbbus_acl,
         persistence: None,
         mosquitto_lines: &ws_lines,
+        flashmq_lines: &contender.peer_lines,
     };
     let mut broker: Running = match spawn::start(&spec).await {
         Ok(b) => b,
@@ -910,6 +925,7 @@ async fn start_fbbus(fbbus: &Path, broker_keys: &[String], tables: &str) -> Resu
         acl: None,
         persistence: None,
         mosquitto_lines: &[],
+        flashmq_lines: &[],
     })
     .await?)
 }

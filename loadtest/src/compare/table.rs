@@ -65,10 +65,11 @@ pub fn header(
             )),
             Kind::FlashMq => t.line(format!(
                 "flashmq:   {} ({}; thread_count {}, listener tcp_nodelay true, no storage_dir, \
-                 max_qos_msg_pending_per_client 65535, max_qos_bytes_pending_per_client 100 MiB, log_level warning)",
+                 max_qos_msg_pending_per_client 65535, max_qos_bytes_pending_per_client 100 MiB, log_level warning{})",
                 spawn::flashmq_version(&c.program),
                 c.program.display(),
                 std::thread::available_parallelism().map_or(1, |n| n.get()),
+                c.peer_lines.iter().map(|l| format!(", {l}")).collect::<String>(),
             )),
             Kind::MosquittoDefault => {}
         }

@@ -452,6 +452,7 @@ async fn one(
         acl: None,
         persistence: Some(&setup.persistence),
         mosquitto_lines: &mosquitto_lines,
+        flashmq_lines: &[],
     };
     let mut broker = match spawn::start(&spec).await {
         Ok(b) => b,
