@@ -109,6 +109,8 @@ pub struct Metrics {
     pub publisher_hold_ms: IntCounter,
     pub malformed_packets: IntCounter,
     pub oversized_packets: IntCounter,
+    /// Takeovers whose old connection did not finish reading in time (`session::takeover`).
+    pub takeovers_unfinished: IntCounter,
     /// Kept sessions an operator dropped (`session::control`).
     pub sessions_dropped: IntCounter,
     pub reloads: IntCounterVec,
@@ -521,6 +523,10 @@ impl Metrics {
             oversized_packets: counter(
                 "fbbus_oversized_packets_total",
                 "Connections closed for a packet over broker.max_packet_bytes",
+            ),
+            takeovers_unfinished: counter(
+                "fbbus_takeovers_unfinished_total",
+                "Takeovers that linked before the old connection read what its client had sent (it did not answer within 200 ms): those packets may be lost",
             ),
             sessions_dropped: counter(
                 "fbbus_sessions_dropped_total",

@@ -248,6 +248,7 @@ impl Broker {
             fb,
             sessions,
             clients: Arc::default(),
+            takeovers: Default::default(),
             redeliveries: Redeliveries::new(crate::router::saved_sessions_limit(
                 config.broker.max_connections,
             )),

@@ -102,6 +102,8 @@ impl Session {
     /// Ends the session: tells the client why (MQTT 5), the router that it is gone,
     /// fires the will if the end calls for it, and meters the disconnect.
     pub(super) async fn close(mut self, end: End) {
+        // What the client sent is routed: a newer connection waiting for that goes on.
+        self.ctx.takeovers.finished(self.session);
         // Whether this connection still is its client id's newest (not taken over).
         let current = self
             .ctx

@@ -17,7 +17,8 @@ use super::ack_order::AckOrder;
 use super::context::Context;
 use super::lifetime::{purge_router_session, SessionLifetime};
 use super::packet_ids::PacketIds;
-use super::table::{Owned, Refusal, Remains};
+use super::table::{Owned, Refusal, Remains, Running};
+use super::takeover::Finished;
 use super::ListenerPolicy;
 use super::Session;
 use crate::authenticator::Outcome;
@@ -432,13 +433,13 @@ fn not_another_users_name(
 /// session number taken, no registry change, no router link (which would take the session
 /// over). Otherwise the client id's next session number is taken, before the router link,
 /// because linking is what ends an older connection with this id, and that one must see it
-/// is stale. Returns the session number and whether the previous connection still runs.
+/// is stale. Returns the session number and the previous connection if it still runs.
 fn claim(
     ctx: &Context,
     peer: SocketAddr,
     client_id: &str,
     owner: &Owner,
-) -> Result<(u64, bool), Refused> {
+) -> Result<(u64, Option<Running>), Refused> {
     // The identity sessions are counted for: the verified username, else the peer's
     // address (every client when there is no password file).
     let identity = match owner {
@@ -544,17 +545,27 @@ struct Linked {
 }
 
 /// Links the claimed session (`claim`) to the router, which takes over an older session
-/// with the same id. Also returns the CONNACK: the router's for a session it may hold,
-/// made by the link for a clean one, which does not wait for the router
-/// (`RouterHandle::link`).
+/// with the same id, once that one finished reading what its client sent (`takeover`).
+/// Also returns the CONNACK: the router's for a session it may hold, made by the link for
+/// a clean one, which does not wait for the router (`RouterHandle::link`).
 async fn link(
     ctx: &Context,
     client_id: &str,
     username: Option<&str>,
     owner: &Owner,
-    (session, predecessor_running): (u64, bool),
+    (session, predecessor): (u64, Option<Running>),
     lifetime: SessionLifetime,
 ) -> Result<(Linked, Notification), Refused> {
+    let predecessor_running = predecessor.is_some();
+    if let Some(Running {
+        session: old,
+        nudge: Some(nudge),
+    }) = predecessor
+    {
+        if ctx.takeovers.finish(old, &nudge).await == Finished::TimedOut {
+            ctx.metrics.takeovers_unfinished.inc();
+        }
+    }
     ctx.wills.cancel_delayed(client_id, owner);
     let speaks_for_device = match username {
         Some(user) => user == client_id,
@@ -576,6 +587,7 @@ async fn link(
     // fbbus sends full topic names.
     match ctx.router.link(client_id, lifetime.clean_link, 0).await {
         Ok((link_tx, link_rx, ack)) => {
+            ctx.sessions.linked(client_id, session, link_rx.nudge());
             let linked = Linked {
                 session,
                 predecessor_running,

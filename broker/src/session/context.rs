@@ -11,6 +11,7 @@ use tokio::sync::watch;
 
 use super::redelivery::Redeliveries;
 use super::table::SessionTable;
+use super::takeover::Takeovers;
 use crate::authenticator::Authenticator;
 use crate::identity::Identities;
 use crate::metrics::Metrics;
@@ -36,6 +37,8 @@ pub struct Context {
     /// The connected clients, for the admin plane's list.
     pub clients: Arc<crate::clients::Clients>,
     pub redeliveries: Redeliveries,
+    /// New connections waiting for their client id's old connection to finish reading.
+    pub takeovers: Takeovers,
     /// What survives a restart; None with `[persistence] enabled = false`.
     pub store: Option<Arc<crate::store::Store>>,
     /// Each identity's share of the retained messages.

@@ -47,6 +47,7 @@ mod read_access;
 pub mod redelivery;
 pub mod restore;
 pub mod table;
+pub mod takeover;
 mod write;
 
 pub use context::Context;
@@ -404,7 +405,14 @@ impl Session {
                     self.heard();
                     Box::pin(self.read_packets()).await
                 }
-                Wake::Router { linked: true } => Box::pin(self.deliver()).await,
+                Wake::Router { linked: true } => {
+                    if self.link_rx.nudged() {
+                        if let Err(end) = Box::pin(self.finish_before_takeover()).await {
+                            return end;
+                        }
+                    }
+                    Box::pin(self.deliver()).await
+                }
                 Wake::Router { linked: false } => Err(Box::pin(self.router_dropped()).await),
                 Wake::Written => {
                     self.release_written();
@@ -522,6 +530,33 @@ impl Session {
             self.link_rx.wake().await.map_err(|_| End::Router)?;
         }
         Ok(())
+    }
+
+    /// A newer connection of this client id waits to take it over (`takeover`): what the
+    /// client sent before it came back is in the socket already, and is read and routed
+    /// now, before the new connection's link makes the router drop this one. At most
+    /// `FINISH_READS` reads, without waiting for more.
+    async fn finish_before_takeover(&mut self) -> Result<(), End> {
+        use futures_util::FutureExt;
+        let mut finished = Ok(());
+        for _ in 0..takeover::FINISH_READS {
+            let n = match self.io.fill().now_or_never() {
+                None => break,
+                Some(Ok(n)) => n,
+                Some(Err(_)) => {
+                    finished = Err(End::Abrupt);
+                    break;
+                }
+            };
+            self.ctx.metrics.bytes_in.inc_by(n as u64);
+            self.heard();
+            if let Err(end) = self.read_packets().await {
+                finished = Err(end);
+                break;
+            }
+        }
+        self.ctx.takeovers.finished(self.session);
+        finished
     }
 
     /// Hands the accepted packets of this read to the router: one wake-up per batch.

@@ -36,11 +36,16 @@
 //! than `[broker] max_sessions_per_identity` entries, connected and kept offline,
 //! atomically with the rest of `open`. Taking over or resuming one's own session adds
 //! nothing.
+//!
+//! **Linked.** Each connected entry keeps its link's [`Nudge`] once linked
+//! ([`SessionTable::linked`]), and `open` returns the one of the connection it supersedes:
+//! the new connection asks the old one to finish reading before it links (`takeover`).
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
+use rumqttd::local::Nudge;
 use tokio::time::Instant;
 
 use crate::identity::Owner;
@@ -80,6 +85,17 @@ struct Client {
     closed: Option<(u64, Option<Instant>)>,
     /// The identity this entry counts for (`per_identity`), if any.
     counted: Option<Arc<str>>,
+    /// The connected session's link, once linked (`takeover`).
+    nudge: Option<Nudge>,
+}
+
+/// The connection a new one supersedes, still running when the new one opened.
+#[derive(Debug)]
+pub struct Running {
+    /// Its session number.
+    pub session: u64,
+    /// Its link, if it was linked yet: to ask it to finish reading (`takeover`).
+    pub nudge: Option<Nudge>,
 }
 
 /// Why [`SessionTable::open_counted`] refused a CONNECT.
@@ -142,11 +158,11 @@ impl SessionTable {
     }
 
     /// Registers a new connection of `owner` for `client_id`; returns its session number,
-    /// and whether the previous connection of that client id is still running (has not
+    /// and the previous connection of that client id if it is still running (has not
     /// closed yet). Refused, changing nothing, when the client id's connected or kept
     /// session belongs to another identity.
     /// (Not counted for any identity: never `Refusal::Quota`.)
-    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, bool), Refusal> {
+    pub fn open(&self, client_id: &str, owner: &Owner) -> Result<(u64, Option<Running>), Refusal> {
         self.open_counted(client_id, owner, None, None)
     }
 
@@ -159,7 +175,7 @@ impl SessionTable {
         owner: &Owner,
         identity: Option<&str>,
         max: Option<usize>,
-    ) -> Result<(u64, bool), Refusal> {
+    ) -> Result<(u64, Option<Running>), Refusal> {
         let mut inner = self.inner();
         let existing = inner.clients.get(client_id);
         if let Some(other) = existing.filter(|c| c.owner != *owner) {
@@ -188,13 +204,30 @@ impl SessionTable {
                 connected: true,
                 closed: None,
                 counted,
+                nudge: None,
             },
         );
-        let previous_running = previous.as_ref().is_some_and(|c| c.connected);
+        let running = previous.as_ref().filter(|c| c.connected).map(|c| Running {
+            session: c.latest,
+            nudge: c.nudge.clone(),
+        });
         if let Some(previous) = previous {
             inner.forget(&previous);
         }
-        Ok((session, previous_running))
+        Ok((session, running))
+    }
+
+    /// The connection `session` of `client_id` is linked: a connection that takes it over
+    /// nudges it through `nudge`. Nothing when a newer connection took the entry already.
+    pub fn linked(&self, client_id: &str, session: u64, nudge: Nudge) {
+        if let Some(client) = self
+            .inner()
+            .clients
+            .get_mut(client_id)
+            .filter(|c| c.latest == session)
+        {
+            client.nudge = Some(nudge);
+        }
     }
 
     /// `client_id`'s newest session number, whether it is connected, and its owner.
@@ -403,8 +436,10 @@ mod tests {
     use super::*;
 
     fn open(t: &SessionTable, client_id: &str) -> (u64, bool) {
-        t.open(client_id, &Owner::Anonymous)
-            .expect("anonymous owns these")
+        let (session, running) = t
+            .open(client_id, &Owner::Anonymous)
+            .expect("anonymous owns these");
+        (session, running.is_some())
     }
 
     #[test]
@@ -463,7 +498,10 @@ mod tests {
     #[test]
     fn sessions_per_identity_are_bounded() {
         let t = SessionTable::new(10);
-        let open = |id: &str, who: &str| t.open_counted(id, &Owner::Anonymous, Some(who), Some(2));
+        let open = |id: &str, who: &str| {
+            t.open_counted(id, &Owner::Anonymous, Some(who), Some(2))
+                .map(|(session, running)| (session, running.is_some()))
+        };
         let (a, _) = open("a", "10.0.0.1").unwrap();
         let (b, _) = open("b", "10.0.0.1").unwrap();
         assert_eq!(open("c", "10.0.0.1"), Err(Refusal::Quota));
@@ -545,12 +583,12 @@ mod tests {
         let dev_a = Owner::User("devA".into());
         let (b1, _) = t.open("devB", &dev_b).unwrap();
         assert_eq!(
-            t.open("devB", &dev_a),
-            Err(Refusal::Owned(Owned { connected: true }))
+            t.open("devB", &dev_a).err(),
+            Some(Refusal::Owned(Owned { connected: true }))
         );
         assert_eq!(
-            t.open("devB", &Owner::Anonymous),
-            Err(Refusal::Owned(Owned { connected: true }))
+            t.open("devB", &Owner::Anonymous).err(),
+            Some(Refusal::Owned(Owned { connected: true }))
         );
         assert!(
             t.is_current("devB", b1),
@@ -558,13 +596,13 @@ mod tests {
         );
         t.close("devB", b1, Remains::Kept(None));
         assert_eq!(
-            t.open("devB", &dev_a),
-            Err(Refusal::Owned(Owned { connected: false }))
+            t.open("devB", &dev_a).err(),
+            Some(Refusal::Owned(Owned { connected: false }))
         );
         assert_eq!(t.len(), (0, 1), "the kept session is still there");
         // The owner itself takes its session back.
         let (b2, running) = t.open("devB", &dev_b).unwrap();
-        assert!(b2 > b1 && !running);
+        assert!(b2 > b1 && running.is_none());
         // A clean session leaves nothing: the client id is free again.
         t.close("devB", b2, Remains::Nothing);
         assert!(t.open("devB", &dev_a).is_ok());

@@ -3,6 +3,7 @@ use crate::protocol::{
     Filter, LastWill, LastWillProperties, Packet, Publish, QoS, RetainForwardRule, Subscribe,
     Unsubscribe,
 };
+pub use crate::router::wakeup::Nudge;
 use crate::router::Ack;
 use crate::router::{
     ids::ConnectionIds,
@@ -501,6 +502,17 @@ impl LinkRx {
 
     pub fn id(&self) -> ConnectionId {
         self.connection_id
+    }
+
+    /// fbbus: a handle that wakes this link from outside the router ([`Nudge`]).
+    pub fn nudge(&self) -> Nudge {
+        self.router_rx.nudge()
+    }
+
+    /// fbbus: whether a [`Nudge`] woke this link since it last looked (taken: asked again,
+    /// false until the next nudge).
+    pub fn nudged(&self) -> bool {
+        self.router_rx.take_nudge()
     }
 
     /// Collects 'all' the notifications the router buffered (one router trigger signifies

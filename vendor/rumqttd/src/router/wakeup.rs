@@ -13,8 +13,13 @@
 //! Order: the router fills the buffer, then [`WakeTx::wake`]; the link clears the flag,
 //! then takes the buffer. A wake that lands between the two makes one empty wake-up
 //! later, never a lost one.
+//!
+//! A [`Nudge`] wakes the link from outside the router, with nothing in its buffer and a
+//! flag of its own: fbbus asks a connection that is about to be taken over to read what
+//! its client sent first (`session::takeover`), through the wait the link does anyway.
 
 use std::future::poll_fn;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::task::{Poll, Waker};
 use std::time::Instant;
@@ -31,6 +36,7 @@ pub(crate) fn wakeup() -> (WakeTx, WakeRx) {
             waker: None,
         }),
         blocked: Condvar::new(),
+        nudged: AtomicBool::new(false),
     });
     (
         WakeTx {
@@ -44,6 +50,8 @@ struct Shared {
     state: Mutex<State>,
     /// A thread blocked in [`WakeRx::recv`] or [`WakeRx::recv_deadline`].
     blocked: Condvar,
+    /// A [`Nudge`] came and the link has not taken it yet.
+    nudged: AtomicBool,
 }
 
 struct State {
@@ -68,15 +76,42 @@ impl std::fmt::Debug for WakeTx {
 impl WakeTx {
     /// The link's buffer has something new.
     pub(crate) fn wake(&self) {
+        self.shared.wake();
+    }
+}
+
+impl Shared {
+    fn wake(&self) {
         let waker = {
-            let mut state = self.shared.state.lock();
+            let mut state = self.state.lock();
             state.woken = true;
             state.waker.take()
         };
         if let Some(waker) = waker {
             waker.wake();
         }
-        self.shared.blocked.notify_one();
+        self.blocked.notify_one();
+    }
+}
+
+/// Wakes a link without the router, flagged so the link can tell
+/// ([`crate::local::LinkRx::nudged`]). Holding one keeps nothing of the connection alive
+/// in the router.
+#[derive(Clone)]
+pub struct Nudge {
+    shared: Arc<Shared>,
+}
+
+impl std::fmt::Debug for Nudge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Nudge")
+    }
+}
+
+impl Nudge {
+    pub fn nudge(&self) {
+        self.shared.nudged.store(true, Ordering::Release);
+        self.shared.wake();
     }
 }
 
@@ -107,6 +142,20 @@ impl std::fmt::Debug for WakeRx {
 }
 
 impl WakeRx {
+    /// A handle that wakes this link flagged as nudged.
+    pub(crate) fn nudge(&self) -> Nudge {
+        Nudge {
+            shared: Arc::clone(&self.shared),
+        }
+    }
+
+    /// Takes the nudge flag: true once per [`Nudge::nudge`] (several before the link looked
+    /// count once). A relaxed load first, so the usual wake-up writes nothing.
+    pub(crate) fn take_nudge(&self) -> bool {
+        self.shared.nudged.load(Ordering::Relaxed)
+            && self.shared.nudged.swap(false, Ordering::Acquire)
+    }
+
     /// Waits for a wake-up; `Err` once the router dropped its side.
     pub(crate) async fn recv_async(&self) -> Result<(), RecvError> {
         poll_fn(|cx| {
@@ -185,6 +234,28 @@ mod tests {
         assert_eq!(rx.recv(), Ok(()), "the wake-up before the close first");
         assert_eq!(rx.recv(), Err(RecvError::Disconnected));
         assert_eq!(rx.recv_deadline(now()), Err(RecvTimeoutError::Disconnected));
+    }
+
+    #[test]
+    fn a_nudge_wakes_flagged_once_and_keeps_nothing_open() {
+        let (tx, rx) = wakeup();
+        let nudge = rx.nudge();
+        let now = Instant::now;
+        tx.wake();
+        assert_eq!(rx.recv_deadline(now()), Ok(()));
+        assert!(!rx.take_nudge(), "the router's wake-up is no nudge");
+        nudge.nudge();
+        nudge.nudge();
+        assert_eq!(rx.recv_deadline(now()), Ok(()), "a nudge wakes");
+        assert!(rx.take_nudge());
+        assert!(!rx.take_nudge(), "taken once");
+        drop(tx);
+        assert_eq!(
+            rx.recv(),
+            Err(RecvError::Disconnected),
+            "a nudge handle does not keep the link open"
+        );
+        nudge.nudge();
     }
 
     #[test]
