@@ -59,6 +59,8 @@ pub struct Settings {
     pub max_retained_bytes: usize,
     /// Longest time publishers are held back for a lagging subscriber; zero: never.
     pub slow_subscriber_hold: Duration,
+    /// QoS 1/2 deliveries in flight to one connection at most (`max_inflight_out`).
+    pub max_inflight_out: u16,
 }
 
 /// Router connections beyond `max_connections` for the broker's own links: its publisher,
@@ -187,9 +189,11 @@ impl RouterHandle {
         let router = Router::new(0, config).with_hooks(hooks);
         let ids = router.connection_ids();
         let router_tx = router.spawn();
+        let max_inflight = settings.max_inflight_out;
         RouterHandle {
             builder: Arc::new(move |client_id| {
                 LinkBuilder::new(client_id, router_tx.clone(), ids.clone())
+                    .max_inflight(max_inflight)
             }),
         }
     }

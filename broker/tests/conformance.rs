@@ -243,10 +243,17 @@ fn the_receive_maximum_disconnect_reaches_the_client_before_the_close() {
 }
 
 /// Lower-QoS deliveries are acknowledged to the router on the client's behalf: many more
-/// than the router's in-flight window must flow through a QoS 2 subscription.
+/// than the router's in-flight window (`max_inflight_out`, 50 here) must flow through a
+/// QoS 2 subscription.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn delivery_qos_is_the_lower_of_publication_and_subscription() {
-    let broker = Broker::start();
+    let broker = Broker::start_with(
+        common::Options {
+            extra: "max_inflight_out = 50\n".into(),
+            ..Default::default()
+        },
+        |_| {},
+    );
     let mut sub = V4::connect(broker.port(), "sub2", None).await.unwrap();
     sub.client
         .subscribe("q/#", rumqttc::QoS::ExactlyOnce)
@@ -327,6 +334,67 @@ async fn deliveries_respect_the_clients_receive_maximum() {
     assert!(
         read_publish(&mut c).is_none(),
         "a third delivery before any PUBACK"
+    );
+    let mut payloads = Vec::new();
+    while let Some((pkid, payload)) = window.first().copied() {
+        window.remove(0);
+        payloads.push(payload);
+        let [hi, lo] = pkid.to_be_bytes();
+        c.send(&[0x40, 0x02, hi, lo]);
+        if payloads.len() + window.len() < 10 {
+            window.push(read_publish(&mut c).expect("the next delivery after a PUBACK"));
+        }
+    }
+    assert_eq!(payloads, (0..10).collect::<Vec<u8>>());
+}
+
+/// `[broker] max_inflight_out`: an MQTT 3.1.1 client, which has no Receive Maximum, gets
+/// that many unacknowledged QoS 1 deliveries at most; the rest wait, in order, and follow
+/// as it acknowledges.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deliveries_in_flight_to_a_connection_are_bounded() {
+    const WINDOW: usize = 3;
+    let broker = Broker::start_with(
+        common::Options {
+            extra: format!("max_inflight_out = {WINDOW}\n"),
+            ..Default::default()
+        },
+        |_| {},
+    );
+    let mut c = RawClient::connect(broker.port());
+    let connect = raw::Connect {
+        client_id: "historian",
+        ..Default::default()
+    };
+    assert_eq!(c.handshake(&connect), 0);
+    let mut sub = raw::subscribe(4, 1, &["w"]);
+    *sub.last_mut().unwrap() = 1; // QoS 1
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
+    for i in 0..10u8 {
+        publisher
+            .client
+            .publish("w", rumqttc::QoS::AtLeastOnce, false, vec![i])
+            .await
+            .unwrap();
+    }
+    let read_publish = |c: &mut RawClient| -> Option<(u16, u8)> {
+        let (byte1, body) = c.read_packet()?;
+        assert_eq!(byte1 & 0xF0, 0x30);
+        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+        let pkid = u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]]);
+        Some((pkid, *body.last().unwrap()))
+    };
+    c.stream
+        .set_read_timeout(Some(Duration::from_millis(700)))
+        .unwrap();
+    let mut window: Vec<(u16, u8)> = (0..WINDOW)
+        .map(|i| read_publish(&mut c).unwrap_or_else(|| panic!("delivery {i} of the window")))
+        .collect();
+    assert!(
+        read_publish(&mut c).is_none(),
+        "a delivery beyond max_inflight_out before any PUBACK"
     );
     let mut payloads = Vec::new();
     while let Some((pkid, payload)) = window.first().copied() {

@@ -98,6 +98,13 @@ impl Config {
         if b.max_inflight == 0 {
             return Err(invalid(file, "broker.max_inflight", "must be at least 1"));
         }
+        if b.max_inflight_out == 0 {
+            return Err(invalid(
+                file,
+                "broker.max_inflight_out",
+                "must be at least 1",
+            ));
+        }
         // A day bounds both: beyond it the judgement means nothing, and the durations
         // they make cannot overflow.
         for (key, value) in [

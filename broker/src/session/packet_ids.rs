@@ -1,7 +1,7 @@
 //! Packet ids of deliveries as the client sees them, apart from the router's.
 //!
 //! rumqttd's router numbers each connection's QoS 1/2 deliveries itself, from 1 on every
-//! new connection and wrapping at 100. A session needs more of its packet ids than that:
+//! new connection and wrapping at its in-flight window (`[broker] max_inflight_out`). A session needs more of its packet ids than that:
 //!
 //! - a delivery re-sent when the session resumes keeps its original id [MQTT-4.4.0-1];
 //!   with a fresh count it would not, and a QoS 2 receiver could not tell it had the
@@ -31,7 +31,7 @@ use rumqttd::protocol::Packet;
 #[derive(Default)]
 pub struct PacketIds {
     /// Exchanges not yet complete, in the order they started. Bounded by the router's
-    /// in-flight window (100) plus the QoS 2 exchanges waiting for PUBCOMP.
+    /// in-flight window (`max_inflight_out`) plus the QoS 2 exchanges waiting for PUBCOMP.
     open: VecDeque<Exchange>,
     /// The last id handed out.
     last: u16,

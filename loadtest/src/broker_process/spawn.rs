@@ -96,7 +96,7 @@ pub struct Spec<'a> {
     pub acl: Option<&'a Path>,
     /// fbbus and Mosquitto: what they keep across a restart (None: see [`Persistence`]).
     pub persistence: Option<&'a Persistence>,
-    /// Mosquitto: lines added to its `mosquitto.conf` (`max_inflight_messages 100`).
+    /// Mosquitto: lines added to its `mosquitto.conf` (`max_inflight_messages 512`).
     pub mosquitto_lines: &'a [String],
     /// FlashMQ: lines added to its `flashmq.conf` (`client_max_write_buffer_size ...`).
     pub flashmq_lines: &'a [String],

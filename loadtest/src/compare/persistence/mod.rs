@@ -12,8 +12,9 @@
 //!   then and when it stops, not before it acknowledges a message);
 //! - `mosquitto-nopersist`: `persistence false`.
 //!
-//! Both Mosquittos run with `set_tcp_nodelay true` and `max_inflight_messages 100`, the
-//! window fbbus keeps towards a subscriber (Mosquitto's default is 20).
+//! Both Mosquittos run with `set_tcp_nodelay true` and `max_inflight_messages 512`, the
+//! window fbbus keeps towards a subscriber by default (`[broker] max_inflight_out`;
+//! Mosquitto's default is 20; until 2026-11-30 both were 100).
 //!
 //! Measured:
 //!
@@ -413,7 +414,7 @@ fn header(
     if setups.iter().any(|s| s.kind == Kind::Mosquitto) {
         match mosquitto {
             Some(path) => t.line(format!(
-                "mosquitto: {} ({}; set_tcp_nodelay true, max_queued_messages 100000, max_inflight_messages 100)",
+                "mosquitto: {} ({}; set_tcp_nodelay true, max_queued_messages 100000, max_inflight_messages 512)",
                 spawn::mosquitto_version(path),
                 path.display()
             )),
@@ -442,7 +443,7 @@ async fn one(
             "mosquitto is not installed (apt-get install -y mosquitto, or --mosquitto PATH)".into(),
         );
     }
-    let mosquitto_lines = ["max_inflight_messages 100".to_string()];
+    let mosquitto_lines = ["max_inflight_messages 512".to_string()];
     let spec = Spec {
         kind: setup.kind,
         program: &setup.program,

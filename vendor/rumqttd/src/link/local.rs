@@ -80,6 +80,8 @@ pub struct LinkBuilder<'a> {
     topic_alias_max: u16,
     // fbbus: true by default (`Connection::holds_publishers`)
     holds_publishers: bool,
+    // fbbus: `DEFAULT_MAX_INFLIGHT` by default
+    max_inflight: u16,
 }
 
 impl<'a> LinkBuilder<'a> {
@@ -99,7 +101,15 @@ impl<'a> LinkBuilder<'a> {
             dynamic_filters: false,
             topic_alias_max: 0,
             holds_publishers: true,
+            max_inflight: crate::router::iobufs::DEFAULT_MAX_INFLIGHT,
         }
+    }
+
+    /// fbbus: QoS 1/2 deliveries the router sends this connection unacknowledged at most
+    /// (at least 1); also its highest packet id.
+    pub fn max_inflight(mut self, max: u16) -> Self {
+        self.max_inflight = max.max(1);
+        self
     }
 
     pub fn tenant_id(mut self, tenant_id: Option<String>) -> Self {
@@ -229,7 +239,7 @@ impl<'a> LinkBuilder<'a> {
         connection.holds_publishers = self.holds_publishers;
         connection.acked_by_link = acked_by_link;
         let incoming = Incoming::new(connection.client_id.to_owned());
-        let (outgoing, link_rx) = Outgoing::new(connection.client_id.to_owned());
+        let (outgoing, link_rx) = Outgoing::new(connection.client_id.to_owned(), self.max_inflight);
         let pending = PendingLink {
             router_tx: self.router_tx,
             link_rx,

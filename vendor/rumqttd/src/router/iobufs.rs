@@ -11,8 +11,9 @@ use crate::{protocol::Packet, router::FilterIdx, Cursor, Notification};
 use super::wakeup::{wakeup, WakeRx, WakeTx};
 use super::Forward;
 
-const MAX_INFLIGHT: usize = 100;
-const MAX_PKID: u16 = MAX_INFLIGHT as u16;
+/// QoS 1/2 deliveries to one connection unacknowledged at once, unless its link says
+/// otherwise (fbbus: `LinkBuilder::max_inflight`; upstream's fixed window).
+pub const DEFAULT_MAX_INFLIGHT: u16 = 100;
 
 #[derive(Debug)]
 pub struct Incoming {
@@ -71,11 +72,13 @@ pub struct Outgoing {
     pub(crate) unacked_pubrels: VecDeque<u16>,
     /// Last packet id
     last_pkid: u16,
+    /// fbbus: deliveries in flight at most, and the highest packet id (ids wrap after it).
+    max_inflight: u16,
 }
 
 impl Outgoing {
     #[inline]
-    pub(crate) fn new(client_id: String) -> (Self, WakeRx) {
+    pub(crate) fn new(client_id: String, max_inflight: u16) -> (Self, WakeRx) {
         let (handle, rx) = wakeup();
         // fbbus: no buffer is preallocated (upstream reserved 200 notifications and 2 x 100
         // inflight entries per connection, ~40 KB for an idle device); they grow on use and
@@ -91,6 +94,7 @@ impl Outgoing {
             unacked_pubrels,
             handle,
             last_pkid: 0,
+            max_inflight: max_inflight.max(1),
         };
 
         (outgoing, rx)
@@ -112,7 +116,7 @@ impl Outgoing {
         // fbbus: saturating. `forward_device_data` never reads more QoS 1/2 messages than
         // there are free slots, so this cannot underflow; upstream's `push_forwards` warns
         // when it would have, and a warning must not turn into a panic here.
-        MAX_INFLIGHT.saturating_sub(self.inflight_buffer.len())
+        usize::from(self.max_inflight).saturating_sub(self.inflight_buffer.len())
     }
 
     pub fn push_notification(&mut self, notification: Notification) -> usize {
@@ -152,7 +156,7 @@ impl Outgoing {
                 .push_back((self.last_pkid, filter_idx, p.cursor));
 
             // Place max pkid packet at index 0
-            if self.last_pkid == MAX_PKID {
+            if self.last_pkid == self.max_inflight {
                 self.last_pkid = 0;
             }
 
@@ -162,10 +166,10 @@ impl Outgoing {
         let buffer_count = buffer.len();
         let inflight_count = self.inflight_buffer.len();
 
-        if inflight_count > MAX_INFLIGHT {
+        if inflight_count > usize::from(self.max_inflight) {
             warn!(
                 "More inflight publishes than max allowed, inflight count = {}, max allowed = {}",
-                inflight_count, MAX_INFLIGHT
+                inflight_count, self.max_inflight
             );
         }
 
@@ -236,7 +240,8 @@ mod test {
 
     #[test]
     fn retransmission_map_is_calculated_accurately() {
-        let (mut outgoing, _) = Outgoing::new("retransmission-test".to_string());
+        let (mut outgoing, _) =
+            Outgoing::new("retransmission-test".to_string(), DEFAULT_MAX_INFLIGHT);
         let mut result = HashMap::new();
 
         result.insert(0, (0, 8));

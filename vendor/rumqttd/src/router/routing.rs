@@ -2812,7 +2812,10 @@ mod fbbus_tests {
     fn connect(router: &mut Router, client_id: &str, clean: bool) -> Client {
         let connection = Connection::new(None, client_id.to_owned(), clean, false);
         let incoming = Incoming::new(client_id.to_owned());
-        let (outgoing, wakeups) = Outgoing::new(client_id.to_owned());
+        let (outgoing, wakeups) = Outgoing::new(
+            client_id.to_owned(),
+            crate::router::iobufs::DEFAULT_MAX_INFLIGHT,
+        );
         let client = Client {
             id: 0,
             incoming: incoming.buffer(),
@@ -2904,7 +2907,10 @@ mod fbbus_tests {
             let mut connection = Connection::new(None, "reader".to_owned(), true, false);
             connection.holds_publishers = holds_publishers;
             let incoming = Incoming::new("reader".to_owned());
-            let (outgoing, _wakeups) = Outgoing::new("reader".to_owned());
+            let (outgoing, _wakeups) = Outgoing::new(
+                "reader".to_owned(),
+                crate::router::iobufs::DEFAULT_MAX_INFLIGHT,
+            );
             let (reader_in, reader_out) = (incoming.buffer(), outgoing.buffer());
             let id = router.ids.take().expect("a free connection id");
             router.handle_new_connection(id, connection, incoming, outgoing);
