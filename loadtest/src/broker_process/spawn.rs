@@ -17,6 +17,12 @@ use tokio::io::AsyncWriteExt;
 
 use crate::{raw_client, scrape, Error};
 
+/// Mosquitto's QoS 1/2 window towards each client (`max_inflight_messages`): fbbus's
+/// default (`[broker] max_inflight_out`), so a QoS 1 scenario compares brokers, not
+/// windows (Mosquitto's default is 20; until 2026-11-30 the persistence comparison set
+/// 100 and the others kept 20).
+pub const MOSQUITTO_INFLIGHT: u16 = 512;
+
 /// How long a started broker may take to accept clients.
 const READY_WITHIN: Duration = Duration::from_secs(15);
 
@@ -96,7 +102,7 @@ pub struct Spec<'a> {
     pub acl: Option<&'a Path>,
     /// fbbus and Mosquitto: what they keep across a restart (None: see [`Persistence`]).
     pub persistence: Option<&'a Persistence>,
-    /// Mosquitto: lines added to its `mosquitto.conf` (`max_inflight_messages 512`).
+    /// Mosquitto: lines added to its `mosquitto.conf` (a second listener).
     pub mosquitto_lines: &'a [String],
     /// FlashMQ: lines added to its `flashmq.conf` (`client_max_write_buffer_size ...`).
     pub flashmq_lines: &'a [String],
@@ -318,6 +324,7 @@ pub async fn start(spec: &Spec<'_>) -> Result<Running, Error> {
                 "listener {port} 127.0.0.1\n\
                  set_tcp_nodelay {nodelay}\n\
                  max_queued_messages 100000\n\
+                 max_inflight_messages {MOSQUITTO_INFLIGHT}\n\
                  persistence {persist}\n\
                  log_dest none\n"
             );

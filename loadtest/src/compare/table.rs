@@ -47,7 +47,7 @@ pub fn header(
             )),
             Kind::Mosquitto => match mosquitto {
                 Some(m) => t.line(format!(
-                    "mosquitto: {} ({}; set_tcp_nodelay true, max_queued_messages 100000, persistence false{})",
+                    "mosquitto: {} ({}; set_tcp_nodelay true, max_queued_messages 100000, max_inflight_messages 512, persistence false{})",
                     spawn::mosquitto_version(m),
                     m.display(),
                     if nodelay_off_too {

@@ -443,7 +443,7 @@ async fn one(
             "mosquitto is not installed (apt-get install -y mosquitto, or --mosquitto PATH)".into(),
         );
     }
-    let mosquitto_lines = ["max_inflight_messages 512".to_string()];
+    let mosquitto_lines: [String; 0] = [];
     let spec = Spec {
         kind: setup.kind,
         program: &setup.program,
