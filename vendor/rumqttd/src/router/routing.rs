@@ -356,7 +356,10 @@ impl Router {
         // ref: https://docs.oasis-open.org/mqtt/mqtt/v3.1.1/os/mqtt-v3.1.1-os.html#_Toc398718032
 
         if let Some(&previous) = self.connection_map.get(&client_id) {
-            error!(
+            // fbbus: debug, not error: a session takeover is MQTT's normal behaviour, which
+            // the broker logs and counts itself (`fbbus_disconnects_total{reason="takeover"}`);
+            // an error line per takeover let a client reconnecting in a loop fill the log.
+            debug!(
                 "Duplicate client_id, dropping previous connection with connection_id: {}",
                 previous
             );
