@@ -320,32 +320,44 @@ async fn deliveries_respect_the_clients_receive_maximum() {
             .await
             .unwrap();
     }
-    let read_publish = |c: &mut RawClient| -> Option<(u16, u8)> {
-        let (byte1, body) = c.read_packet()?;
-        assert_eq!(byte1 & 0xF0, 0x30);
-        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
-        let pkid = u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]]);
-        Some((pkid, *body.last().unwrap()))
-    };
+    assert_eq!(
+        acknowledge_in_turn(&mut c, 2, 10, "a third delivery before any PUBACK"),
+        (0..10).collect::<Vec<u8>>()
+    );
+}
+
+/// Reads a QoS 1 PUBLISH (MQTT 3.1.1 or 5): its packet id and one-byte payload; None when
+/// nothing comes within the read timeout.
+fn read_qos1_publish(c: &mut RawClient) -> Option<(u16, u8)> {
+    let (byte1, body) = c.read_packet()?;
+    assert_eq!(byte1 & 0xF0, 0x30);
+    let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
+    let pkid = u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]]);
+    Some((pkid, *body.last().unwrap()))
+}
+
+/// Reads `window` deliveries, checks that no more come before a PUBACK (else fails with
+/// `beyond`), then acknowledges each in turn, reading the next, until `total` came.
+/// Returns their payloads in the order they came.
+fn acknowledge_in_turn(c: &mut RawClient, window: usize, total: usize, beyond: &str) -> Vec<u8> {
     c.stream
         .set_read_timeout(Some(Duration::from_millis(700)))
         .unwrap();
-    let mut window = vec![read_publish(&mut c).unwrap(), read_publish(&mut c).unwrap()];
-    assert!(
-        read_publish(&mut c).is_none(),
-        "a third delivery before any PUBACK"
-    );
+    let mut in_flight: Vec<(u16, u8)> = (0..window)
+        .map(|i| read_qos1_publish(c).unwrap_or_else(|| panic!("delivery {i} of the window")))
+        .collect();
+    assert!(read_qos1_publish(c).is_none(), "{beyond}");
     let mut payloads = Vec::new();
-    while let Some((pkid, payload)) = window.first().copied() {
-        window.remove(0);
+    while let Some((pkid, payload)) = in_flight.first().copied() {
+        in_flight.remove(0);
         payloads.push(payload);
         let [hi, lo] = pkid.to_be_bytes();
         c.send(&[0x40, 0x02, hi, lo]);
-        if payloads.len() + window.len() < 10 {
-            window.push(read_publish(&mut c).expect("the next delivery after a PUBACK"));
+        if payloads.len() + in_flight.len() < total {
+            in_flight.push(read_qos1_publish(c).expect("the next delivery after a PUBACK"));
         }
     }
-    assert_eq!(payloads, (0..10).collect::<Vec<u8>>());
+    payloads
 }
 
 /// `[broker] max_inflight_out`: an MQTT 3.1.1 client, which has no Receive Maximum, gets
@@ -379,34 +391,11 @@ async fn deliveries_in_flight_to_a_connection_are_bounded() {
             .await
             .unwrap();
     }
-    let read_publish = |c: &mut RawClient| -> Option<(u16, u8)> {
-        let (byte1, body) = c.read_packet()?;
-        assert_eq!(byte1 & 0xF0, 0x30);
-        let topic_len = u16::from_be_bytes([body[0], body[1]]) as usize;
-        let pkid = u16::from_be_bytes([body[2 + topic_len], body[3 + topic_len]]);
-        Some((pkid, *body.last().unwrap()))
-    };
-    c.stream
-        .set_read_timeout(Some(Duration::from_millis(700)))
-        .unwrap();
-    let mut window: Vec<(u16, u8)> = (0..WINDOW)
-        .map(|i| read_publish(&mut c).unwrap_or_else(|| panic!("delivery {i} of the window")))
-        .collect();
-    assert!(
-        read_publish(&mut c).is_none(),
-        "a delivery beyond max_inflight_out before any PUBACK"
+    let beyond = "a delivery beyond max_inflight_out before any PUBACK";
+    assert_eq!(
+        acknowledge_in_turn(&mut c, WINDOW, 10, beyond),
+        (0..10).collect::<Vec<u8>>()
     );
-    let mut payloads = Vec::new();
-    while let Some((pkid, payload)) = window.first().copied() {
-        window.remove(0);
-        payloads.push(payload);
-        let [hi, lo] = pkid.to_be_bytes();
-        c.send(&[0x40, 0x02, hi, lo]);
-        if payloads.len() + window.len() < 10 {
-            window.push(read_publish(&mut c).expect("the next delivery after a PUBACK"));
-        }
-    }
-    assert_eq!(payloads, (0..10).collect::<Vec<u8>>());
 }
 
 /// Connects, returns (session present, the client).
