@@ -299,31 +299,42 @@ async fn delivery_qos_is_the_lower_of_publication_and_subscription() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn deliveries_respect_the_clients_receive_maximum() {
     let broker = Broker::start();
-    let mut c = RawClient::connect(broker.port());
     let connect = raw::Connect {
         version: 5,
         client_id: "slow",
         receive_maximum: Some(2),
         ..Default::default()
     };
-    assert_eq!(c.handshake(&connect), 0);
-    let mut sub = raw::subscribe(5, 1, &["rm"]);
-    *sub.last_mut().unwrap() = 1; // QoS 1
-    c.send(&sub);
-    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
-
-    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
-    for i in 0..10u8 {
-        publisher
-            .client
-            .publish("rm", rumqttc::QoS::AtLeastOnce, false, vec![i])
-            .await
-            .unwrap();
-    }
+    let (mut c, _publisher) = subscribed_with_ten_waiting(&broker, &connect, "rm").await;
     assert_eq!(
         acknowledge_in_turn(&mut c, 2, 10, "a third delivery before any PUBACK"),
         (0..10).collect::<Vec<u8>>()
     );
+}
+
+/// A raw client connected with `connect` and subscribed to `topic` at QoS 1, with ten QoS 1
+/// messages (payloads 0..10) published to it by another client, which is returned too: it
+/// must live on, its messages go out from its event loop.
+async fn subscribed_with_ten_waiting(
+    broker: &Broker,
+    connect: &raw::Connect<'_>,
+    topic: &str,
+) -> (RawClient, V4) {
+    let mut c = RawClient::connect(broker.port());
+    assert_eq!(c.handshake(connect), 0);
+    let mut sub = raw::subscribe(connect.version, 1, &[topic]);
+    *sub.last_mut().unwrap() = 1; // QoS 1
+    c.send(&sub);
+    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
+    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
+    for i in 0..10u8 {
+        publisher
+            .client
+            .publish(topic, rumqttc::QoS::AtLeastOnce, false, vec![i])
+            .await
+            .unwrap();
+    }
+    (c, publisher)
 }
 
 /// Reads a QoS 1 PUBLISH (MQTT 3.1.1 or 5): its packet id and one-byte payload; None when
@@ -373,24 +384,11 @@ async fn deliveries_in_flight_to_a_connection_are_bounded() {
         },
         |_| {},
     );
-    let mut c = RawClient::connect(broker.port());
     let connect = raw::Connect {
         client_id: "historian",
         ..Default::default()
     };
-    assert_eq!(c.handshake(&connect), 0);
-    let mut sub = raw::subscribe(4, 1, &["w"]);
-    *sub.last_mut().unwrap() = 1; // QoS 1
-    c.send(&sub);
-    assert_eq!(c.read_packet().expect("SUBACK").0, 0x90);
-    let publisher = V4::connect(broker.port(), "pub", None).await.unwrap();
-    for i in 0..10u8 {
-        publisher
-            .client
-            .publish("w", rumqttc::QoS::AtLeastOnce, false, vec![i])
-            .await
-            .unwrap();
-    }
+    let (mut c, _publisher) = subscribed_with_ten_waiting(&broker, &connect, "w").await;
     let beyond = "a delivery beyond max_inflight_out before any PUBACK";
     assert_eq!(
         acknowledge_in_turn(&mut c, WINDOW, 10, beyond),
