@@ -113,12 +113,13 @@ async fn a_subscriber_that_stops_reading_does_not_hold_up_the_others() {
         "SPEED arrived after {:?}",
         started.elapsed()
     );
-    // The stalled subscriber no longer holds the connection up at all.
+    // The stalled subscriber no longer holds the connection up at all: had each of these
+    // 100 INDs waited its 500 ms for room, SPEED would come 50 s later. The bound is the
+    // time of ten such waits, not a speed: a loaded CI machine took over 400 ms to carry
+    // these 101 messages through a debug build.
     burst(&a, "POSITION", BURST..BURST + 100).await;
     burst(&a, "SPEED", std::iter::once(8)).await;
-    let started = Instant::now();
     assert_eq!(next_int(&mut speed, Duration::from_secs(5)).await, Some(8));
-    assert!(started.elapsed() < Duration::from_millis(400));
     assert!(b.status().0, "still connected: {:?}", b.status());
 
     // What POSITION kept: its queue's worth from the start, in order.
