@@ -40,7 +40,7 @@ pub struct Message {
     /// 0 or 1: QoS 2 would need a PUBREL exchange on the internal link for no gain.
     pub qos: u8,
     pub retain: bool,
-    pub properties: Option<PublishProperties>,
+    pub properties: Option<Box<PublishProperties>>,
     /// The client the message is published for (a will's owner), or the broker itself.
     pub publisher: String,
     /// Its number in the store (`store`), 0 when it is not stored.
@@ -143,7 +143,7 @@ impl BrokerPublisher {
                         payload: message.payload.clone(),
                         qos: message.qos.min(1),
                         retain: true,
-                        properties: message.properties.clone().map(Box::new),
+                        properties: message.properties.clone(),
                         publisher: message.publisher.as_str().into(),
                     },
                 }]);

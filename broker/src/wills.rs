@@ -329,7 +329,7 @@ impl Wills {
             None => 0,
         };
         // Exactly the client's properties: nothing added, nothing reordered.
-        let properties = will.properties.map(publish_properties);
+        let properties = will.properties.map(|p| Box::new(publish_properties(p)));
         self.publisher.publish(Message {
             topic: will.topic,
             payload: will.payload,

@@ -77,7 +77,7 @@ mod tests {
         };
         let mut wire = BytesMut::new();
         V5.write(
-            Packet::Publish(publish, Some(properties.clone())),
+            Packet::Publish(publish, Some(Box::new(properties.clone()))),
             &mut wire,
         )
         .unwrap();
@@ -91,6 +91,6 @@ mod tests {
         };
         assert_eq!(read.origin, None);
         // A client's user property of any name is just a user property.
-        assert_eq!(read_properties, Some(properties));
+        assert_eq!(read_properties, Some(Box::new(properties)));
     }
 }

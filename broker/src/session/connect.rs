@@ -72,11 +72,12 @@ impl Session {
 
         let accepted = async {
             let (client_id, assigned) = client_id(&connect)?;
-            let username = authenticate(ctx, peer, login, listener.anonymous).await?;
+            let username = authenticate(ctx, peer, login.map(|l| *l), listener.anonymous).await?;
             let owner = ctx.identity.owner(username.as_deref());
             bound_to_username(ctx, peer, &client_id, username.as_deref(), &owner)?;
             not_another_users_name(ctx, peer, &client_id, username.as_deref(), &owner)?;
-            let will = will.map(|w| Will::from_connect(w, will_properties, session_expiry));
+            let will =
+                will.map(|w| Will::from_connect(*w, will_properties.map(|p| *p), session_expiry));
             authorize_will(ctx, &client_id, username.as_deref(), will.as_ref())?;
             let lifetime = match version {
                 Version::V311 => SessionLifetime::v311(connect.clean_session),

@@ -159,11 +159,11 @@ impl Session {
     pub(super) fn on_publish(
         &mut self,
         publish: Publish,
-        properties: Option<PublishProperties>,
+        properties: Option<Box<PublishProperties>>,
         qos: u8,
         pkid: u16,
     ) -> Result<(), End> {
-        let topic = self.resolve_topic(&publish, properties.as_ref())?;
+        let topic = self.resolve_topic(&publish, properties.as_deref())?;
         if self.ctx.test_panic_topic.as_deref() == Some(topic.as_str()) {
             panic!(
                 "test_panic_topic: {} published on {topic}",

@@ -244,7 +244,7 @@ struct Session {
     /// later connection of this session re-sends, and under which ids (`redelivery`).
     ids: PacketIds,
     /// Deliveries waiting for the client's window, in order.
-    held: VecDeque<(Publish, Option<PublishProperties>)>,
+    held: VecDeque<(Publish, Option<Box<PublishProperties>>)>,
     /// Topic and payload bytes of `held`: part of the outgoing bytes queued for the
     /// client (`broker.slow_consumer_max_bytes`, `write`).
     held_bytes: usize,

@@ -286,7 +286,7 @@ impl Session {
                         false,
                         client_pkid,
                     );
-                    let properties: Option<PublishProperties> = m.properties.as_deref().cloned();
+                    let properties: Option<Box<PublishProperties>> = m.properties.clone();
                     let before = self.io.write.len();
                     self.io.queue(Packet::Publish(publish, properties));
                     if b.qos2.is_some() && self.io.write.len() > before {

@@ -66,7 +66,7 @@ async fn retained(restore: &Restore, ctx: &Context) -> Result<(), String> {
                     &mut publish,
                     origin::new(m.qos, true, &Arc::clone(&m.publisher)),
                 );
-                buffer.push_back(Packet::Publish(publish, m.properties.as_deref().cloned()));
+                buffer.push_back(Packet::Publish(publish, m.properties.clone()));
             }
         }
         // Wakes the router for what is buffered (a SUBSCRIBE to a topic nobody publishes).

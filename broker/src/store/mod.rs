@@ -514,7 +514,7 @@ impl Store {
                     payload: publish.payload.clone(),
                     qos,
                     retain: publish.retain,
-                    properties: properties.clone().map(Box::new),
+                    properties: properties.clone(),
                     publisher: Arc::clone(&origin.publisher),
                 },
             });

@@ -494,7 +494,7 @@ impl Writer<'_> {
             u16::from(m.qos > 0),
         );
         publish.origin = None;
-        let properties = m.properties.as_deref().cloned().map(|mut p| {
+        let properties = m.properties.clone().map(|mut p| {
             p.topic_alias = None;
             p.subscription_identifiers.clear();
             p
@@ -584,7 +584,7 @@ impl Reader<'_> {
             payload: publish.payload,
             qos,
             retain: publish.retain,
-            properties: properties.map(Box::new),
+            properties,
             publisher,
         })
     }

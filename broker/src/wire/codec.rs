@@ -87,7 +87,7 @@ pub fn connack(code: ConnectReturnCode, properties: Option<ConnAckProperties>) -
             session_present: false,
             code,
         },
-        properties,
+        properties.map(Box::new),
     )
 }
 

@@ -198,7 +198,8 @@ impl<'a> LinkBuilder<'a> {
             topic_alias_max: Some(crate::router::TOPIC_ALIAS_MAX),
             ..Default::default()
         };
-        let notification = Notification::DeviceAck(Ack::ConnAck(id, ack, Some(properties)));
+        let notification =
+            Notification::DeviceAck(Ack::ConnAck(id, ack, Some(Box::new(properties))));
         let tx = LinkTx::new(id, pending.router_tx.clone(), pending.incoming_data_buffer);
         let rx = LinkRx::new(
             id,

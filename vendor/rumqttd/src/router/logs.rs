@@ -20,7 +20,7 @@ use std::io;
 use std::sync::Arc;
 use std::time::Instant;
 
-type PubWithProp = (Publish, Option<PublishProperties>);
+type PubWithProp = (Publish, Option<Box<PublishProperties>>);
 
 /// fbbus: the invariant behind the lookups of `native` that cannot fail: `filter_indexes`
 /// and the read requests name only logs in `native`; a log is removed only with its index
@@ -39,7 +39,7 @@ const MAX_CACHED_TOPICS: usize = 16_384;
 #[derive(Clone)]
 pub struct PublishData {
     pub publish: Publish,
-    pub properties: Option<PublishProperties>,
+    pub properties: Option<Box<PublishProperties>>,
     pub timestamp: Instant,
 }
 
@@ -421,7 +421,7 @@ impl DataLog {
     pub fn insert_to_retained_publishes(
         &mut self,
         publish: Publish,
-        publish_properties: Option<PublishProperties>,
+        publish_properties: Option<Box<PublishProperties>>,
         topic: Topic,
     ) -> Result<(), RetainLimit> {
         let size = retained::size(&publish.topic, &publish.payload);
@@ -603,7 +603,7 @@ pub struct AckLog {
     // Committed acks per connection. First pkid, last pkid, data
     committed: VecDeque<Ack>,
     // Recorded qos 2 publishes
-    recorded: VecDeque<(Publish, Option<PublishProperties>)>,
+    recorded: VecDeque<(Publish, Option<Box<PublishProperties>>)>,
 }
 
 impl AckLog {
@@ -616,7 +616,12 @@ impl AckLog {
         }
     }
 
-    pub fn connack(&mut self, id: ConnectionId, ack: ConnAck, props: Option<ConnAckProperties>) {
+    pub fn connack(
+        &mut self,
+        id: ConnectionId,
+        ack: ConnAck,
+        props: Option<Box<ConnAckProperties>>,
+    ) {
         let ack = Ack::ConnAck(id, ack, props);
         self.committed.push_back(ack);
     }
@@ -631,7 +636,7 @@ impl AckLog {
         self.committed.push_back(ack);
     }
 
-    pub fn pubrec(&mut self, publish: Publish, props: Option<PublishProperties>, ack: PubRec) {
+    pub fn pubrec(&mut self, publish: Publish, props: Option<Box<PublishProperties>>, ack: PubRec) {
         let ack = Ack::PubRec(ack);
         self.recorded.push_back((publish, props));
         self.committed.push_back(ack);
@@ -647,7 +652,7 @@ impl AckLog {
         self.recorded.front().map(|(publish, _)| &publish.topic)
     }
 
-    pub fn pubcomp(&mut self, ack: PubComp) -> Option<(Publish, Option<PublishProperties>)> {
+    pub fn pubcomp(&mut self, ack: PubComp) -> Option<(Publish, Option<Box<PublishProperties>>)> {
         let ack = Ack::PubComp(ack);
         self.committed.push_back(ack);
         self.recorded.pop_front()

@@ -190,13 +190,13 @@ pub struct Forward {
     pub cursor: Option<(u64, u64)>,
     pub size: usize,
     pub publish: Publish,
-    pub properties: Option<PublishProperties>,
+    pub properties: Option<Box<PublishProperties>>,
 }
 
 #[derive(Debug, Clone)]
 #[allow(clippy::enum_variant_names)]
 pub enum Ack {
-    ConnAck(ConnectionId, ConnAck, Option<ConnAckProperties>),
+    ConnAck(ConnectionId, ConnAck, Option<Box<ConnAckProperties>>),
     // NOTE: using Option may be a better choice than new variant
     // ConnAckWithProperties(ConnectionId, ConnAck, ConnAckProperties),
     // TODO: merge the other variants as well using the same pattern
@@ -299,7 +299,7 @@ pub struct RetainedPending(
         Box<
             std::collections::VecDeque<(
                 crate::protocol::Publish,
-                Option<crate::protocol::PublishProperties>,
+                Option<Box<crate::protocol::PublishProperties>>,
             )>,
         >,
     >,

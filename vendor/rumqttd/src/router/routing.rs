@@ -450,7 +450,7 @@ impl Router {
         // fbbus: a link that did not wait for the router answered its client already
         // (`LinkBuilder::build_linked`).
         if !acked_by_link {
-            ackslog.connack(connection_id, ack, Some(properties));
+            ackslog.connack(connection_id, ack, Some(Box::new(properties)));
         }
 
         pending_acks.into_iter().for_each(|pkid| {
@@ -1496,14 +1496,16 @@ impl Router {
             origin: None, // fbbus
         };
 
-        let properties = will_props.map(|props| PublishProperties {
-            payload_format_indicator: props.payload_format_indicator,
-            message_expiry_interval: props.message_expiry_interval,
-            response_topic: props.response_topic,
-            correlation_data: props.correlation_data,
-            user_properties: props.user_properties,
-            content_type: props.content_type,
-            ..Default::default()
+        let properties = will_props.map(|props| {
+            Box::new(PublishProperties {
+                payload_format_indicator: props.payload_format_indicator,
+                message_expiry_interval: props.message_expiry_interval,
+                response_topic: props.response_topic,
+                correlation_data: props.correlation_data,
+                user_properties: props.user_properties,
+                content_type: props.content_type,
+                ..Default::default()
+            })
         });
 
         match append_will_message(
@@ -1543,7 +1545,7 @@ fn reads_from(request: &DataRequest, groups: &HashMap<String, SharedGroup>) -> u
 fn append_to_commitlog(
     id: ConnectionId,
     mut publish: Publish,
-    mut properties: Option<PublishProperties>,
+    mut properties: Option<Box<PublishProperties>>,
     datalog: &mut DataLog,
     notifications: &mut VecDeque<(ConnectionId, DataRequest)>,
     connections: &mut IdTable<Connection>,
@@ -1622,7 +1624,7 @@ fn append_to_commitlog(
 
 fn append_will_message(
     mut publish: Publish,
-    properties: Option<PublishProperties>,
+    properties: Option<Box<PublishProperties>>,
     datalog: &mut DataLog,
     notifications: &mut VecDeque<(ConnectionId, DataRequest)>,
 ) -> Result<Offset, RouterError> {

@@ -1,7 +1,7 @@
 use super::*;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 
-fn len(_connack: &ConnAck, properties: &Option<ConnAckProperties>) -> usize {
+fn len(_connack: &ConnAck, properties: Option<&ConnAckProperties>) -> usize {
     let mut len = 1  // session present
                 + 1; // code
 
@@ -39,7 +39,7 @@ pub fn read(
 
 pub fn write(
     connack: &ConnAck,
-    properties: &Option<ConnAckProperties>,
+    properties: Option<&ConnAckProperties>,
     buffer: &mut BytesMut,
 ) -> Result<usize, Error> {
     let code = connect_code(connack.code)?;

@@ -384,11 +384,17 @@ impl Protocol for V5 {
             PacketType::Connect => {
                 let (connect, properties, will, willproperties, login) =
                     connect::read(fixed_header, packet)?;
-                Packet::Connect(connect, properties, will, willproperties, login)
+                Packet::Connect(
+                    connect,
+                    properties.map(Box::new),
+                    will.map(Box::new),
+                    willproperties.map(Box::new),
+                    login.map(Box::new),
+                )
             }
             PacketType::Publish => {
                 let (publish, properties) = publish::read(fixed_header, packet)?;
-                Packet::Publish(publish, properties)
+                Packet::Publish(publish, properties.map(Box::new))
             }
             PacketType::PubAck => {
                 let (puback, properties) = puback::read(fixed_header, packet)?;
@@ -429,7 +435,7 @@ impl Protocol for V5 {
             // 3.1.1 codec does (found by broker/fuzz `mqtt_decode`).
             PacketType::ConnAck => {
                 let (connack, properties) = connack::read(fixed_header, packet)?;
-                Packet::ConnAck(connack, properties)
+                Packet::ConnAck(connack, properties.map(Box::new))
             }
             PacketType::UnsubAck => {
                 let (unsuback, properties) = unsuback::read(fixed_header, packet)?;
@@ -450,14 +456,18 @@ impl Protocol for V5 {
                 login,
             ) => connect::write(
                 &connect,
-                &connect_properties,
-                &last_will,
-                &last_will_properties,
-                &login,
+                &connect_properties.map(|p| *p),
+                &last_will.map(|w| *w),
+                &last_will_properties.map(|p| *p),
+                &login.map(|l| *l),
                 buffer,
             )?,
-            Packet::ConnAck(connack, properties) => connack::write(&connack, &properties, buffer)?,
-            Packet::Publish(publish, properties) => publish::write(&publish, &properties, buffer)?,
+            Packet::ConnAck(connack, properties) => {
+                connack::write(&connack, properties.as_deref(), buffer)?
+            }
+            Packet::Publish(publish, properties) => {
+                publish::write(&publish, properties.as_deref(), buffer)?
+            }
             Packet::PubAck(puback, properties) => puback::write(&puback, &properties, buffer)?,
             Packet::Subscribe(subscribe, properties) => {
                 subscribe::write(&subscribe, &properties, buffer)?
@@ -514,10 +524,7 @@ mod fbbus_tests {
         let v4 = crate::protocol::v4::V4.write(connack(ConnectReturnCode::Banned), &mut buffer);
         assert!(matches!(v4, Err(Error::NotInThisVersion(_))), "{v4:?}");
         // MQTT 5 properties in a 3.1.1 packet.
-        let publish = Packet::Publish(
-            Publish::new("t", "p", false),
-            Some(PublishProperties::default()),
-        );
+        let publish = Packet::Publish(Publish::new("t", "p", false), Some(Box::default()));
         let v4 = crate::protocol::v4::V4.write(publish, &mut buffer);
         assert!(matches!(v4, Err(Error::NotInThisVersion(_))), "{v4:?}");
         assert!(buffer.is_empty(), "nothing half-written");

@@ -1,7 +1,7 @@
 use super::*;
 use bytes::{Buf, Bytes};
 
-pub fn len(publish: &Publish, properties: &Option<PublishProperties>) -> usize {
+pub fn len(publish: &Publish, properties: Option<&PublishProperties>) -> usize {
     let mut len = 2 + publish.topic.len();
     if publish.qos != QoS::AtMostOnce && publish.pkid != 0 {
         len += 2;
@@ -59,7 +59,7 @@ pub fn read(
 
 pub fn write(
     publish: &Publish,
-    properties: &Option<PublishProperties>,
+    properties: Option<&PublishProperties>,
     buffer: &mut BytesMut,
 ) -> Result<usize, Error> {
     let len = len(publish, properties);
