@@ -1,6 +1,8 @@
 //! Packets from the client: one dispatch per packet type (`Session::inbound`), then the
 //! PUBLISH and SUBSCRIBE handlers.
 
+use std::borrow::Cow;
+
 use fb_bridge::topic::filter;
 use rumqttd::protocol::{
     DisconnectReasonCode, Filter, Packet, PingResp, PubAck, PubAckReason, PubComp, PubCompReason,
@@ -163,8 +165,11 @@ impl Session {
         qos: u8,
         pkid: u16,
     ) -> Result<(), End> {
-        let topic = self.resolve_topic(&publish, properties.as_deref())?;
-        if self.ctx.test_panic_topic.as_deref() == Some(topic.as_str()) {
+        // The topic is read in place: only an alias makes a new string.
+        let mut publish = publish;
+        let raw = std::mem::take(&mut publish.topic);
+        let topic = self.resolve_topic(&raw, properties.as_deref())?;
+        if self.ctx.test_panic_topic.as_deref() == Some(&*topic) {
             panic!(
                 "test_panic_topic: {} published on {topic}",
                 self.client.client_id
@@ -214,14 +219,13 @@ impl Session {
                 ));
             }
         }
-        let mut publish = publish;
         let mut properties = properties;
         if publish.retain {
             // Charged to the publisher's share as the message subscribers will get: the
             // canonical encoding of a typed message.
             let (retained_topic, payload_len) = match routes.as_ref().and_then(|r| r.first()) {
                 Some((t, p)) => (t.as_str(), p.len()),
-                None => (topic.as_str(), publish.payload.len()),
+                None => (&*topic, publish.payload.len()),
             };
             let size = retained_topic.len() + payload_len;
             let clear = publish.payload.is_empty();
@@ -229,10 +233,13 @@ impl Session {
                 publish.retain = false;
             }
         }
-        if let Some(p) = properties.as_mut().filter(|p| p.topic_alias.is_some()) {
+        if let Some(p) = properties.as_mut() {
             p.topic_alias = None;
-            publish.topic = topic.into();
         }
+        publish.topic = match topic {
+            Cow::Borrowed(_) => raw,
+            Cow::Owned(aliased) => aliased.into(),
+        };
         let retain = publish.retain;
         self.ctx.metrics.messages_in.inc();
         self.client.received();
@@ -322,12 +329,12 @@ impl Session {
     }
 
     /// The topic a PUBLISH goes to, following MQTT 5 topic aliases.
-    pub(super) fn resolve_topic(
+    pub(super) fn resolve_topic<'t>(
         &mut self,
-        publish: &Publish,
+        raw: &'t [u8],
         properties: Option<&PublishProperties>,
-    ) -> Result<String, End> {
-        let Ok(topic) = std::str::from_utf8(&publish.topic) else {
+    ) -> Result<Cow<'t, str>, End> {
+        let Ok(topic) = std::str::from_utf8(raw) else {
             return Err(End::Malformed);
         };
         let alias = properties.and_then(|p| p.topic_alias);
@@ -337,12 +344,12 @@ impl Session {
             }
             (false, Some(alias)) => {
                 self.rare().topic_aliases.insert(alias, topic.to_owned());
-                topic.to_owned()
+                Cow::Borrowed(topic)
             }
-            (false, None) => topic.to_owned(),
+            (false, None) => Cow::Borrowed(topic),
             (true, Some(alias)) => {
                 match self.rare.as_ref().and_then(|r| r.topic_aliases.get(&alias)) {
-                    Some(t) => t.clone(),
+                    Some(t) => Cow::Owned(t.clone()),
                     None => {
                         return Err(End::ProtocolError(DisconnectReasonCode::TopicAliasInvalid))
                     }
