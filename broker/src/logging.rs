@@ -76,7 +76,8 @@ impl OnceAMinute {
 }
 
 /// Warnings and notes that outside input causes "once per connection", "per topic" or
-/// "per client id" (a refused CONNECT, an ACL denial, a refused typed publication). Each
+/// "per client id" (a refused CONNECT, an ACL denial, a refused typed publication, a
+/// connection closed for a malformed packet or as a slow consumer). Each
 /// site logs once where it says, but a stranger opens connections in a loop and invents
 /// topics, so once per connection is not once: a loop of refused CONNECTs logged a line
 /// each, and each connection up to 1,024 refused topics. These sites share one budget for

@@ -150,6 +150,45 @@ async fn publish_then_disconnect_in_one_write_is_delivered() {
     );
 }
 
+/// A stranger who connects in a loop and sends each time a malformed packet cannot fill
+/// the log: the "malformed packet; connection closed" lines share the broker's budget for
+/// what outside input causes (`logging::OUTSIDE`, 600 lines a minute), and every one is
+/// still counted. Found attacking the broker with random MQTT 5 properties: a line each.
+#[test]
+fn malformed_packets_from_a_loop_of_connections_stay_within_the_logs_budget() {
+    const CONNECTIONS: usize = 700;
+    let broker = Broker::start();
+    for i in 0..CONNECTIONS {
+        let mut c = RawClient::connect(broker.port());
+        let client_id = format!("stranger-{i}");
+        let connect = raw::Connect {
+            client_id: &client_id,
+            ..Default::default()
+        };
+        assert_eq!(c.handshake(&connect), 0, "connection {i} refused");
+        // A SUBSCRIBE whose topic length runs past the end of the packet.
+        c.send(&[0x82, 0x05, 0x00, 0x01, 0x00, 0x40, b'a']);
+    }
+    let series = "fbbus_malformed_packets_total";
+    assert_eq!(
+        broker.wait_metric(series, CONNECTIONS as f64),
+        CONNECTIONS as f64
+    );
+    let log = broker.log_text();
+    let logged = log
+        .lines()
+        .filter(|l| l.contains("malformed packet; connection closed"))
+        .count();
+    assert!(
+        (500..=600).contains(&logged),
+        "{logged} lines for {CONNECTIONS} malformed packets"
+    );
+    assert!(
+        log.contains("refusals of outside input this minute"),
+        "the log does not say that lines were left out"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_packet_closes_only_that_connection() {
     let broker = Broker::start();

@@ -128,12 +128,14 @@ impl Session {
                 let expiry = properties.and_then(|p| p.session_expiry_interval);
                 if let Some(expiry) = expiry.filter(|_| self.version == Version::V5) {
                     let Some(lifetime) = self.lifetime.on_disconnect(expiry) else {
-                        tracing::warn!(
-                            client_id = &*self.client.client_id,
-                            session_expiry = expiry,
-                            "DISCONNECT sets a Session Expiry Interval after CONNECT's 0; \
-                             protocol error"
-                        );
+                        if crate::logging::OUTSIDE.allow() {
+                            tracing::warn!(
+                                client_id = &*self.client.client_id,
+                                session_expiry = expiry,
+                                "DISCONNECT sets a Session Expiry Interval after CONNECT's 0; \
+                                 protocol error"
+                            );
+                        }
                         return Err(End::ProtocolError(DisconnectReasonCode::ProtocolError));
                     };
                     self.lifetime = lifetime;
@@ -147,10 +149,12 @@ impl Session {
                 })
             }
             Packet::Connect(..) => {
-                tracing::warn!(
-                    client_id = &*self.client.client_id,
-                    "second CONNECT; connection closed"
-                );
+                if crate::logging::OUTSIDE.allow() {
+                    tracing::warn!(
+                        client_id = &*self.client.client_id,
+                        "second CONNECT; connection closed"
+                    );
+                }
                 Err(End::ProtocolError(DisconnectReasonCode::ProtocolError))
             }
             // Server-only types never get here: `decode_frame` refuses them.
@@ -212,8 +216,10 @@ impl Session {
         if qos > 0 {
             self.inflight_in = self.inflight_in.saturating_add(1);
             if self.version == Version::V5 && self.inflight_in > self.ctx.max_inflight {
-                tracing::warn!(client_id = &*self.client.client_id, receive_maximum = self.ctx.max_inflight,
-                    "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
+                if crate::logging::OUTSIDE.allow() {
+                    tracing::warn!(client_id = &*self.client.client_id, receive_maximum = self.ctx.max_inflight,
+                        "more unacknowledged QoS 1/2 publications than the Receive Maximum; connection closed");
+                }
                 return Err(End::ProtocolError(
                     DisconnectReasonCode::ReceiveMaximumExceeded,
                 ));
@@ -358,11 +364,13 @@ impl Session {
             (true, None) => return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid)),
         };
         if !filter::valid_topic(&topic) {
-            tracing::warn!(
-                client_id = &*self.client.client_id,
-                ?topic,
-                "invalid topic name in PUBLISH; connection closed"
-            );
+            if crate::logging::OUTSIDE.allow() {
+                tracing::warn!(
+                    client_id = &*self.client.client_id,
+                    ?topic,
+                    "invalid topic name in PUBLISH; connection closed"
+                );
+            }
             return Err(End::ProtocolError(DisconnectReasonCode::TopicNameInvalid));
         }
         Ok(topic)

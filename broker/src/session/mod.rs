@@ -484,17 +484,21 @@ impl Session {
                 Ok(None) => break,
                 Err(ReadError::Oversized { size, max }) => {
                     self.ctx.metrics.oversized_packets.inc();
-                    tracing::warn!(
-                        client_id = &*self.client.client_id,
-                        size,
-                        max,
-                        "packet over max_packet_bytes; connection closed"
-                    );
+                    if crate::logging::OUTSIDE.allow() {
+                        tracing::warn!(
+                            client_id = &*self.client.client_id,
+                            size,
+                            max,
+                            "packet over max_packet_bytes; connection closed"
+                        );
+                    }
                     return Err(End::Oversized);
                 }
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
-                    tracing::warn!(client_id = &*self.client.client_id, error = %e, "malformed packet; connection closed");
+                    if crate::logging::OUTSIDE.allow() {
+                        tracing::warn!(client_id = &*self.client.client_id, error = %e, "malformed packet; connection closed");
+                    }
                     return Err(End::Malformed);
                 }
             };
@@ -502,16 +506,20 @@ impl Session {
             let end = match decoded {
                 Ok(packet) => self.inbound(packet).err(),
                 Err(ReadError::ServerOnlyType(t)) => {
-                    tracing::warn!(
-                        client_id = &*self.client.client_id,
-                        packet_type = t,
-                        "server-only packet type from a client; connection closed"
-                    );
+                    if crate::logging::OUTSIDE.allow() {
+                        tracing::warn!(
+                            client_id = &*self.client.client_id,
+                            packet_type = t,
+                            "server-only packet type from a client; connection closed"
+                        );
+                    }
                     Some(End::ProtocolError(DisconnectReasonCode::ProtocolError))
                 }
                 Err(e) => {
                     self.ctx.metrics.malformed_packets.inc();
-                    tracing::warn!(client_id = &*self.client.client_id, error = %e, "malformed packet; connection closed");
+                    if crate::logging::OUTSIDE.allow() {
+                        tracing::warn!(client_id = &*self.client.client_id, error = %e, "malformed packet; connection closed");
+                    }
                     Some(End::Malformed)
                 }
             };

@@ -63,14 +63,16 @@ impl Session {
     }
 
     fn over_quota(&self, queued: usize) {
-        tracing::warn!(
-            client_id = &*self.client.client_id,
-            queued,
-            held = self.held_bytes,
-            limit = self.ctx.max_queued_bytes,
-            "slow consumer: more outgoing data queued than broker.slow_consumer_max_bytes; \
-             connection closed"
-        );
+        if crate::logging::OUTSIDE.allow() {
+            tracing::warn!(
+                client_id = &*self.client.client_id,
+                queued,
+                held = self.held_bytes,
+                limit = self.ctx.max_queued_bytes,
+                "slow consumer: more outgoing data queued than broker.slow_consumer_max_bytes; \
+                 connection closed"
+            );
+        }
     }
 
     /// The slow path of [`Session::write_out`]: the socket did not take everything.
@@ -120,7 +122,7 @@ impl Session {
         if let Err(end) = waited {
             let unwritten = self.io.unwritten();
             match end {
-                End::SlowConsumer => tracing::warn!(
+                End::SlowConsumer if crate::logging::OUTSIDE.allow() => tracing::warn!(
                     client_id = &*self.client.client_id,
                     unwritten,
                     waited_ms = started.elapsed().as_millis() as u64,
