@@ -205,6 +205,22 @@ impl Broker {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
 
+    /// Asserts that `refusals` refusals logged as `line` were held to the broker's budget
+    /// for outside input (`logging::OUTSIDE`, 600 lines a minute): 500-600 such lines,
+    /// and the line saying the rest were left out.
+    pub fn assert_within_log_budget(&self, line: &str, refusals: usize) {
+        let log = self.log_text();
+        let logged = log.lines().filter(|l| l.contains(line)).count();
+        assert!(
+            (500..=600).contains(&logged),
+            "{logged} lines \"{line}\" for {refusals} refusals"
+        );
+        assert!(
+            log.contains("refusals of outside input this minute"),
+            "the log does not say that lines were left out"
+        );
+    }
+
     pub fn metrics(&self) -> String {
         http_get_as(self.admin, "/metrics", self.admin_authorization.as_deref())
             .expect("metrics")
