@@ -137,7 +137,15 @@ async fn five_lines_two_routers_converge_and_survive_a_router() {
         for n in 2..=LINES {
             for d in [0, DEVICES - 1] {
                 if line.name != format!("line-{n}") {
-                    line.wait_record(&id(n, d), "online", PROPAGATION);
+                    // On failure every line's log: the one that did not come back tells
+                    // why (once in a full parallel run, line 4 of line 2, after 10 s).
+                    if let Err(failure) = line.poll_record(&id(n, d), "online", PROPAGATION) {
+                        let logs: String = lines[1..]
+                            .iter()
+                            .map(|l| format!("\n--- {}\n{}", l.name, l.broker.log_text()))
+                            .collect();
+                        panic!("{failure}{logs}");
+                    }
                 }
             }
         }

@@ -143,18 +143,26 @@ impl Line {
 
     /// Waits until this line's registry shows `id` with `status`; returns the record.
     pub fn wait_record(&self, id: &str, status: &str, within: Duration) -> Value {
+        self.poll_record(id, status, within)
+            .unwrap_or_else(|failure| {
+                panic!("{failure}\n{}", self.broker.log_text());
+            })
+    }
+
+    /// [`Line::wait_record`] for a caller that shows more than this line's log when it
+    /// fails: the record, or what the line showed instead.
+    pub fn poll_record(&self, id: &str, status: &str, within: Duration) -> Result<Value, String> {
         let deadline = Instant::now() + within;
         loop {
             let record = self.record(id);
             if record.as_ref().is_some_and(|r| r["status"] == status) {
-                return record.unwrap();
+                return Ok(record.unwrap());
             }
             if Instant::now() > deadline {
-                panic!(
-                    "line {}: device {id} not {status} within {within:?}: {record:?}\n{}",
-                    self.name,
-                    self.broker.log_text()
-                );
+                return Err(format!(
+                    "line {}: device {id} not {status} within {within:?}: {record:?}",
+                    self.name
+                ));
             }
             std::thread::sleep(Duration::from_millis(50));
         }
